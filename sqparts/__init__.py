@@ -1,0 +1,69 @@
+"""sqparts: recover the part structure of objects from range images.
+
+An implementation of A. Pentland, "Recognition by Parts" (SRI, 1987) in JAX. The public
+API is exactly what this module re-exports, in pipeline order.
+"""
+
+from ._part import (
+    BEND_RANGE,
+    SQUARENESS_RANGE,
+    TAPER_RANGE,
+    Part,
+    inside_outside,
+    rotation_matrix,
+    stack_parts,
+    surface_point,
+)
+from ._camera import OrthographicCamera, PinholeCamera, ScannerCamera, camera_from_json
+from ._render import cast_batch, cast_part, cast_ray, cast_scene, render_each, render_range_image
+from ._scenes import BUILTIN_SCENES, BuiltinScene, builtin_scene
+from ._io import (
+    load_camera,
+    load_scene,
+    read_range_image,
+    save_camera,
+    save_scene,
+    scene_from_dict,
+    scene_to_dict,
+    write_range_image,
+)
+from ._mesh import load_mesh, part_mesh, render_mesh, save_mesh, scene_mesh
+
+__version__ = "0.1.0"
+
+__all__ = [
+    "BEND_RANGE",
+    "SQUARENESS_RANGE",
+    "TAPER_RANGE",
+    "Part",
+    "inside_outside",
+    "rotation_matrix",
+    "stack_parts",
+    "surface_point",
+    "OrthographicCamera",
+    "PinholeCamera",
+    "ScannerCamera",
+    "camera_from_json",
+    "cast_batch",
+    "cast_part",
+    "cast_ray",
+    "cast_scene",
+    "render_each",
+    "render_range_image",
+    "BUILTIN_SCENES",
+    "BuiltinScene",
+    "builtin_scene",
+    "load_camera",
+    "load_scene",
+    "read_range_image",
+    "save_camera",
+    "save_scene",
+    "scene_from_dict",
+    "scene_to_dict",
+    "write_range_image",
+    "load_mesh",
+    "part_mesh",
+    "render_mesh",
+    "save_mesh",
+    "scene_mesh",
+]

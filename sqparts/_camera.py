@@ -1,0 +1,270 @@
+"""Cameras: one ray per pixel, in the OpenCV camera frame (x right, y down, z forward).
+
+Every camera gives, for pixel (u, v) (u = column, v = row, centres at integers), a ray
+``origin + t * direction``. Directions are scaled so that the ray parameter ``t`` is
+exactly what the range image stores:
+
+* :class:`PinholeCamera`: origin 0, direction ((u-cx)/fx, (v-cy)/fy, 1); ``t`` is the
+  z-depth.
+* :class:`OrthographicCamera`: origin ((u-cx) s, (v-cy) s, 0), direction (0, 0, 1);
+  ``t`` is the z-depth.
+* :class:`ScannerCamera`: a wide-angle range finder like the paper's ERIM laser scanner.
+  Column u looks at azimuth az = (u - cx) * azimuth_step (positive to the right), row v
+  at elevation el = (v - cy) * elevation_step (positive downward); the unit direction is
+  (sin az cos el, sin el, cos az cos el); ``t`` is the *range along the ray*, not z.
+
+Range images are float32 arrays of shape (height, width) with NaN where there is no
+return.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+
+import jax.numpy as jnp
+import numpy as np
+
+from ._typing import Array, Float
+
+
+def _check_positive_int(name: str, value) -> int:
+    if isinstance(value, bool) or not isinstance(value, (int, np.integer)) or value <= 0:
+        raise ValueError(f"{name}: expected a positive integer, got {value!r}")
+    return int(value)
+
+
+def _check_finite(name: str, value, *, positive: bool = False) -> float:
+    try:
+        v = float(value)
+    except (TypeError, ValueError):
+        raise ValueError(f"{name}: expected a number, got {value!r}") from None
+    if not np.isfinite(v) or (positive and v <= 0):
+        want = "a finite number > 0" if positive else "a finite number"
+        raise ValueError(f"{name}: expected {want}, got {value!r}")
+    return v
+
+
+@dataclasses.dataclass(frozen=True)
+class _Camera:
+    width: int
+    height: int
+
+    measures_range = False
+    """True when the image stores range along the ray rather than z-depth."""
+
+    def _pixel_grid(self, window):
+        """Pixel centres (u, v) of the window (row0, col0, rows, cols) or the full image."""
+        if window is None:
+            row0, col0, rows, cols = 0, 0, self.height, self.width
+        else:
+            row0, col0, rows, cols = window
+        v = row0 + jnp.arange(rows, dtype=jnp.float32)
+        u = col0 + jnp.arange(cols, dtype=jnp.float32)
+        return jnp.meshgrid(u, v, indexing="xy")
+
+    def rays(self, window=None) -> tuple[Float[Array, "h w 3"], Float[Array, "h w 3"]]:
+        """Ray origins and directions for every pixel, or for ``window``.
+
+        ``window`` is ``(row0, col0, rows, cols)``; ``row0``/``col0`` may be traced,
+        ``rows``/``cols`` must be Python ints. Pixels outside the image are still given
+        rays (the window may hang over the border).
+        """
+        uu, vv = self._pixel_grid(window)
+        return self._rays(uu, vv)
+
+    def pixel_size_at(self, depth: Float[Array, "..."]) -> Float[Array, "..."]:
+        """Metric width of one pixel at the given depth (for pixel-equivalent errors)."""
+        raise NotImplementedError
+
+    def points(self, range_image) -> np.ndarray:
+        """Back-project a range image to camera-frame points, shape (h, w, 3), NaN = none."""
+        o, d = (np.asarray(a, np.float64) for a in self.rays())
+        r = np.asarray(range_image, np.float64)[..., None]
+        return o + r * d
+
+
+@dataclasses.dataclass(frozen=True)
+class PinholeCamera(_Camera):
+    """Pinhole camera with focal lengths ``fx``, ``fy`` and principal point ``cx``, ``cy``
+    in pixels; reads and writes Open3D's PinholeCameraIntrinsic JSON."""
+
+    fx: float
+    fy: float
+    cx: float
+    cy: float
+
+    def __post_init__(self):
+        _check_positive_int("width", self.width)
+        _check_positive_int("height", self.height)
+        for name in ("fx", "fy"):
+            object.__setattr__(self, name, _check_finite(name, getattr(self, name), positive=True))
+        for name in ("cx", "cy"):
+            object.__setattr__(self, name, _check_finite(name, getattr(self, name)))
+
+    def _rays(self, uu, vv):
+        d = jnp.stack([(uu - self.cx) / self.fx, (vv - self.cy) / self.fy, jnp.ones_like(uu)], -1)
+        return jnp.zeros_like(d), d
+
+    def pixel_size_at(self, depth):
+        return depth / (0.5 * (self.fx + self.fy))
+
+    def project(self, points):
+        """Camera-frame points (..., 3) to pixel coordinates (..., 2) as (u, v)."""
+        p = jnp.asarray(points)
+        return jnp.stack(
+            [self.fx * p[..., 0] / p[..., 2] + self.cx, self.fy * p[..., 1] / p[..., 2] + self.cy], -1
+        )
+
+    def to_json(self) -> dict:
+        k = np.array([[self.fx, 0, self.cx], [0, self.fy, self.cy], [0, 0, 1]], dtype=float)
+        return {
+            "width": self.width,
+            "height": self.height,
+            "intrinsic_matrix": k.flatten(order="F").tolist(),
+        }
+
+
+@dataclasses.dataclass(frozen=True)
+class OrthographicCamera(_Camera):
+    """Parallel rays along +z from the plane z = 0; ``pixel_size`` in scene units."""
+
+    pixel_size: float
+    cx: float
+    cy: float
+
+    def __post_init__(self):
+        _check_positive_int("width", self.width)
+        _check_positive_int("height", self.height)
+        object.__setattr__(
+            self, "pixel_size", _check_finite("pixel_size", self.pixel_size, positive=True)
+        )
+        for name in ("cx", "cy"):
+            object.__setattr__(self, name, _check_finite(name, getattr(self, name)))
+
+    def _rays(self, uu, vv):
+        s = self.pixel_size
+        o = jnp.stack([(uu - self.cx) * s, (vv - self.cy) * s, jnp.zeros_like(uu)], -1)
+        d = jnp.broadcast_to(jnp.array([0.0, 0.0, 1.0], jnp.float32), o.shape)
+        return o, d
+
+    def pixel_size_at(self, depth):
+        return jnp.full_like(jnp.asarray(depth), self.pixel_size)
+
+    def project(self, points):
+        p = jnp.asarray(points)
+        return jnp.stack(
+            [p[..., 0] / self.pixel_size + self.cx, p[..., 1] / self.pixel_size + self.cy], -1
+        )
+
+    def to_json(self) -> dict:
+        return {
+            "model": "orthographic",
+            "width": self.width,
+            "height": self.height,
+            "pixel_size": self.pixel_size,
+            "cx": self.cx,
+            "cy": self.cy,
+        }
+
+
+@dataclasses.dataclass(frozen=True)
+class ScannerCamera(_Camera):
+    """Wide-angle azimuth/elevation scanner; stores *range along the ray*.
+
+    ``azimuth_step`` and ``elevation_step`` are radians per pixel; ``cx``, ``cy`` the
+    pixel looking straight along +z. JSON: ``{"model": "scanner", "width", "height",
+    "azimuth_step", "elevation_step", "cx", "cy"}``.
+    """
+
+    azimuth_step: float
+    elevation_step: float
+    cx: float
+    cy: float
+
+    measures_range = True
+
+    def __post_init__(self):
+        _check_positive_int("width", self.width)
+        _check_positive_int("height", self.height)
+        for name in ("azimuth_step", "elevation_step"):
+            object.__setattr__(self, name, _check_finite(name, getattr(self, name), positive=True))
+        for name in ("cx", "cy"):
+            object.__setattr__(self, name, _check_finite(name, getattr(self, name)))
+        half_az = max(self.cx, self.width - 1 - self.cx) * self.azimuth_step
+        half_el = max(self.cy, self.height - 1 - self.cy) * self.elevation_step
+        if half_az >= np.pi / 2 or half_el >= np.pi / 2:
+            raise ValueError(
+                "azimuth_step/elevation_step: expected a field of view under 180 degrees, "
+                f"got half-angles {np.degrees(half_az):.1f} and {np.degrees(half_el):.1f} degrees"
+            )
+
+    def _rays(self, uu, vv):
+        az = (uu - self.cx) * self.azimuth_step
+        el = (vv - self.cy) * self.elevation_step
+        d = jnp.stack([jnp.sin(az) * jnp.cos(el), jnp.sin(el), jnp.cos(az) * jnp.cos(el)], -1)
+        return jnp.zeros_like(d), d
+
+    def pixel_size_at(self, depth):
+        return depth * 0.5 * (self.azimuth_step + self.elevation_step)
+
+    def to_json(self) -> dict:
+        return {
+            "model": "scanner",
+            "width": self.width,
+            "height": self.height,
+            "azimuth_step": self.azimuth_step,
+            "elevation_step": self.elevation_step,
+            "cx": self.cx,
+            "cy": self.cy,
+        }
+
+
+Camera = PinholeCamera | OrthographicCamera | ScannerCamera
+
+
+def camera_from_json(data: dict) -> Camera:
+    """Build a camera from its JSON dict (Open3D pinhole, orthographic or scanner)."""
+    if not isinstance(data, dict):
+        raise ValueError(f"camera: expected a JSON object, got {type(data).__name__}")
+    model = data.get("model", "pinhole")
+    known = {
+        "pinhole": {"width", "height", "intrinsic_matrix", "model"},
+        "orthographic": {"model", "width", "height", "pixel_size", "cx", "cy"},
+        "scanner": {"model", "width", "height", "azimuth_step", "elevation_step", "cx", "cy"},
+    }
+    if model not in known:
+        raise ValueError(
+            f"camera.model: expected one of {sorted(known)}, got {model!r}"
+        )
+    required = known[model] - {"model"}
+    missing = sorted(required - set(data))
+    if missing:
+        raise ValueError(f"camera: missing key(s) {missing} for a {model} camera")
+    unknown = sorted(set(data) - known[model])
+    if unknown:
+        raise ValueError(f"camera: unknown key(s) {unknown} for a {model} camera")
+    if model == "pinhole":
+        k = np.asarray(data["intrinsic_matrix"], dtype=float)
+        if k.size != 9:
+            raise ValueError(
+                f"camera.intrinsic_matrix: expected 9 numbers (column-major 3x3), got {k.size}"
+            )
+        k = k.reshape(3, 3, order="F")
+        if abs(k[0, 1]) > 1e-9 or abs(k[1, 0]) > 1e-9 or np.any(np.abs(k[2] - [0, 0, 1]) > 1e-9):
+            raise ValueError(
+                "camera.intrinsic_matrix: expected [[fx,0,cx],[0,fy,cy],[0,0,1]] "
+                f"(column-major), got {k.tolist()}"
+            )
+        return PinholeCamera(data["width"], data["height"], k[0, 0], k[1, 1], k[0, 2], k[1, 2])
+    if model == "orthographic":
+        return OrthographicCamera(
+            data["width"], data["height"], data["pixel_size"], data["cx"], data["cy"]
+        )
+    return ScannerCamera(
+        data["width"],
+        data["height"],
+        data["azimuth_step"],
+        data["elevation_step"],
+        data["cx"],
+        data["cy"],
+    )

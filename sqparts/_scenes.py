@@ -1,0 +1,175 @@
+"""Built-in scenes for the demo, tests, benchmarks and docs (paper Figures 2, 7, 8, 10).
+
+Each is a :class:`BuiltinScene`: a batched :class:`~sqparts.Part`, the camera that views
+it and a short description. Units are metres, camera frame OpenCV (y down, z forward).
+"""
+
+from __future__ import annotations
+
+import dataclasses
+
+import numpy as np
+
+from ._camera import Camera, OrthographicCamera, PinholeCamera, ScannerCamera
+from ._part import Part, stack_parts
+
+
+@dataclasses.dataclass(frozen=True)
+class BuiltinScene:
+    name: str
+    parts: Part
+    camera: Camera
+    part_names: tuple[str, ...]
+    description: str
+
+
+def _frame_from_z(axis) -> np.ndarray:
+    """Rotation vector turning local +z onto ``axis``."""
+    a = np.asarray(axis, float)
+    a = a / np.linalg.norm(a)
+    z = np.array([0.0, 0.0, 1.0])
+    c = np.cross(z, a)
+    s, cos = np.linalg.norm(c), float(z @ a)
+    if s < 1e-12:
+        return np.array([np.pi, 0.0, 0.0]) if cos < 0 else np.zeros(3)
+    return c / s * np.arctan2(s, cos)
+
+
+def _compose(rv_outer, rv_inner) -> np.ndarray:
+    """Rotation vector of R(rv_outer) @ R(rv_inner)."""
+    from ._part import rotation_matrix, rotation_vector
+
+    return rotation_vector(np.asarray(rotation_matrix(rv_outer)) @ np.asarray(rotation_matrix(rv_inner)))
+
+
+def limb(start, end, width, depth=None, squareness=(1.0, 1.0), *, roll=0.0, bend=(0.0, 0.0), taper=0.0) -> Part:
+    """A part whose local z runs from ``start`` to ``end`` (camera frame), semi-axes
+    ``width`` (local x) and ``depth`` (local y, default ``width``), turned by ``roll``
+    radians about its own axis."""
+    start, end = np.asarray(start, float), np.asarray(end, float)
+    axis = end - start
+    orientation = _compose(_frame_from_z(axis), np.array([0.0, 0.0, roll]))
+    return Part(
+        size=np.array([width, width if depth is None else depth, np.linalg.norm(axis) / 2], np.float32),
+        squareness=np.asarray(squareness, np.float32),
+        position=((start + end) / 2).astype(np.float32),
+        orientation=orientation.astype(np.float32),
+        bend=np.asarray(bend, np.float32),
+        taper=np.float32(taper),
+    )
+
+
+def human(resolution: int = 128) -> BuiltinScene:
+    """An articulated person like Figure 7: 16 parts, the left arm raised with its
+    forearm pointing at the camera, 4 m away."""
+    z = 4.0
+    named = {
+        "head": limb([0, -0.90, z], [0, -0.66, z], 0.095, 0.105, (0.9, 1.0)),
+        "neck": limb([0, -0.67, z], [0, -0.57, z], 0.05),
+        "torso": limb([0, -0.58, z], [0, -0.08, z], 0.17, 0.10, (0.5, 0.6)),
+        "pelvis": limb([0, -0.10, z], [0, 0.06, z], 0.15, 0.10, (0.6, 0.6)),
+        "right upper arm": limb([-0.22, -0.54, z], [-0.27, -0.26, z], 0.05),
+        "right forearm": limb([-0.27, -0.26, z], [-0.29, -0.02, z], 0.042, taper=-0.25),
+        "right hand": limb([-0.29, -0.02, z], [-0.30, 0.08, z], 0.04, 0.02, (0.6, 0.8)),
+        "left upper arm": limb([0.22, -0.54, z], [0.42, -0.76, z], 0.05),
+        "left forearm": limb([0.43, -0.76, z - 0.02], [0.43, -0.76, z - 0.28], 0.042),
+        "left hand": limb([0.43, -0.76, z - 0.28], [0.43, -0.76, z - 0.38], 0.045, 0.03, (0.6, 0.8)),
+        "right thigh": limb([-0.09, 0.04, z], [-0.11, 0.46, z], 0.075, taper=-0.2),
+        "left thigh": limb([0.09, 0.04, z], [0.11, 0.46, z], 0.075, taper=-0.2),
+        "right calf": limb([-0.11, 0.46, z], [-0.11, 0.86, z], 0.055, taper=-0.2),
+        "left calf": limb([0.11, 0.46, z], [0.11, 0.86, z], 0.055, taper=-0.2),
+        "right foot": limb([-0.11, 0.89, z + 0.04], [-0.11, 0.89, z - 0.18], 0.045, 0.03, (0.6, 0.8)),
+        "left foot": limb([0.11, 0.89, z + 0.04], [0.11, 0.89, z - 0.18], 0.045, 0.03, (0.6, 0.8)),
+    }
+    f = resolution * z / 2.2
+    c = (resolution - 1) / 2
+    cam = PinholeCamera(resolution, resolution, f, f, c, c)
+    return BuiltinScene(
+        "human", stack_parts(named.values()), cam, tuple(named),
+        "an articulated person (Figure 7), 16 parts, 4 m from a pinhole camera",
+    )
+
+
+def chair(resolution: int = 96) -> BuiltinScene:
+    """A chair as in Figure 2(c): seat, bent back, four legs; seen from above at an angle."""
+    parts = {
+        "seat": limb([0, 0, -0.03], [0, 0, 0.03], 0.24, 0.22, (0.2, 0.3), roll=0.0),
+        "back": Part(size=np.array([0.03, 0.24, 0.25], np.float32), squareness=np.array([0.3, 0.3], np.float32),
+                     position=np.array([-0.23, 0, 0.28], np.float32), bend=np.array([-0.25, 0.0], np.float32)),
+    }
+    for i, (x, y) in enumerate([(-0.2, -0.18), (-0.2, 0.18), (0.2, -0.18), (0.2, 0.18)]):
+        parts[f"leg {i + 1}"] = limb([x, y, -0.03], [x, y, -0.45], 0.025, squareness=(0.3, 0.3))
+    # Chair frame: z up. Pose it in the camera frame: seen from above and from the side.
+    tilt = _compose(np.array([2.4, 0.0, 0.0]), np.array([0.0, 0.0, 0.6]))
+    rot = np.asarray(_rot(tilt))
+    posed = []
+    for p in parts.values():
+        pos = rot @ np.asarray(p.position, float) + np.array([0.0, 0.0, 3.0])
+        posed.append(Part(size=p.size, squareness=p.squareness, position=pos.astype(np.float32),
+                          orientation=_compose(tilt, np.asarray(p.orientation, float)).astype(np.float32),
+                          bend=p.bend, taper=p.taper))
+    f = resolution * 3.0 / 1.2
+    c = (resolution - 1) / 2
+    return BuiltinScene(
+        "chair", stack_parts(posed), PinholeCamera(resolution, resolution, f, f, c, c), tuple(parts),
+        "a chair (Figure 2c): square seat, bent back, four legs, seen from above at an angle",
+    )
+
+
+def _rot(rv):
+    from ._part import rotation_matrix
+
+    return rotation_matrix(np.asarray(rv, np.float32))
+
+
+def castings(resolution: int = 96, *, seed: int = 3) -> BuiltinScene:
+    """Jumbled industrial castings (Figure 8): blocks and cylinders in a heap, viewed from
+    above by an orthographic (light-striping) sensor."""
+    rng = np.random.default_rng(seed)
+    parts, names = [], []
+    for i in range(6):
+        cylinder = i % 2 == 0
+        size = rng.uniform([0.05, 0.05, 0.12], [0.08, 0.08, 0.22])
+        if not cylinder:
+            size[1] *= 0.6
+        xy = rng.uniform(-0.22, 0.22, 2)
+        rv = _compose(np.array([np.pi / 2 + rng.uniform(-0.4, 0.4), 0, 0]), np.array([0, rng.uniform(0, np.pi), 0]))
+        parts.append(Part(size=size.astype(np.float32),
+                          squareness=np.array([0.2, 1.0 if cylinder else 0.2], np.float32),
+                          position=np.array([xy[0], xy[1], 1.0 - 0.03 * i], np.float32),
+                          orientation=np.asarray(rv, np.float32)))
+        names.append(f"{'cylinder' if cylinder else 'block'} {i + 1}")
+    c = (resolution - 1) / 2
+    cam = OrthographicCamera(resolution, resolution, 0.7 / resolution, c, c)
+    return BuiltinScene("castings", stack_parts(parts), cam, tuple(names),
+                        "six jumbled castings (Figure 8) under an orthographic sensor")
+
+
+def gate(width: int = 128, height: int = 48) -> BuiltinScene:
+    """A field gate (Figure 10) 20 m away seen by a wide-angle scanner like the ERIM
+    range finder; its members are about two pixels wide."""
+    step = np.radians(0.25)
+    d = 20.0
+    w = d * step  # one pixel at 20 m
+    parts, names = [], []
+    for i, x in enumerate((-2.4, 2.4)):
+        parts.append(limb([x, -1.0, d], [x, 1.2, d], w, w, (0.2, 0.2)))
+        names.append(f"post {i + 1}")
+    for i, y in enumerate((-0.8, 0.05, 0.9)):
+        parts.append(limb([-2.4, y, d], [2.4, y, d], w, w, (0.2, 0.2)))
+        names.append(f"bar {i + 1}")
+    parts.append(limb([-2.3, 0.9, d], [2.3, -0.8, d], w, w, (0.2, 0.2)))
+    names.append("brace")
+    cam = ScannerCamera(width, height, step, step, (width - 1) / 2, (height - 1) / 2)
+    return BuiltinScene("gate", stack_parts(parts), cam, tuple(names),
+                        "a gate 20 m away (Figure 10), members about two pixels wide, scanner camera")
+
+
+BUILTIN_SCENES = {"human": human, "chair": chair, "castings": castings, "gate": gate}
+
+
+def builtin_scene(name: str, **kwargs) -> BuiltinScene:
+    """One of :data:`BUILTIN_SCENES` by name."""
+    if name not in BUILTIN_SCENES:
+        raise ValueError(f"scene: expected one of {sorted(BUILTIN_SCENES)}, got {name!r}")
+    return BUILTIN_SCENES[name](**kwargs)

@@ -1,0 +1,95 @@
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+from hypothesis import given, settings, strategies as st
+from scipy.spatial.transform import Rotation
+
+import sqparts
+from sqparts._part import deform, rotation_vector, undeform
+
+from conftest import random_part_kwargs
+
+
+@pytest.mark.parametrize(
+    "kwargs, match",
+    [
+        (dict(size=[0.1, -0.2, 0.3]), r"size: expected semi-axes > 0"),
+        (dict(size=[0.1, 0.2]), r"size: expected 3 semi-axes"),
+        (dict(size=[0.1, 0.2, 0.3], squareness=[0.05, 1.0]), r"squareness: expected values in \[0.1, 2.0\]"),
+        (dict(size=[0.1, 0.2, 0.3], squareness=[1.0, 2.5]), r"squareness: expected values in"),
+        (dict(size=[0.1, np.nan, 0.3]), r"size: expected finite values"),
+        (dict(size=[0.1, 0.2, 0.3], position=[0, 0]), r"position: expected shape \(3,\)"),
+        (dict(size=[0.1, 0.2, 0.3], bend=[1.5, 0]), r"bend: expected values in \[-1.0, 1.0\]"),
+        (dict(size=[0.1, 0.2, 0.3], taper=-1.2), r"taper: expected values in"),
+        (dict(size=[0.1, 0.2, 0.3], orientation=[0, np.inf, 0]), r"orientation: expected finite"),
+    ],
+)
+def test_part_validation(kwargs, match):
+    with pytest.raises(ValueError, match=match):
+        sqparts.Part(**kwargs)
+
+
+def test_from_vector_checks_length():
+    with pytest.raises(ValueError, match=r"vector: expected a trailing axis of 14"):
+        sqparts.Part.from_vector(np.ones(13))
+
+
+def test_vector_round_trip(rng):
+    part = sqparts.Part(**random_part_kwargs(rng))
+    v = part.to_vector()
+    assert v.shape == (14,)
+    np.testing.assert_array_equal(sqparts.Part.from_vector(v).to_vector(), v)
+
+
+def test_rotation_matches_scipy(rng):
+    for _ in range(10):
+        rv = rng.normal(size=3) * 2
+        np.testing.assert_allclose(
+            sqparts.rotation_matrix(jnp.asarray(rv)), Rotation.from_rotvec(rv).as_matrix(), atol=2e-6
+        )
+        m = Rotation.from_rotvec(rv).as_matrix()
+        np.testing.assert_allclose(Rotation.from_rotvec(rotation_vector(m)).as_matrix(), m, atol=1e-9)
+    np.testing.assert_allclose(sqparts.rotation_matrix(jnp.zeros(3)), np.eye(3))
+    with pytest.raises(ValueError, match=r"rotation: expected an orthonormal matrix"):
+        rotation_vector(np.diag([1.0, 1.0, -1.0]))
+
+
+@settings(deadline=None, max_examples=15)
+@given(seed=st.integers(0, 2**31 - 1))
+def test_surface_points_have_inside_outside_one(seed):
+    rng = np.random.default_rng(seed)
+    part = sqparts.Part(**random_part_kwargs(rng))
+    eta = rng.uniform(-1.5, 1.5, 64)
+    omega = rng.uniform(-np.pi, np.pi, 64)
+    pts = jax.vmap(sqparts.surface_point, in_axes=(None, 0, 0))(part, eta, omega)
+    f = jax.vmap(sqparts.inside_outside, in_axes=(None, 0))(part, pts)
+    np.testing.assert_allclose(f, 1.0, rtol=2e-3)
+
+
+def test_inside_outside_closed_form_ellipsoid():
+    part = sqparts.Part(size=[1.0, 2.0, 3.0], position=[1.0, 0.0, 0.0])
+    p = jnp.array([1.5, 1.0, 1.0])
+    expected = 0.5**2 + 0.5**2 + (1 / 3) ** 2
+    np.testing.assert_allclose(sqparts.inside_outside(part, p), expected, rtol=1e-5)
+
+
+def test_deform_inverts(rng):
+    part = sqparts.Part(**random_part_kwargs(rng))
+    q = jnp.asarray(rng.uniform(-0.1, 0.1, (20, 3)), jnp.float32)
+    back = jax.vmap(lambda x: undeform(part, deform(part, x)))(q)
+    np.testing.assert_allclose(back, q, atol=1e-5)
+
+
+@pytest.mark.parametrize("squareness", [(0.1, 0.1), (2.0, 2.0), (0.1, 2.0), (1.0, 1.0)])
+def test_inside_outside_gradients_finite_at_singular_places(x64, squareness):
+    # On the axes (x = y = 0 etc.), at squareness limits, with zero bend and taper.
+    part = sqparts.Part(size=[0.3, 0.2, 0.5], squareness=squareness, position=[0.0, 0.0, 2.0])
+    vec = part.to_vector()
+
+    def f(v, p):
+        return sqparts.inside_outside(sqparts.Part.from_vector(v), p)
+
+    for p in ([0.0, 0.0, 2.0], [0.0, 0.0, 2.3], [0.1, 0.0, 2.0], [0.0, 0.1, 2.0]):
+        g_v, g_p = jax.grad(f, argnums=(0, 1))(vec, jnp.asarray(p))
+        assert np.all(np.isfinite(g_v)) and np.all(np.isfinite(g_p)), (squareness, p)

@@ -1,0 +1,200 @@
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+from jax.test_util import check_grads
+
+import sqparts
+from sqparts._render import cast_batch, cast_part
+
+from conftest import random_part_kwargs
+
+PINHOLE = sqparts.PinholeCamera(64, 64, 100.0, 100.0, 31.5, 31.5)
+ORTHO = sqparts.OrthographicCamera(64, 64, 0.011, 31.5, 31.5)
+
+
+def _ellipsoid_depth(camera, center, rot, size):
+    """Closed-form first hit of every camera ray with an ellipsoid."""
+    o, d = (np.asarray(a, np.float64) for a in camera.rays())
+    m = rot.T / np.asarray(size)[:, None]  # maps camera offsets to the unit sphere
+    oo = (o - center) @ m.T
+    dd = d @ m.T
+    a = (dd * dd).sum(-1)
+    b = (oo * dd).sum(-1)
+    c = (oo * oo).sum(-1) - 1
+    disc = b * b - a * c
+    t = (-b - np.sqrt(np.maximum(disc, 0))) / a
+    return np.where(disc > 0, t, np.nan)
+
+
+def _compare(ref, ours, camera):
+    a, b = np.isfinite(ref), np.isfinite(ours)
+    iou = (a & b).sum() / max((a | b).sum(), 1)
+    both = a & b
+    px = np.asarray(camera.pixel_size_at(jnp.asarray(ref[both])))
+    err = np.abs(ref[both] - ours[both]) / px
+    return iou, float(np.median(err)) if err.size else np.inf
+
+
+@pytest.mark.parametrize("camera", [PINHOLE, ORTHO], ids=["pinhole", "orthographic"])
+def test_ellipsoids_match_closed_form(camera, rng):
+    for _ in range(10):
+        kw = random_part_kwargs(rng, deform=False)
+        kw["squareness"] = [1.0, 1.0]
+        part = sqparts.Part(**kw)
+        ref = _ellipsoid_depth(
+            camera, kw["position"], np.asarray(sqparts.rotation_matrix(part.orientation)), kw["size"]
+        )
+        ours = np.asarray(sqparts.render_range_image(part, camera))
+        iou, med = _compare(ref, ours, camera)
+        assert iou >= 0.99 and med <= 0.05, (iou, med)
+        assert ours.dtype == np.float32
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("camera", [PINHOLE, ORTHO], ids=["pinhole", "orthographic"])
+def test_random_deformed_parts_match_trimesh(camera):
+    rng = np.random.default_rng(1 if camera is PINHOLE else 2)
+    ious, meds = [], []
+    for _ in range(30):
+        part = sqparts.Part(**random_part_kwargs(rng))
+        ref = sqparts.render_mesh(sqparts.part_mesh(part, resolution=20), camera)
+        ours = np.asarray(sqparts.render_range_image(part, camera))
+        iou, med = _compare(ref, ours, camera)
+        ious.append(iou)
+        meds.append(med)
+    assert min(ious) >= 0.99, ious
+    assert max(meds) <= 0.05, meds
+
+
+def test_scanner_stores_range_along_ray():
+    cam = sqparts.ScannerCamera(64, 32, np.radians(1.0), np.radians(1.0), 31.5, 15.5)
+    center = np.array([1.0, -0.3, 8.0])
+    part = sqparts.Part(size=[1.5, 1.5, 1.5], position=center)
+    ours = np.asarray(sqparts.render_range_image(part, cam), np.float64)
+    _, d = (np.asarray(a, np.float64) for a in cam.rays())
+    b = d @ center
+    disc = b * b - (center @ center - 2.25)
+    ref = np.where(disc > 0, b - np.sqrt(np.maximum(disc, 0)), np.nan)
+    iou, _ = _compare(ref, ours, cam)
+    assert iou >= 0.99
+    both = np.isfinite(ref) & np.isfinite(ours)
+    np.testing.assert_allclose(ours[both], ref[both], atol=1e-4)
+
+
+def test_scene_nearest_hit_wins(rng):
+    a = sqparts.Part(**random_part_kwargs(rng, distance=2.0))
+    b = sqparts.Part(**random_part_kwargs(rng, distance=2.15))
+    scene = sqparts.stack_parts([a, b])
+    depth, labels = sqparts.render_range_image(scene, PINHOLE, return_labels=True)
+    each = np.asarray(sqparts.render_each(scene, PINHOLE))
+    expected = np.fmin(each[0], each[1])
+    np.testing.assert_array_equal(np.isnan(depth), np.isnan(expected))
+    np.testing.assert_allclose(depth, expected, rtol=1e-6, equal_nan=True)
+    lab = np.asarray(labels)
+    hit = np.isfinite(expected)
+    np.testing.assert_array_equal(lab[~hit], -1)
+    np.testing.assert_array_equal(np.nanargmin(np.where(np.isnan(each), np.inf, each), 0)[hit], lab[hit])
+
+
+def test_moving_a_part_moves_its_rendering(rng):
+    part = sqparts.Part(**random_part_kwargs(rng, deform=False))
+    moved = sqparts.Part.from_vector(part.to_vector().at[2].add(0.25))
+    d0 = np.asarray(sqparts.render_range_image(part, ORTHO))
+    d1 = np.asarray(sqparts.render_range_image(moved, ORTHO))
+    np.testing.assert_allclose(d1, d0 + 0.25, atol=1e-5)  # orthographic: pure depth shift
+    shifted = sqparts.Part.from_vector(part.to_vector().at[0].add(5 * ORTHO.pixel_size))
+    d2 = np.asarray(sqparts.render_range_image(shifted, ORTHO))
+    np.testing.assert_allclose(d2[:, 5:], d0[:, :-5], atol=1e-4)
+
+
+def test_window_equals_crop(rng):
+    part = sqparts.Part(**random_part_kwargs(rng))
+    full = np.asarray(sqparts.render_range_image(part, PINHOLE))
+    win = np.asarray(sqparts.render_range_image(part, PINHOLE, window=(10, 7, 20, 30)))
+    np.testing.assert_allclose(win, full[10:30, 7:37], rtol=1e-6, equal_nan=True)
+
+
+def test_jit_equals_no_jit_and_chunked_equals_unchunked(rng):
+    cam = sqparts.PinholeCamera(12, 12, 15.0, 15.0, 5.5, 5.5)
+    o, d = cam.rays()
+    parts = sqparts.stack_parts([sqparts.Part(**random_part_kwargs(rng)) for _ in range(7)])
+    t_jit, h_jit = jax.jit(cast_part)(parts[0], o, d)
+    with jax.disable_jit():
+        t_eager, h_eager = cast_part(parts[0], o, d)
+    np.testing.assert_array_equal(h_jit, h_eager)
+    np.testing.assert_allclose(t_jit, t_eager, rtol=1e-5)
+    full_t, full_h = jax.vmap(cast_part, in_axes=(0, None, None))(parts, o, d)
+    for bs in (1, 3, 7):
+        t, h = jax.jit(lambda p: cast_batch(p, o, d, batch_size=bs))(parts)
+        np.testing.assert_array_equal(h, full_h)
+        np.testing.assert_allclose(t, full_t, rtol=1e-6)
+
+
+def _interior_rays(part, camera, n=6):
+    """Rays that hit the part away from its silhouette (stable under small changes)."""
+    depth = np.asarray(sqparts.render_range_image(part, camera))
+    from scipy.ndimage import binary_erosion
+
+    inner = binary_erosion(np.isfinite(depth), iterations=3)
+    rows, cols = np.nonzero(inner)
+    pick = np.linspace(0, len(rows) - 1, n).astype(int)
+    o, d = camera.rays()
+    return o[rows[pick], cols[pick]], d[rows[pick], cols[pick]]
+
+
+@pytest.mark.parametrize("deformed", [False, True])
+def test_depth_gradients_match_finite_differences(x64, rng, deformed):
+    kw = random_part_kwargs(rng, deform=deformed)
+    kw["squareness"] = [0.7, 1.2]
+    part = sqparts.Part(**{k: np.asarray(v, np.float64) for k, v in kw.items()})
+    o, d = _interior_rays(part, PINHOLE)
+    o, d = jnp.asarray(o, jnp.float64), jnp.asarray(d, jnp.float64)
+
+    def depth_sum(v):
+        t, hit = cast_part(sqparts.Part.from_vector(v), o, d, 12)
+        return jnp.sum(t * jnp.arange(1, len(t) + 1))
+
+    v = part.to_vector()
+    assert v.dtype == jnp.float64
+    check_grads(depth_sum, (v,), order=1, modes=["rev", "fwd"], eps=1e-6, atol=1e-4, rtol=1e-4)
+    np.testing.assert_allclose(jax.jacfwd(depth_sum)(v), jax.jacrev(depth_sum)(v), rtol=1e-8, atol=1e-10)
+
+
+@pytest.mark.parametrize(
+    "kw",
+    [
+        dict(squareness=[0.1, 0.1]),
+        dict(squareness=[2.0, 2.0]),
+        dict(squareness=[1.0, 1.0]),
+        dict(squareness=[0.3, 1.0], bend=[0.0, 0.0], taper=0.0),
+    ],
+)
+def test_gradients_finite_on_axis_and_at_limits(x64, kw):
+    # The central ray runs exactly along the part's local z axis (x = y = 0 everywhere).
+    part = sqparts.Part(size=[0.2, 0.3, 0.4], position=[0.0, 0.0, 2.0], **kw)
+    o = jnp.zeros((1, 3), jnp.float64)
+    d = jnp.array([[0.0, 0.0, 1.0]], jnp.float64)
+
+    def depth(v):
+        t, hit = cast_part(sqparts.Part.from_vector(v), o, d)
+        return t[0]
+
+    v = part.to_vector()
+    np.testing.assert_allclose(depth(v), 1.6, atol=1e-9)
+    g = jax.grad(depth)(v)
+    assert np.all(np.isfinite(g)), g
+    np.testing.assert_allclose(g[2], 1.0, atol=1e-9)  # moving the part in z moves the hit
+    np.testing.assert_allclose(g[8], -1.0, atol=1e-9)  # a3 grows toward the camera
+
+
+def test_render_errors():
+    part = sqparts.Part(size=[0.1, 0.1, 0.1], position=[0, 0, 1.0])
+    with pytest.raises(TypeError, match=r"camera: expected a PinholeCamera"):
+        sqparts.render_range_image(part, {"width": 3})
+    with pytest.raises(TypeError, match=r"parts: expected a Part"):
+        sqparts.render_range_image([part], PINHOLE)
+    with pytest.raises(ValueError, match=r"window: expected \(row0, col0, rows, cols\)"):
+        sqparts.render_range_image(part, PINHOLE, window=(1, 2))
+    with pytest.raises(ValueError, match=r"batch_size: expected a positive integer"):
+        sqparts.render_each(part, PINHOLE, batch_size=0)
