@@ -374,3 +374,69 @@ def stack_parts(parts) -> Part:
     if not parts:
         raise ValueError("parts: expected at least one part, got an empty sequence")
     return jax.tree_util.tree_map(lambda *xs: jnp.stack(xs), *parts)
+
+
+def matrix_to_rotation_vector(matrix: Float[ArrayLike, "3 3"]) -> Float[Array, "3"]:
+    """JAX inverse of :func:`rotation_matrix` (via the quaternion; all four Shepperd
+    branches computed and the best-conditioned one selected, so it is jit/vmap safe)."""
+    m = jnp.asarray(matrix)
+    tr = jnp.trace(m)
+    d = jnp.diagonal(m)
+    cands = jnp.stack([tr, d[0], d[1], d[2]])
+    i = jnp.argmax(cands)
+    eps = 1e-12
+    w0 = jnp.sqrt(jnp.maximum(1.0 + tr, eps)) / 2
+    q0 = jnp.stack([w0, (m[2, 1] - m[1, 2]) / (4 * w0), (m[0, 2] - m[2, 0]) / (4 * w0), (m[1, 0] - m[0, 1]) / (4 * w0)])
+    x1 = jnp.sqrt(jnp.maximum(1.0 + 2 * d[0] - tr, eps)) / 2
+    q1 = jnp.stack([(m[2, 1] - m[1, 2]) / (4 * x1), x1, (m[1, 0] + m[0, 1]) / (4 * x1), (m[2, 0] + m[0, 2]) / (4 * x1)])
+    y2 = jnp.sqrt(jnp.maximum(1.0 + 2 * d[1] - tr, eps)) / 2
+    q2 = jnp.stack([(m[0, 2] - m[2, 0]) / (4 * y2), (m[1, 0] + m[0, 1]) / (4 * y2), y2, (m[2, 1] + m[1, 2]) / (4 * y2)])
+    z3 = jnp.sqrt(jnp.maximum(1.0 + 2 * d[2] - tr, eps)) / 2
+    q3 = jnp.stack([(m[1, 0] - m[0, 1]) / (4 * z3), (m[2, 0] + m[0, 2]) / (4 * z3), (m[2, 1] + m[1, 2]) / (4 * z3), z3])
+    q = jnp.stack([q0, q1, q2, q3])[i]
+    q = jnp.where(q[0] < 0, -q, q)
+    v = q[1:]
+    s = jnp.sqrt(jnp.sum(v * v))
+    small = s < 1e-9
+    s_safe = jnp.where(small, 1.0, s)
+    angle = 2 * jnp.arctan2(s_safe, q[0])
+    return jnp.where(small, 2 * v / jnp.maximum(q[0], eps), v / s_safe * angle)
+
+
+def _logit(x):
+    return jnp.log(x) - jnp.log1p(-x)
+
+
+def to_unconstrained(part: Part) -> Float[Array, "*batch 14"]:
+    """14-vector in an unconstrained space for optimisers: log sizes, squareness through a
+    logistic onto [0.1, 2], bend and taper through tanh onto [-1, 1]."""
+    lo, hi = SQUARENESS_RANGE
+    sq = jnp.clip((part.squareness - lo) / (hi - lo), 1e-4, 1 - 1e-4)
+    return jnp.concatenate(
+        [
+            part.position,
+            part.orientation,
+            jnp.log(part.size),
+            _logit(sq),
+            jnp.arctanh(jnp.clip(part.bend, -0.999, 0.999)),
+            jnp.arctanh(jnp.clip(part.taper, -0.999, 0.999))[..., None],
+        ],
+        axis=-1,
+    )
+
+
+def from_unconstrained(u: Float[ArrayLike, "*batch 14"]) -> Part:
+    """Inverse of :func:`to_unconstrained` (always a valid part)."""
+    u = jnp.asarray(u)
+    lo, hi = SQUARENESS_RANGE
+    return Part.from_vector(
+        jnp.concatenate(
+            [
+                u[..., 0:6],
+                jnp.exp(u[..., 6:9]),
+                lo + (hi - lo) * jax.nn.sigmoid(u[..., 9:11]),
+                jnp.tanh(u[..., 11:14]),
+            ],
+            axis=-1,
+        )
+    )

@@ -1,0 +1,566 @@
+"""The massively parallel local search (paper sections 3.3-3.4, 3.6 and the Appendix).
+
+For a region of the image, every hypothesis of a :class:`~sqparts.Grid` is posed at the
+region (its orientation taken relative to the viewing ray through the region centre, its
+centre on that ray behind the measured surface), rendered over the region's window and
+scored with Γ (Eq. 4): one jit-compiled computation, vmapped over pixels, chunked over
+hypotheses with ``jax.lax.map(..., batch_size=...)`` and sharded over ``jax.devices()``
+with ``jax.shard_map``. It is compiled once per (grid size, window, camera), never per
+region or per image.
+
+**Pruning** (section 3.6): every hypothesis is first scored on a pixel subsample
+(``stride``: every stride-th row and column, each pixel standing for stride² pixels);
+only the best ``survivors`` are scored again at full resolution. ``stride=1`` is the
+brute force.
+
+**Polishing**: the best candidates are refined with optimistix Levenberg-Marquardt on the
+inside-outside residuals (footnote 6) at the measured 3-D points each one explains,
+batched over candidates; a polished part is kept only if its Γ improves.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import functools
+import math
+
+import equinox as eqx
+import jax
+import jax.numpy as jnp
+import numpy as np
+import optimistix as optx
+from jax.sharding import Mesh, PartitionSpec as P
+
+from ._camera import Camera, _Camera
+from ._fit import Encoding, encoding_for, gamma_terms, histogram_bins
+from ._grid import Grid, grid_preset
+from ._part import (
+    Part,
+    from_unconstrained,
+    gauge,
+    matrix_to_rotation_vector,
+    rotation_matrix,
+    to_local,
+    to_unconstrained,
+)
+from ._render import cast_part
+
+SEARCH_NEWTON_STEPS = 6
+"""Newton steps when scoring hypotheses (grazing silhouette pixels barely move Γ)."""
+
+
+# --- the image as the search sees it --------------------------------------------------
+
+
+@dataclasses.dataclass(frozen=True)
+class SearchSettings:
+    """Static settings of a search (part of the compiled computation's key)."""
+
+    grid: Grid
+    max_size: float
+    window: int
+    top_k: int = 4
+    stride: int = 4
+    survivors: int = 64
+    batch_size: int = 128
+    newton_steps: int = SEARCH_NEWTON_STEPS
+    polish_steps: int = 20
+    polish_rounds: int = 4
+
+    def __post_init__(self):
+        for name in ("window", "top_k", "stride", "survivors", "batch_size", "newton_steps"):
+            v = getattr(self, name)
+            if not isinstance(v, (int, np.integer)) or isinstance(v, bool) or v <= 0:
+                raise ValueError(f"{name}: expected a positive integer, got {v!r}")
+        for name in ("polish_steps", "polish_rounds"):
+            v = getattr(self, name)
+            if not (isinstance(v, int) and v >= 0):
+                raise ValueError(f"{name}: expected an integer >= 0, got {v!r}")
+        if not (math.isfinite(self.max_size) and self.max_size > 0):
+            raise ValueError(f"max_size: expected a finite number > 0, got {self.max_size!r}")
+
+
+class RangeData(eqx.Module):
+    """A range image prepared for search: NaN-padded depth and figure mask."""
+
+    depth: jax.Array  # (H + 2 pad, W + 2 pad) float32, NaN = no return
+    figure: jax.Array  # same shape, bool
+    pad: int = eqx.field(static=True)
+    camera: Camera = eqx.field(static=True)
+    encoding: Encoding = eqx.field(static=True)
+
+    @property
+    def image(self) -> np.ndarray:
+        p = self.pad
+        return np.asarray(self.depth)[p:-p, p:-p]
+
+    @property
+    def figure_mask(self) -> np.ndarray:
+        p = self.pad
+        return np.asarray(self.figure)[p:-p, p:-p]
+
+
+def prepare(depth, camera: Camera, *, figure=None, encoding: Encoding | None = None, pad: int = 64) -> RangeData:
+    """Check a range image and pad it for windowed search.
+
+    ``figure`` (bool, same shape) marks the figure of interest; default: every pixel with
+    a return. ``encoding`` defaults to :func:`~sqparts.encoding_for` of the figure.
+    """
+    if not isinstance(camera, _Camera):
+        raise TypeError(f"camera: expected a sqparts camera, got {type(camera).__name__}")
+    d = np.asarray(depth, np.float32)
+    if d.ndim != 2:
+        raise ValueError(f"depth: expected a 2-D range image, got shape {d.shape}")
+    if d.shape != (camera.height, camera.width):
+        raise ValueError(
+            f"depth: expected shape {(camera.height, camera.width)} to match the camera, got {d.shape}"
+        )
+    d = np.where(np.isfinite(d) & (d > 0), d, np.nan).astype(np.float32)
+    fig = np.isfinite(d) if figure is None else np.asarray(figure, bool) & np.isfinite(d)
+    if fig.shape != d.shape:
+        raise ValueError(f"figure: expected shape {d.shape}, got {fig.shape}")
+    if fig.sum() < 4:
+        raise ValueError(f"depth: expected a figure of at least 4 pixels, got {int(fig.sum())}")
+    enc = encoding or encoding_for(d[fig])
+    return RangeData(
+        jnp.asarray(np.pad(d, pad, constant_values=np.nan)),
+        jnp.asarray(np.pad(fig, pad, constant_values=False)),
+        pad,
+        camera,
+        enc,
+    )
+
+
+def default_max_size(data: RangeData) -> float:
+    """Largest semi-axis searched: a third of the figure's largest metric extent."""
+    pts = data.camera.points(data.image)[data.figure_mask]
+    extent = float(np.max(np.ptp(pts, axis=0)))
+    return max(extent / 3.0, 1e-6)
+
+
+def window_for(data: RangeData, max_size: float, *, multiple: int = 8) -> int:
+    """Window side (pixels) covering the projected diameter of the largest part."""
+    depth = float(np.nanmedian(data.image[data.figure_mask]))
+    pixel = float(np.asarray(data.camera.pixel_size_at(jnp.asarray(depth))))
+    side = 2.0 * max_size / pixel * 1.1
+    side = int(math.ceil(side / multiple) * multiple)
+    return int(min(max(side, 16), 2 * data.pad, max(data.camera.width, data.camera.height) + multiple))
+
+
+# --- regions --------------------------------------------------------------------------
+
+
+def region_centers(figure, *, spacing: float, method: str = "skeleton", grid_shape=(10, 10)) -> np.ndarray:
+    """Region centres (n, 2) as (row, col).
+
+    ``method="skeleton"``: points on the figure's 2-D skeleton (grassfire / medial axis,
+    section 4.1), thickest first, no two closer than ``spacing`` pixels. ``"grid"``: a
+    ``grid_shape`` lattice over the figure's bounding box (the paper's 10x10), keeping
+    points on the figure. ``"both"``: the union.
+    """
+    from skimage.morphology import medial_axis
+
+    fig = np.asarray(figure, bool)
+    if method not in ("skeleton", "grid", "both"):
+        raise ValueError(f"method: expected 'skeleton', 'grid' or 'both', got {method!r}")
+    if not (spacing > 0):
+        raise ValueError(f"spacing: expected a number > 0, got {spacing!r}")
+    centres: list = []
+    if method in ("skeleton", "both"):
+        skel, dist = medial_axis(fig, return_distance=True)
+        rows, cols = np.nonzero(skel)
+        order = np.argsort(-dist[rows, cols], kind="stable")
+        for r, c in zip(rows[order], cols[order]):
+            if all((r - a) ** 2 + (c - b) ** 2 >= spacing**2 for a, b in centres):
+                centres.append((int(r), int(c)))
+    if method in ("grid", "both"):
+        rows, cols = np.nonzero(fig)
+        for r in np.linspace(rows.min(), rows.max(), grid_shape[0]).round().astype(int):
+            for c in np.linspace(cols.min(), cols.max(), grid_shape[1]).round().astype(int):
+                if fig[r, c] and all((r - a) ** 2 + (c - b) ** 2 >= (spacing / 2) ** 2 for a, b in centres):
+                    centres.append((int(r), int(c)))
+    return np.asarray(centres, np.int32).reshape(-1, 2)
+
+
+# --- posing and scoring ---------------------------------------------------------------
+
+
+def _frame_from_z(direction):
+    """Rotation matrix taking +z onto the unit ``direction`` (JAX, smooth except at -z)."""
+    d = direction / jnp.linalg.norm(direction)
+    z = jnp.array([0.0, 0.0, 1.0], d.dtype)
+    c = jnp.cross(z, d)
+    s = jnp.linalg.norm(c)
+    cos = jnp.dot(z, d)
+    k = jnp.array([[0.0, -c[2], c[1]], [c[2], 0.0, -c[0]], [-c[1], c[0], 0.0]], d.dtype)
+    return jnp.eye(3, dtype=d.dtype) + k + (k @ k) / (1.0 + cos)
+
+
+def pose_hypothesis(orientation_rel, shape, max_size, ray_origin, ray_direction, surface_t) -> Part:
+    """Place one grid hypothesis at a region: orientation relative to the viewing ray,
+    centre on the ray behind the measured surface (at ``surface_t``) by the part's own
+    half-depth along the ray."""
+    view = _frame_from_z(ray_direction)
+    rot = view @ rotation_matrix(orientation_rel)
+    size = shape[:3] * max_size
+    u = rot.T @ (ray_direction / jnp.linalg.norm(ray_direction))
+    half_depth = 1.0 / jnp.sqrt(jnp.sum((u / size) ** 2))
+    t_centre = surface_t + half_depth / jnp.linalg.norm(ray_direction)
+    return Part.from_vector(
+        jnp.concatenate([ray_origin + t_centre * ray_direction, matrix_to_rotation_vector(rot), size, shape[3:]])
+    )
+
+
+def _region_inputs(data: RangeData, corner, centre, window: int):
+    camera = data.camera
+    p = data.pad
+    measured = jax.lax.dynamic_slice(data.depth, (corner[0] + p, corner[1] + p), (window, window))
+    figure = jax.lax.dynamic_slice(data.figure, (corner[0] + p, corner[1] + p), (window, window))
+    origins, directions = camera.rays((corner[0].astype(jnp.float32), corner[1].astype(jnp.float32), window, window))
+    c_o, c_d = camera.rays((centre[0].astype(jnp.float32), centre[1].astype(jnp.float32), 1, 1))
+    # Depth at the centre: median-free robust choice, the nearest figure pixel in a 5x5.
+    nb = jax.lax.dynamic_slice(data.depth, (centre[0] + p - 2, centre[1] + p - 2), (5, 5))
+    nbf = jax.lax.dynamic_slice(data.figure, (centre[0] + p - 2, centre[1] + p - 2), (5, 5))
+    surface_t = jnp.nanmin(jnp.where(nbf, nb, jnp.nan))
+    return measured, figure, origins, directions, c_o[0, 0], c_d[0, 0], surface_t
+
+
+def _score_one(part, origins, directions, measured, figure, weight, *, sigma, lam, num_bins, newton_steps):
+    t, hit = cast_part(part, origins, directions, newton_steps)
+    mu, eps, offset, _ = gamma_terms(t, hit, measured, figure, sigma=sigma, num_bins=num_bins, weight=weight)
+    return mu - lam * eps, offset
+
+
+def _map_hypotheses(fn, batched, replicated, batch_size: int):
+    """Apply ``fn(one, *replicated)`` over the leading axis of ``batched``: chunked with
+    ``lax.map`` and, with several devices, sharded over them with ``shard_map``."""
+    devices = jax.devices()
+    run = lambda b, *r: jax.lax.map(lambda x: fn(x, *r), b, batch_size=batch_size)  # noqa: E731
+    if len(devices) == 1:
+        return run(batched, *replicated)
+    mesh = Mesh(np.asarray(devices), ("hypotheses",))
+    spec_b = jax.tree_util.tree_map(lambda _: P("hypotheses"), batched)
+    spec_r = jax.tree_util.tree_map(lambda _: P(), replicated)
+    return jax.shard_map(
+        run, mesh=mesh, in_specs=(spec_b, *spec_r), out_specs=P("hypotheses"), check_vma=False
+    )(batched, *replicated)
+
+
+@functools.partial(jax.jit, static_argnames=("window", "stride", "batch_size", "newton_steps", "max_size", "num_bins"))
+def _score_hypotheses(data, orientation_rel, shape, corner, centre, *, window, stride, batch_size, newton_steps, max_size, num_bins):
+    """Γ and depth offset p for every hypothesis at one region (the one parallel operation)."""
+    measured, figure, origins, directions, c_o, c_d, surface_t = _region_inputs(data, corner, centre, window)
+    s = slice(stride // 2, None, stride)
+    measured, figure = measured[s, s], figure[s, s]
+    origins, directions = origins[s, s], directions[s, s]
+    weight = jnp.float32(stride * stride)
+    enc = data.encoding
+
+    def one(h, origins, directions, measured, figure, c_o, c_d, surface_t):
+        orientation_rel, shp = h
+        part = pose_hypothesis(orientation_rel, shp, max_size, c_o, c_d, surface_t)
+        return _score_one(part, origins, directions, measured, figure, weight,
+                          sigma=enc.sigma, lam=enc.commission_weight, num_bins=num_bins, newton_steps=newton_steps)
+
+    gam, off = _map_hypotheses(
+        one, (orientation_rel, shape), (origins, directions, measured, figure, c_o, c_d, surface_t), batch_size
+    )
+    return jnp.where(jnp.isfinite(gam), gam, -jnp.inf), off, c_d
+
+
+# --- results --------------------------------------------------------------------------
+
+
+class RegionFit(eqx.Module):
+    """The best candidates at one region, best first.
+
+    ``parts`` (batched, k), ``gamma`` (k) Γ of Eq. (4), ``bits_saved`` (k) Eq. (5),
+    ``explained`` (k, H, W) pixels each explains within ±σ/2 (full image), ``rendered``
+    (k, H, W) bool: pixels each covers; ``ratio`` best Γ / runner-up Γ (the paper's
+    factor-of-two test); ``centre`` (row, col); ``corner`` of the window.
+    """
+
+    parts: Part
+    gamma: jax.Array
+    bits_saved: jax.Array
+    explained: jax.Array
+    rendered: jax.Array
+    ratio: float = eqx.field(static=True)
+    centre: tuple = eqx.field(static=True)
+    corner: tuple = eqx.field(static=True)
+
+
+def _num_bins(data: RangeData, max_size: float) -> int:
+    img = data.image[data.figure_mask]
+    span = float(np.nanmax(img) - np.nanmin(img)) + 4.0 * max_size
+    return histogram_bins(data.encoding, span)
+
+
+def score_region(data: RangeData, settings: SearchSettings, centre, *, hypotheses=None, stride: int | None = None):
+    """Γ and offset p of every grid hypothesis at ``centre`` (row, col), at ``stride``."""
+    hyp = hypotheses or _grid_arrays(settings.grid)
+    corner, centre = _corner(settings, centre)
+    n = len(hyp["orientation"])
+    unit = settings.batch_size * len(jax.devices())
+    padded = int(math.ceil(n / unit) * unit)
+    o = np.zeros((padded, 3), np.float32)
+    o[:n] = hyp["orientation"]
+    s = np.tile(hyp["shape"][:1], (padded, 1))
+    s[:n] = hyp["shape"]
+    gam, off, c_d = _score_hypotheses(
+        data, jnp.asarray(o), jnp.asarray(s), corner, centre,
+        window=settings.window, stride=stride or settings.stride, batch_size=settings.batch_size,
+        newton_steps=settings.newton_steps, max_size=float(settings.max_size),
+        num_bins=_num_bins(data, settings.max_size),
+    )
+    return gam[:n], off[:n]
+
+
+@functools.lru_cache(maxsize=8)
+def _grid_arrays(grid: Grid) -> dict:
+    return grid.hypotheses()
+
+
+def _corner(settings, centre):
+    centre = jnp.asarray(np.asarray(centre, np.int32))
+    corner = centre - settings.window // 2
+    return corner, centre
+
+
+@functools.partial(jax.jit, static_argnames=("window", "max_size", "num_bins", "newton_steps", "polish_steps", "polish_rounds"))
+def _finish(data, orientation_rel, shape, offsets, corner, centre, *, window, max_size, num_bins, newton_steps, polish_steps, polish_rounds):
+    """Pose the chosen hypotheses, shift them by -p in depth, polish, and score at full
+    resolution over the window; returns parts, Γ and explained/rendered window masks."""
+    measured, figure, origins, directions, c_o, c_d, surface_t = _region_inputs(data, corner, centre, window)
+    enc = data.encoding
+
+    def posed(o, s, p):
+        part = pose_hypothesis(o, s, max_size, c_o, c_d, surface_t)
+        return Part.from_vector(part.to_vector().at[:3].add(-p * c_d))
+
+    parts = jax.vmap(posed)(orientation_rel, shape, offsets)
+
+    def score(part):
+        t, hit = cast_part(part, origins, directions, newton_steps)
+        mu, eps, off, explained = gamma_terms(t, hit, measured, figure, sigma=enc.sigma, num_bins=num_bins)
+        return mu - enc.commission_weight * eps, off, explained.reshape(hit.shape), hit
+
+    gam, off, explained, hit = jax.vmap(score)(parts)
+    points = (origins + jnp.where(jnp.isfinite(measured), measured, 0.0)[..., None] * directions).reshape(-1, 3)
+    for _ in range(polish_rounds if polish_steps > 0 else 0):
+        # ICP-like rounds: fit the points a part explains, re-explain, keep improvements.
+        aligned = jax.vmap(lambda pr, p: Part.from_vector(pr.to_vector().at[:3].add(-p * c_d)))(parts, off)
+        polished = jax.vmap(lambda pr, m: polish_part(pr, points, m.reshape(-1), steps=polish_steps))(aligned, explained)
+        gam2, off2, explained2, hit2 = jax.vmap(score)(polished)
+        better = gam2 > gam
+        pick = lambda a, b: jnp.where(better.reshape((-1,) + (1,) * (a.ndim - 1)), a, b)  # noqa: E731
+        parts = jax.tree_util.tree_map(pick, polished, parts)
+        gam, off = pick(gam2, gam), pick(off2, off)
+        explained, hit = pick(explained2, explained), pick(hit2, hit)
+    return parts, gam, explained, hit
+
+
+def polish_part(part: Part, points, weights, *, steps: int = 20) -> Part:
+    """Levenberg-Marquardt (optimistix) on inside-outside residuals at weighted points.
+
+    Residual i is ``w_i sqrt(a1 a2 a3) (F^(ε1/2) - 1)`` (the volume factor of Solina and
+    Bajcsy keeps the unseen back of the part from growing). Runs a fixed number of steps
+    and never raises; returns the input if the solve produced non-finite values.
+    """
+    u0 = to_unconstrained(part)
+    w = weights.astype(u0.dtype)
+
+    def residuals(u, _):
+        p = from_unconstrained(u)
+        g = jax.vmap(lambda x: gauge(p, to_local(p, x)))(points)
+        r = w * jnp.sqrt(jnp.prod(p.size)) * g
+        # Keep the shape near its start a little (a weak prior on the 14 numbers).
+        return r, 1e-3 * (u - u0)
+
+    sol = optx.least_squares(
+        residuals, optx.LevenbergMarquardt(rtol=1e-5, atol=1e-7), u0, max_steps=steps, throw=False
+    )
+    ok = jnp.all(jnp.isfinite(sol.value)) & (jnp.sum(w) >= 8)
+    return from_unconstrained(jnp.where(ok, sol.value, u0))
+
+
+def fit_region(data: RangeData, settings: SearchSettings, centre, *, prune: bool = True) -> RegionFit:
+    """The best ``top_k`` parts at one region: score every hypothesis (on a subsample
+    when ``prune``), rescore the survivors at full resolution, polish the best."""
+    hyp = _grid_arrays(settings.grid)
+    corner, centre_j = _corner(settings, centre)
+    n = len(hyp["orientation"])
+    if prune and settings.stride > 1 and settings.survivors < n:
+        gam, _ = score_region(data, settings, centre)
+        keep = np.asarray(jax.lax.top_k(gam, settings.survivors)[1])
+        sub = {k: v[keep] for k, v in hyp.items()}
+        gam_full, off_full = score_region(data, settings, centre, hypotheses=sub, stride=1)
+        index = keep
+    else:
+        gam_full, off_full = score_region(data, settings, centre, stride=1)
+        index = np.arange(n)
+    k = min(settings.top_k, len(index))
+    best_g, best_i = jax.lax.top_k(gam_full, k)
+    best_i = np.asarray(best_i)
+    chosen = index[best_i]
+    g_sorted = np.asarray(best_g)
+    ratio = float(g_sorted[0] / g_sorted[1]) if k > 1 and g_sorted[1] > 0 else float("inf")
+    parts, gam, explained, hit = _finish(
+        data,
+        jnp.asarray(hyp["orientation"][chosen]),
+        jnp.asarray(hyp["shape"][chosen]),
+        jnp.asarray(np.asarray(off_full)[best_i]),
+        corner, centre_j,
+        window=settings.window, max_size=float(settings.max_size),
+        num_bins=_num_bins(data, settings.max_size), newton_steps=SEARCH_NEWTON_STEPS + 2,
+        polish_steps=settings.polish_steps, polish_rounds=settings.polish_rounds,
+    )
+    order = np.argsort(-np.asarray(gam), kind="stable")
+    h, w = data.camera.height, data.camera.width
+    full_e = _to_image(np.asarray(explained)[order], corner, (h, w))
+    full_h = _to_image(np.asarray(hit)[order], corner, (h, w))
+    gam = np.asarray(gam)[order]
+    return RegionFit(
+        parts=jax.tree_util.tree_map(lambda x: x[order], parts),
+        gamma=jnp.asarray(gam),
+        bits_saved=jnp.asarray(data.encoding.bits_saved(gam)),
+        explained=jnp.asarray(full_e),
+        rendered=jnp.asarray(full_h),
+        ratio=ratio,
+        centre=tuple(int(x) for x in np.asarray(centre)),
+        corner=tuple(int(x) for x in np.asarray(corner)),
+    )
+
+
+def _to_image(masks, corner, shape) -> np.ndarray:
+    """Paste (k, win, win) window masks into (k, H, W) image masks."""
+    k, win = masks.shape[0], masks.shape[1]
+    out = np.zeros((k,) + tuple(shape), bool)
+    r0, c0 = int(corner[0]), int(corner[1])
+    rs, cs = max(r0, 0), max(c0, 0)
+    re, ce = min(r0 + win, shape[0]), min(c0 + win, shape[1])
+    if re > rs and ce > cs:
+        out[:, rs:re, cs:ce] = masks[:, rs - r0 : re - r0, cs - c0 : ce - c0]
+    return out
+
+
+def make_settings(data: RangeData, *, grid="default", max_size=None, window=None, **kwargs) -> SearchSettings:
+    """:class:`SearchSettings` with the scale and window derived from the data."""
+    max_size = float(max_size) if max_size is not None else default_max_size(data)
+    window = int(window) if window is not None else window_for(data, max_size)
+    if window > 2 * data.pad:
+        raise ValueError(f"window: expected at most {2 * data.pad} pixels (twice the padding), got {window}")
+    return SearchSettings(grid=grid_preset(grid), max_size=max_size, window=window, **kwargs)
+
+
+def fit_image(
+    depth,
+    camera: Camera,
+    *,
+    grid="default",
+    figure=None,
+    encoding: Encoding | None = None,
+    centres=None,
+    max_size: float | None = None,
+    window: int | None = None,
+    region_method: str = "skeleton",
+    spacing: float | None = None,
+    prune: bool = True,
+    progress=None,
+    **settings_kwargs,
+) -> tuple[list[RegionFit], RangeData, SearchSettings]:
+    """Fit every region of a range image (section 3.3): returns the region fits, the
+    prepared data and the settings used. ``progress`` wraps the region iterator (e.g.
+    ``tqdm.tqdm``)."""
+    data = prepare(depth, camera, figure=figure, encoding=encoding)
+    settings = make_settings(data, grid=grid, max_size=max_size, window=window, **settings_kwargs)
+    if centres is None:
+        px = settings.window / 2.2
+        centres = region_centers(data.figure_mask, spacing=spacing or max(3.0, px / 3), method=region_method)
+    centres = np.asarray(centres, np.int32).reshape(-1, 2)
+    it = progress(centres) if progress else centres
+    return [fit_region(data, settings, c, prune=prune) for c in it], data, settings
+
+
+# --- the expanding grid method (Appendix) ----------------------------------------------
+
+
+def gamma_profile(data: RangeData, part: Part, parameter: int, offsets, *, num_bins: int | None = None) -> np.ndarray:
+    """Γ over the whole image as parameter ``parameter`` (index into the 14-vector) of
+    ``part`` moves by each of ``offsets`` (Figure 6c). Invalid parts get -inf."""
+    o, d = data.camera.rays()
+    p = data.pad
+    measured, figure = data.depth[p:-p, p:-p], data.figure[p:-p, p:-p]
+    nb = num_bins or _num_bins(data, float(jnp.max(part.size)))
+    enc = data.encoding
+    base = part.to_vector()
+    vecs = jnp.stack([base.at[parameter].add(float(x)) for x in offsets])
+
+    @jax.jit
+    def run(vecs):
+        def one(v):
+            t, hit = cast_part(Part.from_vector(v), o, d)
+            mu, eps, _, _ = gamma_terms(t, hit, measured, figure, sigma=enc.sigma, num_bins=nb)
+            return mu - enc.commission_weight * eps
+        return jax.lax.map(one, vecs, batch_size=16)
+
+    out = np.asarray(run(vecs), np.float64)
+    valid = _valid_vectors(np.asarray(vecs))
+    return np.where(valid, out, -np.inf)
+
+
+def _valid_vectors(vecs: np.ndarray) -> np.ndarray:
+    from ._part import BEND_RANGE, SQUARENESS_RANGE, TAPER_RANGE
+
+    return (
+        np.all(vecs[:, 6:9] > 0, 1)
+        & np.all((vecs[:, 9:11] >= SQUARENESS_RANGE[0]) & (vecs[:, 9:11] <= SQUARENESS_RANGE[1]), 1)
+        & np.all((vecs[:, 11:13] >= BEND_RANGE[0]) & (vecs[:, 11:13] <= BEND_RANGE[1]), 1)
+        & (vecs[:, 13] >= TAPER_RANGE[0]) & (vecs[:, 13] <= TAPER_RANGE[1])
+    )
+
+
+def convex_width(offsets, profile, *, fraction: float = 2.0 / 3.0) -> tuple[float, float]:
+    """(left, right) distance from the best offset to where Γ first falls below
+    ``fraction`` of its best (linear interpolation); inf if it never does."""
+    x, g = np.asarray(offsets, float), np.asarray(profile, float)
+    i = int(np.argmax(g))
+    level = fraction * g[i]
+    out = []
+    for direction in (-1, 1):
+        j = i
+        width = math.inf
+        while 0 <= j + direction < len(x):
+            k = j + direction
+            if g[k] < level:
+                frac = (g[j] - level) / (g[j] - g[k]) if g[j] != g[k] else 0.0
+                width = abs(x[j] + frac * (x[k] - x[j]) - x[i])
+                break
+            j = k
+        out.append(width)
+    return out[0], out[1]
+
+
+def expanding_grid(data: RangeData, part: Part, *, parameters=None, steps=None, fraction: float = 2.0 / 3.0) -> dict:
+    """The Appendix's expanding grid method as a tool: for each parameter, how far it can
+    move from ``part`` (the truth or the best fit) before Γ falls to ``fraction`` of its
+    best, and the grid spacing (twice the smaller of the two widths) that therefore
+    guarantees a sample inside the convex region.
+
+    Returns ``{index: {"left": w, "right": w, "spacing": s}}``.
+    """
+    names = ["x", "y", "z", "rx", "ry", "rz", "a1", "a2", "a3", "e1", "e2", "bend0", "bend1", "taper"]
+    parameters = range(14) if parameters is None else parameters
+    size = float(jnp.max(part.size))
+    default_steps = {0: size, 1: size, 2: size, 3: 1.2, 4: 1.2, 5: 1.2, 6: None, 7: None, 8: None,
+                     9: 0.9, 10: 0.9, 11: 0.9, 12: 0.9, 13: 0.9}
+    result = {}
+    for i in parameters:
+        span = (steps or {}).get(i, default_steps[i])
+        if span is None:
+            span = 0.95 * float(part.to_vector()[i])
+        offsets = np.linspace(-span, span, 41)
+        prof = gamma_profile(data, part, i, offsets)
+        left, right = convex_width(offsets, prof, fraction=fraction)
+        result[names[i]] = {"left": left, "right": right, "spacing": 2 * min(left, right)}
+    return result
