@@ -16,6 +16,23 @@ from ._part import (
 )
 from ._camera import OrthographicCamera, PinholeCamera, ScannerCamera, camera_from_json
 from ._render import cast_batch, cast_part, cast_ray, cast_scene, render_each, render_range_image
+from ._fit import Encoding, encoding_for, gamma, gamma_terms, smooth_gamma
+from ._grid import PRESETS, Grid, grid_preset
+from ._search import (
+    RangeData,
+    RegionFit,
+    SearchSettings,
+    convex_width,
+    expanding_grid,
+    fit_image,
+    fit_region,
+    gamma_profile,
+    make_settings,
+    polish_part,
+    prepare,
+    region_centers,
+    score_region,
+)
 from ._scenes import BUILTIN_SCENES, BuiltinScene, builtin_scene
 from ._io import (
     load_camera,
@@ -50,6 +67,27 @@ __all__ = [
     "cast_scene",
     "render_each",
     "render_range_image",
+    "Encoding",
+    "encoding_for",
+    "gamma",
+    "gamma_terms",
+    "smooth_gamma",
+    "PRESETS",
+    "Grid",
+    "grid_preset",
+    "RangeData",
+    "RegionFit",
+    "SearchSettings",
+    "convex_width",
+    "expanding_grid",
+    "fit_image",
+    "fit_region",
+    "gamma_profile",
+    "make_settings",
+    "polish_part",
+    "prepare",
+    "region_centers",
+    "score_region",
     "BUILTIN_SCENES",
     "BuiltinScene",
     "builtin_scene",

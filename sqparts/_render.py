@@ -91,8 +91,10 @@ def cast_ray(
     # The final step carries the gradient: t = t* - g(t*; θ) / g'(t*).
     val, slope = g_and_slope(t_sg, part, o, d)
     slope_sg = jax.lax.stop_gradient(slope)
-    descending = slope_sg < 0
-    t = jnp.where(descending, t_sg - val / jnp.where(descending, slope_sg, -1.0), t_sg)
+    step = -val / jnp.where(slope_sg < 0, slope_sg, -1.0)
+    # At a tangent (grazing) point the slope is ~0 and the step explodes: keep the iterate.
+    small = (slope_sg < 0) & (jnp.abs(jax.lax.stop_gradient(step)) <= 0.01 * (t_out_sg - t_start_sg))
+    t = jnp.where(small, t_sg + step, t_sg)
     hit = box_hit & (found | (jax.lax.stop_gradient(val) < HIT_TOLERANCE)) & (t > 0)
     return jnp.where(hit, t, 0.0), hit
 

@@ -154,7 +154,8 @@ def region_centers(figure, *, spacing: float, method: str = "skeleton", grid_sha
     """Region centres (n, 2) as (row, col).
 
     ``method="skeleton"``: points on the figure's 2-D skeleton (grassfire / medial axis,
-    section 4.1), thickest first, no two closer than ``spacing`` pixels. ``"grid"``: a
+    section 4.1, without its thin spurs), thickest first, no two closer than ``spacing``
+    pixels. ``"grid"``: a
     ``grid_shape`` lattice over the figure's bounding box (the paper's 10x10), keeping
     points on the figure. ``"both"``: the union.
     """
@@ -167,7 +168,13 @@ def region_centers(figure, *, spacing: float, method: str = "skeleton", grid_sha
         raise ValueError(f"spacing: expected a number > 0, got {spacing!r}")
     centres: list = []
     if method in ("skeleton", "both"):
-        skel, dist = medial_axis(fig, return_distance=True)
+        from scipy.ndimage import maximum_filter
+
+        skel, dist = medial_axis(fig, return_distance=True, rng=0)
+        # Drop spurs (e.g. into corners): keep skeleton pixels at least half as thick as
+        # the thickest skeleton pixel within ``spacing``.
+        thick = maximum_filter(np.where(skel, dist, 0.0), size=max(int(spacing), 1))
+        skel &= dist >= 0.5 * thick
         rows, cols = np.nonzero(skel)
         order = np.argsort(-dist[rows, cols], kind="stable")
         for r, c in zip(rows[order], cols[order]):
@@ -347,16 +354,21 @@ def _finish(data, orientation_rel, shape, offsets, corner, centre, *, window, ma
 
     gam, off, explained, hit = jax.vmap(score)(parts)
     points = (origins + jnp.where(jnp.isfinite(measured), measured, 0.0)[..., None] * directions).reshape(-1, 3)
-    for _ in range(polish_rounds if polish_steps > 0 else 0):
-        # ICP-like rounds: fit the points a part explains, re-explain, keep improvements.
+
+    def polish_round(carry, _):
+        # ICP-like: fit the points a part explains, re-explain, keep improvements.
+        parts, gam, off, explained, hit = carry
         aligned = jax.vmap(lambda pr, p: Part.from_vector(pr.to_vector().at[:3].add(-p * c_d)))(parts, off)
         polished = jax.vmap(lambda pr, m: polish_part(pr, points, m.reshape(-1), steps=polish_steps))(aligned, explained)
-        gam2, off2, explained2, hit2 = jax.vmap(score)(polished)
-        better = gam2 > gam
+        new = jax.vmap(score)(polished)
+        better = new[0] > gam
         pick = lambda a, b: jnp.where(better.reshape((-1,) + (1,) * (a.ndim - 1)), a, b)  # noqa: E731
-        parts = jax.tree_util.tree_map(pick, polished, parts)
-        gam, off = pick(gam2, gam), pick(off2, off)
-        explained, hit = pick(explained2, explained), pick(hit2, hit)
+        return jax.tree_util.tree_map(pick, (polished, *new), (parts, gam, off, explained, hit)), None
+
+    if polish_steps > 0 and polish_rounds > 0:
+        (parts, gam, off, explained, hit), _ = jax.lax.scan(
+            polish_round, (parts, gam, off, explained, hit), None, length=polish_rounds
+        )
     return parts, gam, explained, hit
 
 

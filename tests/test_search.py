@@ -1,0 +1,149 @@
+import json
+import os
+import subprocess
+import sys
+
+import numpy as np
+import pytest
+
+import sqparts
+from sqparts._search import _grid_arrays
+
+CAM = sqparts.PinholeCamera(48, 48, 150.0, 150.0, 23.5, 23.5)
+TRUTH = sqparts.Part(size=[0.1, 0.06, 0.22], squareness=[0.6, 1.0], position=[0.01, 0.0, 2.0], orientation=[0.4, 0.9, 0.2])
+SMALL = sqparts.Grid(lengths=(0.5, 1.0), ratios1=(1.0, 0.4), ratios2=(1.0,), squareness1=(0.5,), squareness2=(1.0,),
+                     axis_step=45.0, roll_step=90.0, bends=(0.0,))
+
+
+@pytest.fixture(scope="module")
+def data():
+    depth = np.asarray(sqparts.render_range_image(TRUTH, CAM))
+    return sqparts.prepare(depth, CAM)
+
+
+def _centre(data):
+    return np.argwhere(data.figure_mask).mean(0).round().astype(int)
+
+
+def test_grid_counts_and_symmetry():
+    g = sqparts.PRESETS["default"]
+    assert 2**15 < g.size < 2**17  # the paper's ~2^16
+    dirs = g.axis_directions()
+    assert np.all(dirs[:, 2] >= -1e-9)  # a hemisphere: z and -z are the same axis
+    # no two directions are the same axis (d ~ -d)
+    dots = np.abs(dirs @ dirs.T) - np.eye(len(dirs))
+    assert dots.max() < np.cos(np.radians(10))
+    shapes = g.shapes()
+    assert np.all(shapes[:, 2] >= shapes[:, 0]) and np.all(shapes[:, 0] >= shapes[:, 1])  # a3 >= a1 >= a2
+    taper = sqparts.Grid(tapers=(-0.3, 0.3), axis_step=45)
+    assert (taper.axis_directions()[:, 2] < -0.5).any()  # taper is odd in z: full sphere
+    with pytest.raises(ValueError, match=r"squareness1: expected values in \[0.1, 2.0\]"):
+        sqparts.Grid(squareness1=(0.05,))
+    with pytest.raises(ValueError, match=r"grid: expected a Grid or one of"):
+        sqparts.grid_preset("huge")
+
+
+def test_region_centres_on_skeleton():
+    fig = np.zeros((40, 60), bool)
+    fig[15:25, 5:55] = True
+    c = sqparts.region_centers(fig, spacing=8)
+    assert len(c) >= 5 and np.all(np.abs(c[:, 0] - 19.5) <= 1.5)  # on the midline
+    d = np.sqrt(((c[:, None] - c[None]) ** 2).sum(-1)) + np.eye(len(c)) * 99
+    assert d.min() >= 8
+    g = sqparts.region_centers(fig, spacing=8, method="grid")
+    assert len(g) > 0 and fig[g[:, 0], g[:, 1]].all()
+    with pytest.raises(ValueError, match=r"method: expected"):
+        sqparts.region_centers(fig, spacing=8, method="random")
+
+
+def test_chunked_equals_unchunked(data):
+    ref = None
+    for bs in (8, 32, 64):
+        st = sqparts.make_settings(data, grid=SMALL, max_size=0.25, batch_size=bs)
+        g, off = sqparts.score_region(data, st, _centre(data), stride=1)
+        if ref is None:
+            ref = (np.asarray(g), np.asarray(off))
+        np.testing.assert_array_equal(np.asarray(g), ref[0])
+        np.testing.assert_allclose(np.asarray(off), ref[1], rtol=1e-6)
+
+
+def test_pruned_search_finds_what_brute_force_finds(data):
+    grid = sqparts.Grid(lengths=(0.5, 1.0), ratios1=(1.0, 0.5, 0.3), ratios2=(1.0, 0.6), squareness1=(0.5, 1.0),
+                        squareness2=(1.0,), axis_step=30.0, roll_step=45.0, bends=(0.0,))
+    st = sqparts.make_settings(data, grid=grid, max_size=0.25, survivors=32, stride=4)
+    brute, _ = sqparts.score_region(data, st, _centre(data), stride=1)
+    sub, _ = sqparts.score_region(data, st, _centre(data))
+    brute, sub = np.asarray(brute), np.asarray(sub)
+    survivors = np.argsort(-sub)[:32]
+    assert brute[survivors].max() == brute.max()
+    assert np.argmax(brute) in survivors
+
+
+def test_fit_region_recovers_the_part(data):
+    st = sqparts.make_settings(data, grid="coarse", max_size=0.25, polish_rounds=6)
+    fit = sqparts.fit_region(data, st, _centre(data))
+    n = data.figure_mask.sum()
+    assert float(fit.gamma[0]) >= 0.9 * n
+    assert fit.explained.shape == (4,) + data.figure_mask.shape
+    assert int(fit.explained[0].sum()) == pytest.approx(float(fit.gamma[0]) + 4 * float((fit.rendered[0] & ~data.figure_mask).sum()), abs=1)
+    got = np.sort(np.asarray(fit.parts[0].size))
+    np.testing.assert_allclose(got, np.sort(np.asarray(TRUTH.size)), rtol=0.15)
+    assert float(fit.bits_saved[0]) == pytest.approx(data.encoding.bits_saved(float(fit.gamma[0])))
+
+
+def test_fit_image_runs_on_every_region(data):
+    fits, d, st = sqparts.fit_image(data.image, CAM, grid=SMALL, max_size=0.25, polish_rounds=1)
+    assert len(fits) >= 1 and all(f.parts.size.shape == (min(st.top_k, SMALL.size), 3) for f in fits)
+
+
+_SHARD_SCRIPT = r"""
+import json, sys, numpy as np, jax
+import sqparts
+sys.path.insert(0, {tests!r})
+from test_search import CAM, TRUTH, SMALL
+depth = np.asarray(sqparts.render_range_image(TRUTH, CAM))
+data = sqparts.prepare(depth, CAM)
+st = sqparts.make_settings(data, grid=SMALL, max_size=0.25, batch_size=4)
+g, off = sqparts.score_region(data, st, np.argwhere(data.figure_mask).mean(0).round().astype(int), stride=1)
+print(json.dumps({{"devices": len(jax.devices()), "gamma": np.asarray(g).tolist(), "offset": np.asarray(off).tolist()}}))
+"""
+
+
+def test_sharded_equals_unsharded():
+    tests = os.path.dirname(__file__)
+    out = {}
+    for n in (1, 4):
+        env = dict(os.environ, JAX_PLATFORMS="cpu", XLA_FLAGS=f"--xla_force_host_platform_device_count={n}")
+        res = subprocess.run([sys.executable, "-c", _SHARD_SCRIPT.format(tests=tests)], env=env,
+                             capture_output=True, text=True, timeout=600)
+        assert res.returncode == 0, res.stderr[-2000:]
+        out[n] = json.loads(res.stdout.strip().splitlines()[-1])
+    assert out[4]["devices"] == 4 and out[1]["devices"] == 1
+    np.testing.assert_array_equal(out[1]["gamma"], out[4]["gamma"])
+    np.testing.assert_allclose(out[1]["offset"], out[4]["offset"], atol=1e-5)
+
+
+def test_convex_width_closed_form():
+    x = np.linspace(-1, 1, 201)
+    profile = 3.0 - 3.0 * np.abs(x - 0.1) / 0.6  # falls to 2/3 of 3 at |x - 0.1| = 0.2
+    left, right = sqparts.convex_width(x, profile)
+    assert left == pytest.approx(0.2, abs=1e-9) and right == pytest.approx(0.2, abs=1e-9)
+
+
+def test_expanding_grid_widths(data):
+    res = sqparts.expanding_grid(data, TRUTH, parameters=[3, 8])
+    for name in ("rx", "a3"):
+        assert 0 < res[name]["spacing"] < np.inf
+    # Orientation is far more sensitive than size relative to its range (section 3.3.2).
+    assert res["rx"]["spacing"] < np.pi / 2
+
+
+def test_search_errors(data):
+    with pytest.raises(ValueError, match=r"depth: expected shape \(48, 48\) to match the camera"):
+        sqparts.prepare(np.zeros((10, 10)), CAM)
+    with pytest.raises(ValueError, match=r"depth: expected a figure of at least 4 pixels"):
+        sqparts.prepare(np.full((48, 48), np.nan), CAM)
+    with pytest.raises(ValueError, match=r"top_k: expected a positive integer"):
+        sqparts.make_settings(data, grid=SMALL, max_size=0.2, top_k=0)
+    with pytest.raises(ValueError, match=r"window: expected at most 128 pixels"):
+        sqparts.make_settings(data, grid=SMALL, max_size=0.2, window=300)
