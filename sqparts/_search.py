@@ -46,6 +46,8 @@ from ._part import (
 from ._render import cast_part
 
 SEARCH_NEWTON_STEPS = 6
+CHUNK_RAYS = 2**16
+"""Rays per chunk of hypotheses: ``batch_size`` is capped at CHUNK_RAYS / window pixels."""
 """Newton steps when scoring hypotheses (grazing silhouette pixels barely move Γ)."""
 
 
@@ -62,10 +64,10 @@ class SearchSettings:
     top_k: int = 4
     stride: int = 4
     survivors: int = 64
-    batch_size: int = 128
+    batch_size: int = 256
     newton_steps: int = SEARCH_NEWTON_STEPS
-    polish_steps: int = 20
-    polish_rounds: int = 4
+    polish_steps: int = 10
+    polish_rounds: int = 2
 
     def __post_init__(self):
         for name in ("window", "top_k", "stride", "survivors", "batch_size", "newton_steps"):
@@ -132,10 +134,10 @@ def prepare(depth, camera: Camera, *, figure=None, encoding: Encoding | None = N
 
 
 def default_max_size(data: RangeData) -> float:
-    """Largest semi-axis searched: a third of the figure's largest metric extent."""
+    """Largest semi-axis searched: a quarter of the figure's largest metric extent."""
     pts = data.camera.points(data.image)[data.figure_mask]
     extent = float(np.max(np.ptp(pts, axis=0)))
-    return max(extent / 3.0, 1e-6)
+    return max(extent / 4.0, 1e-6)
 
 
 def window_for(data: RangeData, max_size: float, *, multiple: int = 8) -> int:
@@ -308,7 +310,11 @@ def score_region(data: RangeData, settings: SearchSettings, centre, *, hypothese
     hyp = hypotheses or _grid_arrays(settings.grid)
     corner, centre = _corner(settings, centre)
     n = len(hyp["orientation"])
-    unit = settings.batch_size * len(jax.devices())
+    stride = stride or settings.stride
+    # Chunks of about 2^16 rays keep temporaries in cache (one huge vmap is slower).
+    pixels = len(range(stride // 2, settings.window, stride)) ** 2
+    batch_size = int(max(1, min(settings.batch_size, CHUNK_RAYS // pixels)))
+    unit = batch_size * len(jax.devices())
     padded = int(math.ceil(n / unit) * unit)
     o = np.zeros((padded, 3), np.float32)
     o[:n] = hyp["orientation"]
@@ -316,7 +322,7 @@ def score_region(data: RangeData, settings: SearchSettings, centre, *, hypothese
     s[:n] = hyp["shape"]
     gam, off, c_d = _score_hypotheses(
         data, jnp.asarray(o), jnp.asarray(s), corner, centre,
-        window=settings.window, stride=stride or settings.stride, batch_size=settings.batch_size,
+        window=settings.window, stride=stride, batch_size=batch_size,
         newton_steps=settings.newton_steps, max_size=float(settings.max_size),
         num_bins=_num_bins(data, settings.max_size),
     )

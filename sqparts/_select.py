@@ -1,0 +1,218 @@
+"""Global encoding: area matrices, the description length E(X) and part selection
+(paper section 3.5, Eqs. 6-7).
+
+For n candidate parts with explained-pixel masks e_i and commission masks c_i:
+
+* ``M_a[i, i] = |e_i|``, ``M_a[i, j] = -|e_i ∩ e_j| / 2``; ``M_c`` likewise for c_i. With
+  no pixel in three parts, X M_a X^T is exactly the number of pixels the chosen parts
+  explain, X M_c X^T the number of commission pixels.
+* ``E(X) = κ0 |X| + κ1 X M_a X^T + κ2 X M_c X^T + κ3 (N - X M_a X^T)`` (Eq. 6), with the
+  costs derived from :class:`~sqparts.Encoding`:
+
+  - κ0 = bits of one part (14 parameters × ``bits_per_parameter``);
+  - κ1 = log2(σ/q), bits of a pixel explained within ±σ/2;
+  - κ2 = λ (b - κ1), bits of a commission error (Eq. 5's definition of λ);
+  - κ3 = b = log2(D/q), bits of a pixel left unexplained (sent raw);
+  - N = number of figure pixels.
+
+Selection minimises E over binary X: :func:`select_best_first` (the paper's iterative
+best-first search, in JAX: add the part that lowers E most, drop any part whose removal
+lowers E, until neither helps) and :func:`select_exact` (the integer-programming route:
+the quadratic is linearised with y_ij = x_i x_j and solved to optimality by HiGHS).
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import itertools
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from ._fit import Encoding
+
+
+@dataclasses.dataclass(frozen=True)
+class Costs:
+    """κ0..κ3 of Eq. (6) in bits, and N."""
+
+    part: float
+    explained: float
+    commission: float
+    omission: float
+    figure_pixels: int
+
+    @classmethod
+    def from_encoding(cls, encoding: Encoding, figure_pixels: int) -> "Costs":
+        return cls(
+            part=encoding.part_bits,
+            explained=encoding.noise_bits,
+            commission=encoding.commission_bits,
+            omission=encoding.pixel_bits,
+            figure_pixels=int(figure_pixels),
+        )
+
+
+def area_matrix(masks) -> np.ndarray:
+    """M (n, n): diagonal = pixels in each mask, off-diagonal = -1/2 the shared pixels."""
+    m = np.asarray(masks, bool).reshape(len(masks), -1).astype(np.float64)
+    overlap = m @ m.T
+    out = -0.5 * overlap
+    np.fill_diagonal(out, np.diag(overlap))
+    return out
+
+
+@dataclasses.dataclass(frozen=True)
+class SelectionProblem:
+    """Eq. (6) for a set of candidates: ``E(X) = linear·X + X^T Q X + constant`` where
+    ``Q`` has zero diagonal (x_i² = x_i is folded into ``linear``)."""
+
+    area: np.ndarray  # M_a
+    commission: np.ndarray  # M_c
+    costs: Costs
+
+    @classmethod
+    def from_masks(cls, explained, commission, costs: Costs) -> "SelectionProblem":
+        return cls(area_matrix(explained), area_matrix(commission), costs)
+
+    @property
+    def size(self) -> int:
+        return len(self.area)
+
+    @property
+    def combined(self) -> np.ndarray:
+        """M of Eq. (7) without the κ0 I term: (κ1 - κ3) M_a + κ2 M_c."""
+        c = self.costs
+        return (c.explained - c.omission) * self.area + c.commission * self.commission
+
+    @property
+    def linear(self) -> np.ndarray:
+        return self.costs.part + np.diag(self.combined)
+
+    @property
+    def pairwise(self) -> np.ndarray:
+        q = self.combined.copy()
+        np.fill_diagonal(q, 0.0)
+        return q
+
+    @property
+    def constant(self) -> float:
+        return self.costs.omission * self.costs.figure_pixels
+
+    def energy(self, x) -> float:
+        """E(X), Eq. (6), in bits."""
+        x = np.asarray(x, np.float64)
+        c = self.costs
+        xa = x @ self.area @ x
+        return float(c.part * x.sum() + c.explained * xa + c.commission * (x @ self.commission @ x) + c.omission * (c.figure_pixels - xa))
+
+
+def description_length(explained, commission, costs: Costs) -> float:
+    """E by direct pixel count: parts, then the union of explained and commission pixels."""
+    explained = np.asarray(explained, bool)
+    commission = np.asarray(commission, bool)
+    n = len(explained)
+    e = int(explained.any(0).sum()) if n else 0
+    c = int(commission.any(0).sum()) if n else 0
+    return costs.part * n + costs.explained * e + costs.commission * c + costs.omission * (costs.figure_pixels - e)
+
+
+@jax.jit
+def _best_first(linear, pairwise, max_iter):
+    n = linear.shape[0]
+
+    def delta(x):
+        # Change of E when bit i flips: adding costs linear_i + 2 Q_i·x, removing the negative.
+        field = linear + 2.0 * pairwise @ x
+        return jnp.where(x > 0, -field, field)
+
+    def cond(state):
+        x, it, improved = state
+        return improved & (it < max_iter)
+
+    def body(state):
+        x, it, _ = state
+        d = delta(x)
+        i = jnp.argmin(d)
+        improved = d[i] < -1e-9
+        x = jnp.where(improved, x.at[i].set(1.0 - x[i]), x)
+        return x, it + 1, improved
+
+    x, _, _ = jax.lax.while_loop(cond, body, (jnp.zeros(n, linear.dtype), 0, True))
+    return x
+
+
+def select_best_first(problem: SelectionProblem, *, max_iter: int | None = None) -> np.ndarray:
+    """The paper's iterative best-first search (JAX): starting from no parts, flip the
+    single part (add or drop) that lowers E(X) most, until no flip lowers it. Returns a
+    bool array."""
+    n = problem.size
+    if n == 0:
+        return np.zeros(0, bool)
+    x = _best_first(jnp.asarray(problem.linear), jnp.asarray(problem.pairwise), jnp.asarray(max_iter or 4 * n + 10))
+    return np.asarray(x) > 0.5
+
+
+def select_exact(problem: SelectionProblem, *, time_limit: float = 30.0) -> tuple[np.ndarray, bool]:
+    """Globally optimal X by integer programming (HiGHS): E = linear·x + Σ_{i<j} 2 Q_ij
+    y_ij + const with y_ij = x_i x_j enforced by y ≥ x_i + x_j - 1 where Q_ij > 0 and
+    y ≤ x_i, y ≤ x_j where Q_ij < 0. Returns (selection, proven_optimal)."""
+    import highspy
+
+    n = problem.size
+    if n == 0:
+        return np.zeros(0, bool), True
+    q = problem.pairwise
+    pairs = [(i, j) for i, j in zip(*np.triu_indices(n, 1)) if abs(q[i, j]) > 1e-12]
+    h = highspy.Highs()
+    h.setOptionValue("output_flag", False)
+    h.setOptionValue("time_limit", float(time_limit))
+    m = n + len(pairs)
+    inf = highspy.kHighsInf
+    h.addVars(m, np.zeros(m), np.ones(m))
+    cost = np.concatenate([problem.linear, [2.0 * q[i, j] for i, j in pairs]])
+    h.changeColsCost(m, np.arange(m, dtype=np.int32), cost)
+    h.changeColsIntegrality(n, np.arange(n, dtype=np.int32), np.array([highspy.HighsVarType.kInteger] * n))
+    for k, (i, j) in enumerate(pairs):
+        y = n + k
+        if q[i, j] > 0:  # y >= x_i + x_j - 1
+            h.addRow(-1.0, inf, 3, np.array([y, i, j], np.int32), np.array([1.0, -1.0, -1.0]))
+        else:  # y <= x_i, y <= x_j
+            h.addRow(-inf, 0.0, 2, np.array([y, i], np.int32), np.array([1.0, -1.0]))
+            h.addRow(-inf, 0.0, 2, np.array([y, j], np.int32), np.array([1.0, -1.0]))
+    h.run()
+    status = h.getModelStatus()
+    values = np.asarray(h.getSolution().col_value[:n])
+    if values.size != n:
+        return select_best_first(problem), False
+    x = values > 0.5
+    return x, status == highspy.HighsModelStatus.kOptimal
+
+
+def select_brute_force(problem: SelectionProblem) -> np.ndarray:
+    """Exhaustive minimum of E(X) (reference for tests; n ≤ 16)."""
+    n = problem.size
+    if n > 16:
+        raise ValueError(f"problem: brute force takes at most 16 candidates, got {n}")
+    best, best_x = np.inf, np.zeros(n, bool)
+    for bits in itertools.product([0, 1], repeat=n):
+        e = problem.energy(bits)
+        if e < best - 1e-9:
+            best, best_x = e, np.asarray(bits, bool)
+    return best_x
+
+
+def select_parts(problem: SelectionProblem, *, method: str = "auto", exact_limit: int = 200) -> tuple[np.ndarray, str]:
+    """Choose parts: ``"exact"``, ``"best-first"`` or ``"auto"`` (exact when the
+    candidate count is at most ``exact_limit`` and HiGHS proves optimality, else
+    best-first). Returns (selection, method used)."""
+    if method not in ("auto", "exact", "best-first"):
+        raise ValueError(f"method: expected 'auto', 'exact' or 'best-first', got {method!r}")
+    if method == "best-first" or (method == "auto" and problem.size > exact_limit):
+        return select_best_first(problem), "best-first"
+    x, optimal = select_exact(problem)
+    if optimal:
+        return x, "exact"
+    greedy = select_best_first(problem)
+    return (greedy, "best-first") if problem.energy(greedy) < problem.energy(x) else (x, "exact (time limit)")
