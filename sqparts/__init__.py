@@ -33,6 +33,18 @@ from ._search import (
     region_centers,
     score_region,
 )
+from ._select import (
+    Costs,
+    SelectionProblem,
+    area_matrix,
+    description_length,
+    select_best_first,
+    select_brute_force,
+    select_exact,
+    select_parts,
+)
+from ._refine import EncodingCost, encoding_cost, refine_parts
+from ._recover import Recovery, recover
 from ._scenes import BUILTIN_SCENES, BuiltinScene, builtin_scene
 from ._io import (
     load_camera,
@@ -88,6 +100,19 @@ __all__ = [
     "prepare",
     "region_centers",
     "score_region",
+    "Costs",
+    "SelectionProblem",
+    "area_matrix",
+    "description_length",
+    "select_best_first",
+    "select_brute_force",
+    "select_exact",
+    "select_parts",
+    "EncodingCost",
+    "encoding_cost",
+    "refine_parts",
+    "Recovery",
+    "recover",
     "BUILTIN_SCENES",
     "BuiltinScene",
     "builtin_scene",

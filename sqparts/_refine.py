@@ -32,10 +32,10 @@ _BUCKET = 8
 
 
 def _pad_parts(parts: Part) -> tuple[Part, int]:
-    """Pad a batch to a multiple of 8 with parts behind the camera (never hit), so the
-    compiled renderers see few distinct shapes."""
+    """Pad a batch to a power of two (at least 8) with parts behind the camera (never
+    hit), so the compiled renderers and solvers see few distinct shapes."""
     n = len(parts)
-    m = max(_BUCKET, int(math.ceil(n / _BUCKET) * _BUCKET))
+    m = max(_BUCKET, 1 << (n - 1).bit_length())
     if m == n:
         return parts, n
     dummy = Part.from_vector(jnp.asarray([0, 0, -1e3, 0, 0, 0, 1e-3, 1e-3, 1e-3, 1, 1, 0, 0, 0], parts.size.dtype))
@@ -177,11 +177,19 @@ def _merge_candidate(a: Part, b: Part) -> list[Part]:
         from ._scenes import _compose
 
         rv = _compose(_frame_from_z(axis), np.array([0.0, 0.0, roll]))
-        for bend in (-0.3, 0.3):
+        for bend in (-0.3, 0.0, 0.3):
             out.append(Part(size=np.array([width, depth, half], np.float32), squareness=np.array([1.0, 1.0], np.float32),
                             position=((pa + pb) / 2).astype(np.float32), orientation=rv.astype(np.float32),
                             bend=np.array([bend, 0.0], np.float32)))
     return out
+
+
+@jax.jit
+def _surface_distance(parts, points):
+    """Approximate distance (gauge × smallest semi-axis) of every point to every part."""
+    from ._part import gauge, to_local
+
+    return jax.vmap(lambda p: jax.vmap(lambda x: gauge(p, to_local(p, x)) * jnp.min(p.size))(points))(parts)
 
 
 def merge_adjacent(parts: Part, data: RangeData, costs: Costs, *, steps: int = 20, tries: int = 3):
@@ -191,9 +199,6 @@ def merge_adjacent(parts: Part, data: RangeData, costs: Costs, *, steps: int = 2
     to the pair's explained pixels; the ``tries`` best fits (by the share of the pair's
     points within σ/2 of their surface) are tried in the joint rendering."""
     from scipy.ndimage import binary_dilation
-
-    from ._part import to_local
-    from ._part import gauge as part_gauge
 
     cost = encoding_cost(parts, data, costs)
     pts, idx = _figure_points(data)
@@ -222,7 +227,7 @@ def merge_adjacent(parts: Part, data: RangeData, costs: Costs, *, steps: int = 2
         w_all[:m] = np.stack(weights)
         fitted = _polish_all(batch, jnp.asarray(pts), jnp.asarray(w_all), steps)
         # Share of each pair's points within σ/2 of the fitted surface (no rendering).
-        dist = jax.vmap(lambda p: jax.vmap(lambda x: part_gauge(p, to_local(p, x)) * jnp.min(p.size))(jnp.asarray(pts)))(fitted)
+        dist = _surface_distance(fitted, jnp.asarray(pts))
         close = (np.abs(np.asarray(dist)) <= data.encoding.sigma / 2) * w_all
         share = close.sum(1)[:m] / np.maximum(w_all.sum(1)[:m], 1)
         for k in np.argsort(-share)[:tries]:

@@ -56,7 +56,8 @@ class Costs:
 
 def area_matrix(masks) -> np.ndarray:
     """M (n, n): diagonal = pixels in each mask, off-diagonal = -1/2 the shared pixels."""
-    m = np.asarray(masks, bool).reshape(len(masks), -1).astype(np.float64)
+    masks = np.asarray(masks, bool)
+    m = masks.reshape(len(masks), int(np.prod(masks.shape[1:]))).astype(np.float64)
     overlap = m @ m.T
     out = -0.5 * overlap
     np.fill_diagonal(out, np.diag(overlap))

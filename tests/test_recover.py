@@ -1,0 +1,99 @@
+import json
+
+import numpy as np
+import pytest
+
+import sqparts
+from sqparts.cli import main
+
+CAM = sqparts.PinholeCamera(64, 64, 280.0, 280.0, 31.5, 31.5)
+SCENE = sqparts.stack_parts([
+    sqparts.Part(size=[0.06, 0.06, 0.2], squareness=[0.5, 1.0], position=[-0.08, 0.0, 2.0], orientation=[0.0, 0.0, 0.3]),
+    sqparts.Part(size=[0.05, 0.05, 0.16], squareness=[1.0, 1.0], position=[0.1, -0.02, 2.05], orientation=[1.57, 0.0, 0.0]),
+])
+
+
+@pytest.fixture(scope="module")
+def depth():
+    return np.asarray(sqparts.render_range_image(SCENE, CAM))
+
+
+@pytest.fixture(scope="module")
+def recovery(depth):
+    return sqparts.recover(depth, CAM, max_size=0.22)
+
+
+def test_recover_two_parts(recovery, depth):
+    fig = np.isfinite(depth)
+    assert 2 <= len(recovery.parts) <= 3
+    assert recovery.fraction_explained >= 0.75
+    assert recovery.commission_fraction <= 0.1
+    # E by direct count: rebuild it from the model's own rendering.
+    data = sqparts.prepare(depth, CAM)
+    costs = sqparts.Costs.from_encoding(data.encoding, int(fig.sum()))
+    model = np.asarray(sqparts.render_range_image(recovery.parts, CAM))
+    hit = np.isfinite(model)
+    with np.errstate(invalid="ignore"):
+        explained = hit & fig & (np.abs(model - depth) <= data.encoding.sigma / 2)
+    direct = sqparts.description_length(explained[None], (hit & ~fig)[None], costs) + costs.part * (len(recovery.parts) - 1)
+    assert recovery.description_length == pytest.approx(direct, abs=costs.omission * 3)
+
+
+def test_refinement_lowers_the_encoding_cost(recovery):
+    assert recovery.cost.total <= recovery.initial_cost.total
+    stages = [e for _, e in recovery.history]
+    assert all(b <= a + 1e-9 for a, b in zip(stages, stages[1:]))
+
+
+def test_refine_drops_a_useless_part(depth):
+    data = sqparts.prepare(depth, CAM)
+    costs = sqparts.Costs.from_encoding(data.encoding, int(data.figure_mask.sum()))
+    useless = sqparts.Part(size=[0.02, 0.02, 0.02], position=[0.0, 0.25, 2.0])
+    parts = sqparts.stack_parts([SCENE[0], SCENE[1], useless])
+    refined, cost, history = sqparts.refine_parts(parts, data, costs, rounds=0, merge=False)
+    assert len(refined) == 2 and cost.total < history[0][1]
+
+
+def test_cli_round_trip(tmp_path, depth):
+    np.save(tmp_path / "range.npy", depth)
+    (tmp_path / "cam.json").write_text(json.dumps(CAM.to_json()))
+    rc = main(["recover", str(tmp_path / "range.npy"), "--camera", str(tmp_path / "cam.json"),
+               "--out", str(tmp_path / "out"), "--max-size", "0.22", "--quiet"])
+    assert rc == 0
+    for name in ("parts.json", "model.ply", "report.png"):
+        assert (tmp_path / "out" / name).stat().st_size > 100
+    data = json.loads((tmp_path / "out" / "parts.json").read_text())
+    assert {"description_length_bits", "timings_s", "settings", "fraction_explained"} <= set(data)
+    assert all({"gamma", "bits_saved"} <= set(p) for p in data["parts"])
+    # Re-render the recovered parts through the CLI and compare with the input.
+    assert main(["render", str(tmp_path / "out" / "parts.json"), "--camera", str(tmp_path / "cam.json"),
+                 "--out", str(tmp_path / "again.npy"), "--quiet"]) == 0
+    again = np.load(tmp_path / "again.npy")
+    both = np.isfinite(again) & np.isfinite(depth)
+    iou = both.sum() / (np.isfinite(again) | np.isfinite(depth)).sum()
+    assert iou > 0.8
+    assert np.median(np.abs(again[both] - depth[both])) < 0.02
+
+
+def test_cli_recover_errors(tmp_path, capsys, depth):
+    np.save(tmp_path / "range.npy", depth)
+    assert main(["recover", str(tmp_path / "range.npy"), "--out", str(tmp_path / "o")]) == 2
+    assert "--camera: range.npy carries no camera" in capsys.readouterr().err
+    (tmp_path / "cam.json").write_text(json.dumps(sqparts.PinholeCamera(10, 10, 5, 5, 4.5, 4.5).to_json()))
+    assert main(["recover", str(tmp_path / "range.npy"), "--camera", str(tmp_path / "cam.json"), "--out", str(tmp_path / "o")]) == 2
+    assert "is 64x64 but the camera is 10x10" in capsys.readouterr().err
+    assert main(["recover", str(tmp_path / "nothing.npy"), "--out", str(tmp_path / "o")]) == 2
+    assert "input: no such file" in capsys.readouterr().err
+    (tmp_path / "empty").mkdir()
+    assert main(["recover", str(tmp_path / "empty"), "--out", str(tmp_path / "o")]) == 2
+    assert "holds no range images" in capsys.readouterr().err
+    assert not (tmp_path / "o").exists()
+
+
+def test_builtin_scenes_render():
+    for name in sqparts.BUILTIN_SCENES:
+        s = sqparts.builtin_scene(name)
+        d = np.asarray(sqparts.render_range_image(s.parts, s.camera))
+        assert np.isfinite(d).mean() > 0.01 and len(s.part_names) == len(s.parts)
+    with pytest.raises(ValueError, match=r"scene: expected one of"):
+        sqparts.builtin_scene("car")

@@ -1,0 +1,68 @@
+import numpy as np
+import pytest
+
+import sqparts
+from sqparts import Costs, SelectionProblem
+
+COSTS = Costs(part=112.0, explained=2.0, commission=24.0, omission=6.0, figure_pixels=600)
+
+
+def _random_masks(rng, n, pixels=600, triples=True):
+    explained = np.zeros((n, pixels), bool)
+    for i in range(n):
+        start = rng.integers(0, pixels - 60)
+        explained[i, start:start + rng.integers(20, 150)] = True
+    if not triples:  # keep every pixel in at most two masks
+        count = explained.sum(0)
+        for p in np.flatnonzero(count > 2):
+            explained[np.flatnonzero(explained[:, p])[2:], p] = False
+    commission = rng.random((n, pixels)) < 0.02
+    if not triples:
+        for p in np.flatnonzero(commission.sum(0) > 2):
+            commission[np.flatnonzero(commission[:, p])[2:], p] = False
+    return explained, commission
+
+
+def test_area_matrix_by_pixel_count():
+    m = np.zeros((3, 10), bool)
+    m[0, :4] = True
+    m[1, 2:7] = True
+    m[2, 9] = True
+    a = sqparts.area_matrix(m)
+    np.testing.assert_array_equal(a, [[4, -1, 0], [-1, 5, 0], [0, 0, 1]])
+
+
+def test_energy_equals_direct_pixel_count_without_triple_overlaps():
+    rng = np.random.default_rng(0)
+    for _ in range(10):
+        e, c = _random_masks(rng, 6, triples=False)
+        p = SelectionProblem.from_masks(e, c, COSTS)
+        for _ in range(10):
+            x = rng.random(6) < 0.5
+            assert p.energy(x) == pytest.approx(sqparts.description_length(e[x], c[x], COSTS))
+        x = rng.random(6) < 0.5
+        lin = p.linear @ x + x @ p.pairwise @ x + p.constant
+        assert lin == pytest.approx(p.energy(x))
+
+
+def test_exact_and_best_first_against_brute_force():
+    rng = np.random.default_rng(1)
+    best_first_optimal = 0
+    for _ in range(15):
+        e, c = _random_masks(rng, 9)
+        p = SelectionProblem.from_masks(e, c, COSTS)
+        brute = p.energy(sqparts.select_brute_force(p))
+        x, optimal = sqparts.select_exact(p)
+        assert optimal and p.energy(x) == pytest.approx(brute)
+        g = p.energy(sqparts.select_best_first(p))
+        assert g >= brute - 1e-9
+        best_first_optimal += g <= brute + 1e-6
+    assert best_first_optimal >= 8  # the greedy search is usually, not always, optimal
+
+
+def test_select_parts_errors_and_empty():
+    p = SelectionProblem.from_masks(np.zeros((0, 4), bool), np.zeros((0, 4), bool), COSTS)
+    assert sqparts.select_best_first(p).shape == (0,)
+    e, c = _random_masks(np.random.default_rng(2), 3)
+    with pytest.raises(ValueError, match=r"method: expected 'auto', 'exact' or 'best-first'"):
+        sqparts.select_parts(SelectionProblem.from_masks(e, c, COSTS), method="annealing")
