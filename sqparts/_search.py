@@ -46,6 +46,8 @@ from ._part import (
 from ._render import cast_part
 
 SEARCH_NEWTON_STEPS = 6
+NUM_BINS = 1024
+"""Histogram bins of width σ/2 (offsets of ±256 σ around the anchor pixel's own)."""
 CHUNK_RAYS = 2**16
 """Rays per chunk of hypotheses: ``batch_size`` is capped at CHUNK_RAYS / window pixels."""
 """Newton steps when scoring hypotheses (grazing silhouette pixels barely move Γ)."""
@@ -82,14 +84,23 @@ class SearchSettings:
             raise ValueError(f"max_size: expected a finite number > 0, got {self.max_size!r}")
 
 
-class RangeData(eqx.Module):
-    """A range image prepared for search: NaN-padded depth and figure mask."""
+@dataclasses.dataclass(frozen=True)
+class RangeData:
+    """A range image prepared for search: NaN-padded depth and figure mask, camera and
+    encoding. Only its arrays enter compiled code (σ and λ as runtime scalars), so a new
+    image never triggers a recompile."""
 
     depth: jax.Array  # (H + 2 pad, W + 2 pad) float32, NaN = no return
     figure: jax.Array  # same shape, bool
-    pad: int = eqx.field(static=True)
-    camera: Camera = eqx.field(static=True)
-    encoding: Encoding = eqx.field(static=True)
+    pad: int
+    camera: Camera
+    encoding: Encoding
+
+    @property
+    def arrays(self):
+        """(depth, figure, σ, λ): what the compiled stages take."""
+        enc = self.encoding
+        return (self.depth, self.figure, jnp.float32(enc.sigma), jnp.float32(enc.commission_weight))
 
     @property
     def image(self) -> np.ndarray:
@@ -220,18 +231,17 @@ def pose_hypothesis(orientation_rel, shape, max_size, ray_origin, ray_direction,
     )
 
 
-def _region_inputs(data: RangeData, corner, centre, window: int):
-    camera = data.camera
-    p = data.pad
-    measured = jax.lax.dynamic_slice(data.depth, (corner[0] + p, corner[1] + p), (window, window))
-    figure = jax.lax.dynamic_slice(data.figure, (corner[0] + p, corner[1] + p), (window, window))
+def _region_inputs(depth, figure, camera, pad, corner, centre, window: int):
+    p = pad
+    measured = jax.lax.dynamic_slice(depth, (corner[0] + p, corner[1] + p), (window, window))
+    fig = jax.lax.dynamic_slice(figure, (corner[0] + p, corner[1] + p), (window, window))
     origins, directions = camera.rays((corner[0].astype(jnp.float32), corner[1].astype(jnp.float32), window, window))
     c_o, c_d = camera.rays((centre[0].astype(jnp.float32), centre[1].astype(jnp.float32), 1, 1))
-    # Depth at the centre: median-free robust choice, the nearest figure pixel in a 5x5.
-    nb = jax.lax.dynamic_slice(data.depth, (centre[0] + p - 2, centre[1] + p - 2), (5, 5))
-    nbf = jax.lax.dynamic_slice(data.figure, (centre[0] + p - 2, centre[1] + p - 2), (5, 5))
+    # Depth at the centre: the nearest figure pixel in a 5x5 neighbourhood.
+    nb = jax.lax.dynamic_slice(depth, (centre[0] + p - 2, centre[1] + p - 2), (5, 5))
+    nbf = jax.lax.dynamic_slice(figure, (centre[0] + p - 2, centre[1] + p - 2), (5, 5))
     surface_t = jnp.nanmin(jnp.where(nbf, nb, jnp.nan))
-    return measured, figure, origins, directions, c_o[0, 0], c_d[0, 0], surface_t
+    return measured, fig, origins, directions, c_o[0, 0], c_d[0, 0], surface_t
 
 
 def _score_one(part, origins, directions, measured, figure, weight, *, sigma, lam, num_bins, newton_steps):
@@ -255,24 +265,25 @@ def _map_hypotheses(fn, batched, replicated, batch_size: int):
     )(batched, *replicated)
 
 
-@functools.partial(jax.jit, static_argnames=("window", "stride", "batch_size", "newton_steps", "max_size", "num_bins"))
-def _score_hypotheses(data, orientation_rel, shape, corner, centre, *, window, stride, batch_size, newton_steps, max_size, num_bins):
+@functools.partial(jax.jit, static_argnames=("camera", "pad", "window", "stride", "batch_size", "newton_steps"))
+def _score_hypotheses(arrays, orientation_rel, shape, corner, centre, max_size, *, camera, pad, window, stride, batch_size, newton_steps):
     """Γ and depth offset p for every hypothesis at one region (the one parallel operation)."""
-    measured, figure, origins, directions, c_o, c_d, surface_t = _region_inputs(data, corner, centre, window)
+    depth, fig, sigma, lam = arrays
+    measured, figure, origins, directions, c_o, c_d, surface_t = _region_inputs(depth, fig, camera, pad, corner, centre, window)
     s = slice(stride // 2, None, stride)
     measured, figure = measured[s, s], figure[s, s]
     origins, directions = origins[s, s], directions[s, s]
     weight = jnp.float32(stride * stride)
-    enc = data.encoding
 
-    def one(h, origins, directions, measured, figure, c_o, c_d, surface_t):
+    def one(h, origins, directions, measured, figure, c_o, c_d, surface_t, sigma, lam, max_size):
         orientation_rel, shp = h
         part = pose_hypothesis(orientation_rel, shp, max_size, c_o, c_d, surface_t)
         return _score_one(part, origins, directions, measured, figure, weight,
-                          sigma=enc.sigma, lam=enc.commission_weight, num_bins=num_bins, newton_steps=newton_steps)
+                          sigma=sigma, lam=lam, num_bins=NUM_BINS, newton_steps=newton_steps)
 
     gam, off = _map_hypotheses(
-        one, (orientation_rel, shape), (origins, directions, measured, figure, c_o, c_d, surface_t), batch_size
+        one, (orientation_rel, shape),
+        (origins, directions, measured, figure, c_o, c_d, surface_t, sigma, lam, max_size), batch_size,
     )
     return jnp.where(jnp.isfinite(gam), gam, -jnp.inf), off, c_d
 
@@ -299,12 +310,6 @@ class RegionFit(eqx.Module):
     corner: tuple = eqx.field(static=True)
 
 
-def _num_bins(data: RangeData, max_size: float) -> int:
-    img = data.image[data.figure_mask]
-    span = float(np.nanmax(img) - np.nanmin(img)) + 4.0 * max_size
-    return histogram_bins(data.encoding, span)
-
-
 def score_region(data: RangeData, settings: SearchSettings, centre, *, hypotheses=None, stride: int | None = None):
     """Γ and offset p of every grid hypothesis at ``centre`` (row, col), at ``stride``."""
     hyp = hypotheses or _grid_arrays(settings.grid)
@@ -321,10 +326,9 @@ def score_region(data: RangeData, settings: SearchSettings, centre, *, hypothese
     s = np.tile(hyp["shape"][:1], (padded, 1))
     s[:n] = hyp["shape"]
     gam, off, c_d = _score_hypotheses(
-        data, jnp.asarray(o), jnp.asarray(s), corner, centre,
-        window=settings.window, stride=stride, batch_size=batch_size,
-        newton_steps=settings.newton_steps, max_size=float(settings.max_size),
-        num_bins=_num_bins(data, settings.max_size),
+        data.arrays, jnp.asarray(o), jnp.asarray(s), corner, centre, jnp.float32(settings.max_size),
+        camera=data.camera, pad=data.pad, window=settings.window, stride=stride, batch_size=batch_size,
+        newton_steps=settings.newton_steps,
     )
     return gam[:n], off[:n]
 
@@ -340,12 +344,12 @@ def _corner(settings, centre):
     return corner, centre
 
 
-@functools.partial(jax.jit, static_argnames=("window", "max_size", "num_bins", "newton_steps", "polish_steps", "polish_rounds"))
-def _finish(data, orientation_rel, shape, offsets, corner, centre, *, window, max_size, num_bins, newton_steps, polish_steps, polish_rounds):
+@functools.partial(jax.jit, static_argnames=("camera", "pad", "window", "newton_steps", "polish_steps", "polish_rounds"))
+def _finish(arrays, orientation_rel, shape, offsets, corner, centre, max_size, *, camera, pad, window, newton_steps, polish_steps, polish_rounds):
     """Pose the chosen hypotheses, shift them by -p in depth, polish, and score at full
     resolution over the window; returns parts, Γ and explained/rendered window masks."""
-    measured, figure, origins, directions, c_o, c_d, surface_t = _region_inputs(data, corner, centre, window)
-    enc = data.encoding
+    depth, fig, sigma, lam = arrays
+    measured, figure, origins, directions, c_o, c_d, surface_t = _region_inputs(depth, fig, camera, pad, corner, centre, window)
 
     def posed(o, s, p):
         part = pose_hypothesis(o, s, max_size, c_o, c_d, surface_t)
@@ -355,8 +359,8 @@ def _finish(data, orientation_rel, shape, offsets, corner, centre, *, window, ma
 
     def score(part):
         t, hit = cast_part(part, origins, directions, newton_steps)
-        mu, eps, off, explained = gamma_terms(t, hit, measured, figure, sigma=enc.sigma, num_bins=num_bins)
-        return mu - enc.commission_weight * eps, off, explained.reshape(hit.shape), hit
+        mu, eps, off, explained = gamma_terms(t, hit, measured, figure, sigma=sigma, num_bins=NUM_BINS)
+        return mu - lam * eps, off, explained.reshape(hit.shape), hit
 
     gam, off, explained, hit = jax.vmap(score)(parts)
     points = (origins + jnp.where(jnp.isfinite(measured), measured, 0.0)[..., None] * directions).reshape(-1, 3)
@@ -424,13 +428,12 @@ def fit_region(data: RangeData, settings: SearchSettings, centre, *, prune: bool
     g_sorted = np.asarray(best_g)
     ratio = float(g_sorted[0] / g_sorted[1]) if k > 1 and g_sorted[1] > 0 else float("inf")
     parts, gam, explained, hit = _finish(
-        data,
+        data.arrays,
         jnp.asarray(hyp["orientation"][chosen]),
         jnp.asarray(hyp["shape"][chosen]),
         jnp.asarray(np.asarray(off_full)[best_i]),
-        corner, centre_j,
-        window=settings.window, max_size=float(settings.max_size),
-        num_bins=_num_bins(data, settings.max_size), newton_steps=SEARCH_NEWTON_STEPS + 2,
+        corner, centre_j, jnp.float32(settings.max_size),
+        camera=data.camera, pad=data.pad, window=settings.window, newton_steps=SEARCH_NEWTON_STEPS + 2,
         polish_steps=settings.polish_steps, polish_rounds=settings.polish_rounds,
     )
     order = np.argsort(-np.asarray(gam), kind="stable")
@@ -509,7 +512,7 @@ def gamma_profile(data: RangeData, part: Part, parameter: int, offsets, *, num_b
     o, d = data.camera.rays()
     p = data.pad
     measured, figure = data.depth[p:-p, p:-p], data.figure[p:-p, p:-p]
-    nb = num_bins or _num_bins(data, float(jnp.max(part.size)))
+    nb = num_bins or NUM_BINS
     enc = data.encoding
     base = part.to_vector()
     vecs = jnp.stack([base.at[parameter].add(float(x)) for x in offsets])

@@ -1,0 +1,188 @@
+"""Local search: accuracy on synthetic single parts, sampling densities, throughput.
+
+Cases: random single parts (sizes 0.08-0.25 m, squareness 0.2-1.8, any orientation),
+half with taper and bend; pinhole and orthographic; each variant clean, with Gaussian
+noise (σ_n = 2 mm), quantised to 6 bits, or half occluded by a box in front. A case
+succeeds when the symmetric surface Chamfer distance between the best candidate and the
+truth (both tessellated, 2000 points each) is at most 2% of the part's size (its
+largest dimension, 2·max a_i).
+
+    python benchmarks/bench_search.py [--cases 16] [--grids coarse default ...]
+"""
+
+from __future__ import annotations
+
+import argparse
+import statistics
+import sys
+import time
+from pathlib import Path
+
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+
+import jax
+import numpy as np
+
+import sqparts
+
+from _common import RESULTS, save
+
+VARIANTS = ("clean", "noise", "6-bit", "occluded")
+CUSTOM = {
+    "orient-45": sqparts.Grid(axis_step=45.0, roll_step=45.0),
+    "orient-30": sqparts.Grid(axis_step=30.0, roll_step=30.0, bends=(0.0,)),
+    "sizes-5": sqparts.Grid(lengths=(0.2, 0.3, 0.45, 0.7, 1.0), axis_step=45.0, roll_step=45.0, bends=(0.0,)),
+}
+
+
+def make_case(i: int):
+    rng = np.random.default_rng(1000 + i)
+    pinhole = i % 2 == 0
+    variant = VARIANTS[(i // 2) % len(VARIANTS)]
+    deformed = (i // 8) % 2 == 1
+    a = np.sort(rng.uniform(0.08, 0.25, 3))[[1, 0, 2]]
+    kw = dict(size=a, squareness=rng.uniform(0.2, 1.8, 2), position=np.r_[rng.uniform(-0.03, 0.03, 2), 2.0],
+              orientation=rng.normal(size=3))
+    if deformed:
+        kw["bend"] = [rng.uniform(-0.3, 0.3), 0.0]
+        kw["taper"] = rng.uniform(-0.3, 0.3)
+    truth = sqparts.Part(**{k: np.asarray(v, np.float32) for k, v in kw.items()})
+    cam = (sqparts.PinholeCamera(64, 64, 190.0, 190.0, 31.5, 31.5) if pinhole
+           else sqparts.OrthographicCamera(64, 64, 0.0105, 31.5, 31.5))
+    scene = truth
+    if variant == "occluded":
+        box = sqparts.Part(size=np.array([0.4, 0.4, 0.02], np.float32), squareness=np.array([0.2, 0.2], np.float32),
+                           position=np.array([0.4 if rng.random() < 0.5 else -0.4, 0.0, 1.6], np.float32))
+        scene = sqparts.stack_parts([truth, box])
+    depth, labels = (np.asarray(x) for x in sqparts.render_range_image(scene, cam, return_labels=True))
+    if variant == "noise":
+        depth = depth + rng.normal(0, 0.002, depth.shape).astype(np.float32)
+    if variant == "6-bit":
+        lo, hi = np.nanmin(depth), np.nanmax(depth)
+        depth = (lo + np.round((depth - lo) / (hi - lo) * 63) / 63 * (hi - lo)).astype(np.float32)
+    visible = labels == 0
+    centre = np.argwhere(visible).mean(0).round().astype(int)
+    return dict(truth=truth, camera=cam, depth=depth, centre=centre, variant=variant, pinhole=pinhole,
+                deformed=deformed, visible=int(visible.sum()), occluded_fraction=None)
+
+
+def chamfer(a: sqparts.Part, b: sqparts.Part, n: int = 2000, dense: int = 40000) -> float:
+    """Symmetric mean surface distance: n samples of each surface against a dense
+    (40 000-point) sampling of the other, so the sampling floor is ~0.2% of the size."""
+    import trimesh
+    from scipy.spatial import cKDTree
+
+    ma, mb = sqparts.part_mesh(a, resolution=24), sqparts.part_mesh(b, resolution=24)
+    pa, da = trimesh.sample.sample_surface(ma, n, seed=0)[0], trimesh.sample.sample_surface(ma, dense, seed=2)[0]
+    pb, db = trimesh.sample.sample_surface(mb, n, seed=1)[0], trimesh.sample.sample_surface(mb, dense, seed=3)[0]
+    return 0.5 * (cKDTree(db).query(pa)[0].mean() + cKDTree(da).query(pb)[0].mean())
+
+
+def run_grid(name, grid, cases):
+    rows = []
+    t_compile = None
+    for k, c in enumerate(cases):
+        data = sqparts.prepare(c["depth"], c["camera"])
+        st = sqparts.make_settings(data, grid=grid, max_size=0.3)
+        t0 = time.perf_counter()
+        fit = sqparts.fit_region(data, st, c["centre"])
+        jax.block_until_ready(fit.gamma)
+        wall = time.perf_counter() - t0
+        if k == 0:  # the first case pays compilation: time it again warm
+            t0 = time.perf_counter()
+            fit = sqparts.fit_region(data, st, c["centre"])
+            jax.block_until_ready(fit.gamma)
+            warm = time.perf_counter() - t0
+            t_compile, wall = wall - warm, warm
+        size = 2 * float(np.max(np.asarray(c["truth"].size)))
+        ch = chamfer(fit.parts[0], c["truth"]) / size
+        g = np.asarray(fit.gamma)
+        rows.append({"case": k, "variant": c["variant"], "pinhole": c["pinhole"], "deformed": c["deformed"],
+                     "chamfer_rel": ch, "success": bool(ch <= 0.02), "gamma": float(g[0]),
+                     "visible_pixels": c["visible"], "ratio": fit.ratio, "wall_s": wall})
+        print(f"  {name} case {k:2d} {c['variant']:8s} {'pin' if c['pinhole'] else 'ortho'} "
+              f"{'deformed' if c['deformed'] else 'plain   '} chamfer {ch:.3f} Γ {g[0]:.0f}/{c['visible']} "
+              f"ratio {fit.ratio:.2f} {wall:.2f} s", flush=True)
+    return {"grid": name, "hypotheses": grid.size, "compile_s": t_compile,
+            "median_wall_s": statistics.median(r["wall_s"] for r in rows),
+            "success_rate": float(np.mean([r["success"] for r in rows])),
+            "success_rate_5pct": float(np.mean([r["chamfer_rel"] <= 0.05 for r in rows])),
+            "median_chamfer_rel": float(np.median([r["chamfer_rel"] for r in rows])),
+            "median_ratio": float(np.median([r["ratio"] for r in rows])), "cases": rows}
+
+
+def throughput(repeats: int = 3):
+    """Hypotheses/s per region, pruned against brute force in the same run, and s/image."""
+    s = sqparts.builtin_scene("human")
+    depth = np.asarray(sqparts.render_range_image(s.parts, s.camera))
+    data = sqparts.prepare(depth, s.camera)
+    out = {}
+    for grid in ("coarse", "default"):
+        st = sqparts.make_settings(data, grid=grid)
+        centre = np.array([52, 63])
+        res = {}
+        for label, prune in (("pruned", True), ("brute", False)):
+            sqparts.fit_region(data, st, centre, prune=prune)  # compile
+            times = []
+            for _ in range(repeats if (grid == "coarse" or prune) else 1):
+                t0 = time.perf_counter()
+                jax.block_until_ready(sqparts.fit_region(data, st, centre, prune=prune).gamma)
+                times.append(time.perf_counter() - t0)
+            res[label] = statistics.median(times)
+        t0 = time.perf_counter()
+        fits, _, _ = sqparts.fit_image(depth, s.camera, grid=grid)
+        jax.block_until_ready([f.gamma for f in fits])
+        per_image = time.perf_counter() - t0
+        out[grid] = {"hypotheses": st.grid.size, "window": st.window, "pruned_s_per_region": res["pruned"],
+                     "brute_s_per_region": res["brute"], "speedup": res["brute"] / res["pruned"],
+                     "hypotheses_per_s_pruned": st.grid.size / res["pruned"],
+                     "hypotheses_per_s_brute": st.grid.size / res["brute"],
+                     "regions": len(fits), "s_per_image": per_image}
+        print(f"  throughput {grid}: {out[grid]}", flush=True)
+    return out
+
+
+def plot(results, path):
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    fig, ax = plt.subplots(1, 2, figsize=(10, 4))
+    for r in results:
+        ax[0].scatter(r["hypotheses"], r["success_rate"], label=r["grid"])
+        ax[0].annotate(r["grid"], (r["hypotheses"], r["success_rate"]))
+        ax[1].scatter(r["median_wall_s"], r["median_chamfer_rel"])
+        ax[1].annotate(r["grid"], (r["median_wall_s"], r["median_chamfer_rel"]))
+    ax[0].set_xscale("log")
+    ax[0].set_xlabel("hypotheses per region")
+    ax[0].set_ylabel("success rate (Chamfer <= 2%)")
+    ax[1].set_xlabel("median s per region (warm)")
+    ax[1].set_ylabel("median relative Chamfer")
+    fig.tight_layout()
+    fig.savefig(path, dpi=90)
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--cases", type=int, default=16)
+    ap.add_argument("--grids", nargs="+", default=["coarse", "default", "orient-45", "orient-30", "sizes-5"])
+    ap.add_argument("--no-throughput", action="store_true")
+    args = ap.parse_args()
+    cases = [make_case(i) for i in range(args.cases)]
+    results = []
+    for name in args.grids:
+        grid = CUSTOM[name] if name in CUSTOM else sqparts.grid_preset(name)
+        results.append(run_grid(name, grid, cases))
+        print(f"{name}: {grid.size} hypotheses, success {results[-1]['success_rate']:.0%}, "
+              f"median Chamfer {results[-1]['median_chamfer_rel']:.3f}, {results[-1]['median_wall_s']:.2f} s/region", flush=True)
+    payload = {"cases": args.cases, "image": "64x64", "dtype": "float32", "densities": results}
+    if not args.no_throughput:
+        payload["throughput"] = throughput()
+    RESULTS.mkdir(exist_ok=True)
+    plot(results, RESULTS / "sampling_densities.png")
+    save("search", payload)
+
+
+if __name__ == "__main__":
+    main()
