@@ -131,11 +131,6 @@ def encoding_for(
     return Encoding(float(sigma), float(quantum), depth_range, float(commission_weight), float(bits_per_parameter))
 
 
-def histogram_bins(encoding: Encoding, span: float) -> int:
-    """Number of σ/2 bins covering offsets of ±``span`` around the anchor (static)."""
-    return int(min(max(2 * math.ceil(span / (encoding.sigma / 2)) + 2, 8), 4096))
-
-
 def gamma_terms(
     rendered: Float[Array, "*pixels"],
     hit: Bool[Array, "*pixels"],

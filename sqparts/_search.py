@@ -32,7 +32,7 @@ import optimistix as optx
 from jax.sharding import Mesh, PartitionSpec as P
 
 from ._camera import Camera, _Camera
-from ._fit import Encoding, encoding_for, gamma_terms, histogram_bins
+from ._fit import Encoding, encoding_for, gamma_terms
 from ._grid import Grid, grid_preset
 from ._part import (
     Part,

@@ -80,7 +80,7 @@ def test_pruned_search_finds_what_brute_force_finds(data):
 
 
 def test_fit_region_recovers_the_part(data):
-    st = sqparts.make_settings(data, grid="coarse", max_size=0.25, polish_rounds=6)
+    st = sqparts.make_settings(data, grid="coarse", max_size=0.25, polish_rounds=6, polish_steps=20)
     fit = sqparts.fit_region(data, st, _centre(data))
     n = data.figure_mask.sum()
     assert float(fit.gamma[0]) >= 0.9 * n
