@@ -37,7 +37,6 @@ inside-outside function of the deformed part is ``F(D^{-1}(p))`` in closed form
 
 from __future__ import annotations
 
-import math
 
 import equinox as eqx
 import jax
@@ -94,7 +93,8 @@ def rotation_matrix(rotation_vector: Float[ArrayLike, "3"]) -> Float[Array, "3 3
 
 
 def rotation_vector(matrix: Float[ArrayLike, "3 3"]) -> np.ndarray:
-    """Inverse of :func:`rotation_matrix` in numpy (for I/O): matrix to rotation vector.
+    """Checked inverse of :func:`rotation_matrix` for I/O: matrix to rotation vector
+    (numpy, float64), via :func:`matrix_to_rotation_vector`.
 
     Raises ``ValueError`` unless ``matrix`` is a proper rotation (orthonormal, det +1,
     to 1e-4).
@@ -108,32 +108,8 @@ def rotation_vector(matrix: Float[ArrayLike, "3 3"]) -> np.ndarray:
             f"rotation: expected an orthonormal matrix with determinant +1, got "
             f"|R R^T - I| = {err:.2g}, det = {np.linalg.det(m):.3g}"
         )
-    # Quaternion from the matrix (Shepperd), then axis * angle.
-    tr = np.trace(m)
-    cand = np.array([tr, m[0, 0], m[1, 1], m[2, 2]])
-    i = int(np.argmax(cand))
-    if i == 0:
-        w = math.sqrt(max(1.0 + tr, 0.0)) / 2
-        x = (m[2, 1] - m[1, 2]) / (4 * w)
-        y = (m[0, 2] - m[2, 0]) / (4 * w)
-        z = (m[1, 0] - m[0, 1]) / (4 * w)
-    else:
-        j, k = (i % 3) + 1, ((i + 1) % 3) + 1
-        ii = i - 1
-        jj, kk = j - 1, k - 1
-        q = [0.0, 0.0, 0.0]
-        q[ii] = math.sqrt(max(1.0 + 2 * m[ii, ii] - tr, 0.0)) / 2
-        q[jj] = (m[jj, ii] + m[ii, jj]) / (4 * q[ii])
-        q[kk] = (m[kk, ii] + m[ii, kk]) / (4 * q[ii])
-        w = (m[kk, jj] - m[jj, kk]) / (4 * q[ii])
-        x, y, z = q
-    if w < 0:
-        w, x, y, z = -w, -x, -y, -z
-    s = math.sqrt(x * x + y * y + z * z)
-    if s < 1e-12:
-        return np.zeros(3)
-    angle = 2 * math.atan2(s, w)
-    return np.array([x, y, z]) / s * angle
+    with jax.enable_x64(True):
+        return np.array(matrix_to_rotation_vector(jnp.asarray(m, jnp.float64)), np.float64)
 
 
 class Part(eqx.Module):
