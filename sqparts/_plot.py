@@ -76,8 +76,6 @@ def save_report(path, recovery, *, title: str | None = None) -> None:
     """Report PNG in the spirit of Figures 7-11: the data, the initial explanation (parts
     chosen by selection), the final model (parts after refinement), the model's range
     image against the data, and the residual R* - R; with a one-line summary."""
-    from ._refine import encoding_cost  # noqa: F401  (labels come with the recovery)
-
     plt = _pyplot()
     depth = recovery.depth
     fig_mask = recovery.figure

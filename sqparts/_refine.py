@@ -161,27 +161,21 @@ def drop_unprofitable(parts: Part, data: RangeData, costs: Costs):
 
 
 def _merge_candidate(a: Part, b: Part) -> list[Part]:
-    """Initial single parts spanning two parts: straight and bent both ways."""
+    """Initial single parts spanning two parts: straight and bent both ways, at two rolls."""
+    from ._scenes import limb
+
     pa, pb = np.asarray(a.position, np.float64), np.asarray(b.position, np.float64)
-    axis = pb - pa
-    length = np.linalg.norm(axis)
+    length = np.linalg.norm(pb - pa)
     if length < 1e-9:
         return []
-    from ._scenes import _frame_from_z
-
-    half = length / 2 + 0.5 * (float(jnp.max(a.size)) + float(jnp.max(b.size)))
+    reach = 0.5 * (float(jnp.max(a.size)) + float(jnp.max(b.size))) * (pb - pa) / length
     width = max(float(jnp.sort(a.size)[1]), float(jnp.sort(b.size)[1]))
     depth = max(float(jnp.min(a.size)), float(jnp.min(b.size)))
-    out = []
-    for roll in (0.0, np.pi / 2):
-        from ._scenes import _compose
-
-        rv = _compose(_frame_from_z(axis), np.array([0.0, 0.0, roll]))
-        for bend in (-0.3, 0.0, 0.3):
-            out.append(Part(size=np.array([width, depth, half], np.float32), squareness=np.array([1.0, 1.0], np.float32),
-                            position=((pa + pb) / 2).astype(np.float32), orientation=rv.astype(np.float32),
-                            bend=np.array([bend, 0.0], np.float32)))
-    return out
+    return [
+        limb(pa - reach, pb + reach, width, depth, roll=roll, bend=(bend, 0.0))
+        for roll in (0.0, np.pi / 2)
+        for bend in (-0.3, 0.0, 0.3)
+    ]
 
 
 @jax.jit

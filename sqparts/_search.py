@@ -210,7 +210,6 @@ def _frame_from_z(direction):
     d = direction / jnp.linalg.norm(direction)
     z = jnp.array([0.0, 0.0, 1.0], d.dtype)
     c = jnp.cross(z, d)
-    s = jnp.linalg.norm(c)
     cos = jnp.dot(z, d)
     k = jnp.array([[0.0, -c[2], c[1]], [c[2], 0.0, -c[0]], [-c[1], c[0], 0.0]], d.dtype)
     return jnp.eye(3, dtype=d.dtype) + k + (k @ k) / (1.0 + cos)
