@@ -15,6 +15,18 @@ from ._part import (
     surface_point,
 )
 from ._camera import OrthographicCamera, PinholeCamera, ScannerCamera, camera_from_json
+from ._preprocess import (
+    CleanedRange,
+    FigureGround,
+    Plane,
+    clean_range_image,
+    downsample,
+    estimate_noise,
+    figure_ground,
+    fit_plane,
+    flying_pixels,
+    torn_components,
+)
 from ._render import cast_batch, cast_part, cast_ray, cast_scene, render_each, render_range_image
 from ._fit import Encoding, encoding_for, gamma, gamma_terms, smooth_gamma
 from ._grid import PRESETS, Grid, grid_preset
@@ -44,7 +56,16 @@ from ._select import (
     select_parts,
 )
 from ._refine import EncodingCost, encoding_cost, refine_parts
-from ._recover import Recovery, recover
+from ._recover import MultiscaleRecovery, Recovery, SceneRecovery, recover, recover_multiscale, recover_scene
+from ._postprocess import (
+    FractalSurface,
+    ResidualModel,
+    fit_fractal,
+    prettify,
+    residual_model,
+    snap_rotation,
+    snap_to_gravity,
+)
 from ._scenes import BUILTIN_SCENES, BuiltinScene, builtin_scene
 from ._io import (
     load_camera,
@@ -73,6 +94,16 @@ __all__ = [
     "PinholeCamera",
     "ScannerCamera",
     "camera_from_json",
+    "CleanedRange",
+    "FigureGround",
+    "Plane",
+    "clean_range_image",
+    "downsample",
+    "estimate_noise",
+    "figure_ground",
+    "fit_plane",
+    "flying_pixels",
+    "torn_components",
     "cast_batch",
     "cast_part",
     "cast_ray",
@@ -113,6 +144,17 @@ __all__ = [
     "refine_parts",
     "Recovery",
     "recover",
+    "SceneRecovery",
+    "MultiscaleRecovery",
+    "recover_scene",
+    "recover_multiscale",
+    "FractalSurface",
+    "ResidualModel",
+    "fit_fractal",
+    "prettify",
+    "residual_model",
+    "snap_rotation",
+    "snap_to_gravity",
     "BUILTIN_SCENES",
     "BuiltinScene",
     "builtin_scene",

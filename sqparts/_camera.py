@@ -76,6 +76,18 @@ class _Camera:
         """Metric width of one pixel at the given depth (for pixel-equivalent errors)."""
         raise NotImplementedError
 
+    def downsampled(self, factor: int):
+        """The camera of an image binned ``factor`` × ``factor`` (pixel (i, j) of the new
+        image covers old pixels [factor·i, factor·i + factor))."""
+        if not (isinstance(factor, (int, np.integer)) and factor >= 1):
+            raise ValueError(f"factor: expected an integer >= 1, got {factor!r}")
+        f = int(factor)
+        if f > min(self.width, self.height):
+            raise ValueError(f"factor: expected at most {min(self.width, self.height)} for a {self.width}x{self.height} camera, got {f}")
+        shift = (f - 1) / 2.0
+        common = dict(width=self.width // f, height=self.height // f, cx=(self.cx - shift) / f, cy=(self.cy - shift) / f)
+        return dataclasses.replace(self, **common, **self._scaled_fields(f))
+
     def points(self, range_image) -> np.ndarray:
         """Back-project a range image to camera-frame points, shape (h, w, 3), NaN = none."""
         o, d = (np.asarray(a, np.float64) for a in self.rays())
@@ -107,6 +119,9 @@ class PinholeCamera(_Camera):
 
     def pixel_size_at(self, depth):
         return depth / (0.5 * (self.fx + self.fy))
+
+    def _scaled_fields(self, f):
+        return {"fx": self.fx / f, "fy": self.fy / f}
 
     def project(self, points):
         """Camera-frame points (..., 3) to pixel coordinates (..., 2) as (u, v)."""
@@ -149,6 +164,9 @@ class OrthographicCamera(_Camera):
 
     def pixel_size_at(self, depth):
         return jnp.full_like(jnp.asarray(depth), self.pixel_size)
+
+    def _scaled_fields(self, f):
+        return {"pixel_size": self.pixel_size * f}
 
     def project(self, points):
         p = jnp.asarray(points)
@@ -206,6 +224,9 @@ class ScannerCamera(_Camera):
 
     def pixel_size_at(self, depth):
         return depth * 0.5 * (self.azimuth_step + self.elevation_step)
+
+    def _scaled_fields(self, f):
+        return {"azimuth_step": self.azimuth_step * f, "elevation_step": self.elevation_step * f}
 
     def to_json(self) -> dict:
         return {

@@ -27,7 +27,7 @@ from ._camera import Camera, PinholeCamera, camera_from_json
 from ._part import Part, rotation_vector, stack_parts
 
 PART_KEYS = {"size", "squareness", "position", "rotation", "bend", "taper"}
-ANNOTATION_KEYS = {"name", "gamma", "bits_saved", "fraction_explained", "pixels", "level"}
+ANNOTATION_KEYS = {"name", "gamma", "bits_saved", "fraction_explained", "pixels", "level", "figure", "prettify", "parent"}
 RANGE_IMAGE_SUFFIXES = (".npy", ".png", ".tif", ".tiff", ".pcd")
 
 

@@ -115,3 +115,36 @@ def _wrap(text: str, width: int = 150) -> str:
     import textwrap
 
     return "\n".join(textwrap.wrap(text, width))
+
+
+def save_residual_report(path, recovery, model, *, title: str | None = None) -> None:
+    """Figure 11 panels for a :class:`~sqparts.ResidualModel`: the residual R - R*, its
+    variogram with the fractal fit, the parts' range image and parts plus residual model."""
+    plt = _pyplot()
+    f = model.fractal
+    fig, ax = plt.subplots(1, 4, figsize=(16, 4), dpi=90)
+    sigma = recovery.settings["sigma"]
+    im = ax[0].imshow(np.ma.masked_invalid(model.residual), cmap="coolwarm", vmin=-sigma, vmax=sigma)
+    ax[0].set_title("residual R - R* (±σ)")
+    fig.colorbar(im, ax=ax[0], fraction=0.046, pad=0.04)
+    lags = np.asarray(f.lags)
+    ax[1].loglog(lags, f.variogram, "o", label="measured")
+    ax[1].loglog(lags, f.scale**2 * lags ** (2 * f.hurst), "-", label=f"fBm fit, H = {f.hurst:.2f}")
+    ax[1].set_xlabel("lag (pixels)")
+    ax[1].set_ylabel("mean squared difference")
+    ax[1].set_title(f"fractal dimension {f.fractal_dimension:.2f}")
+    ax[1].legend(fontsize=8)
+    fm = recovery.figure
+    d = recovery.depth
+    lo, hi = (np.nanmin(d[fm]), np.nanmax(d[fm])) if fm.any() else (0, 1)
+    ax[2].imshow(np.ma.masked_invalid(model.model), cmap="viridis_r", vmin=lo, vmax=hi)
+    ax[2].set_title("parts R*")
+    ax[3].imshow(np.ma.masked_invalid(model.model_plus_residual), cmap="viridis_r", vmin=lo, vmax=hi)
+    ax[3].set_title("parts + fractal residual model (Fig. 11f)")
+    for a in (ax[0], ax[2], ax[3]):
+        a.set_xticks([])
+        a.set_yticks([])
+    if title:
+        fig.suptitle(title + "\n" + model.summary(), fontsize=9)
+    fig.tight_layout()
+    _save(fig, path)

@@ -7,6 +7,10 @@
    skeleton, keeping the best few candidates per region;
 3. area matrices and :func:`~sqparts.select_parts` (exact by HiGHS, or best-first);
 4. :func:`~sqparts.refine_parts`: all chosen parts rendered together and refined.
+
+:func:`recover_scene` runs it on real data: binning, clean-up and figure/ground
+(:mod:`sqparts._preprocess`), then :func:`recover` per figure, then optional prettifying
+(:mod:`sqparts._postprocess`). :func:`recover_multiscale` runs it at several scales.
 """
 
 from __future__ import annotations
@@ -21,6 +25,7 @@ from ._camera import Camera
 from ._fit import Encoding
 from ._part import Part, stack_parts
 from ._refine import EncodingCost, encoding_cost, part_statistics, refine_parts
+from ._render import render_range_image
 from ._search import RangeData, fit_image
 from ._select import Costs, SelectionProblem, select_parts
 
@@ -49,8 +54,10 @@ class Recovery:
     settings : dict
         The settings used (grid, max_size, window, σ, λ, bit costs...).
     depth, figure :
-        The input range image and figure mask.
+        The input range image and figure mask (pixels with a return).
     history : list of (stage, E)
+    data, costs :
+        The prepared data and bit costs, for later stages (prettifying, residuals).
     """
 
     parts: Part
@@ -65,6 +72,8 @@ class Recovery:
     depth: np.ndarray
     figure: np.ndarray
     history: list
+    data: RangeData | None = None
+    costs: Costs | None = None
 
     @property
     def description_length(self) -> float:
@@ -198,13 +207,15 @@ def recover(
         depth=np.asarray(data.image),
         figure=np.asarray(data.figure_mask),
         history=history,
+        data=data,
+        costs=costs,
     )
 
 
 def _candidates(fits, data: RangeData):
     """All regions' candidates with Γ > 0 as one batch, their explained and commission masks."""
     parts, explained, commission = [], [], []
-    figure = data.figure_mask
+    figure = data.figure_region
     for f in fits:
         for i in range(len(f.gamma)):
             if float(f.gamma[i]) <= 0:
@@ -215,3 +226,337 @@ def _candidates(fits, data: RangeData):
     if not parts:
         return None, None, None
     return stack_parts(parts), np.stack(explained), np.stack(commission)
+
+
+# --- real scenes: clean-up, figure/ground, one recovery per figure ----------------------
+
+
+WINDOW_SIZES = (16, 32, 48, 64, 96, 128)
+"""Windows are rounded up to one of these so that figures of different sizes share
+compiled searches."""
+
+
+def _composite_cost(recoveries, shape) -> EncodingCost:
+    """One :class:`EncodingCost` for several figures' recoveries: nearest surface wins,
+    labels numbered across figures, totals summed."""
+    rendered = np.full(shape, np.nan, np.float32)
+    labels = np.full(shape, -1, np.int64)
+    explained = np.zeros(shape, bool)
+    commission = np.zeros(shape, bool)
+    offset = 0
+    totals = np.zeros(5)
+    for rec, cost in recoveries:
+        nearer = np.isfinite(cost.rendered) & ~(cost.rendered >= rendered)
+        rendered = np.where(nearer, cost.rendered, rendered)
+        labels = np.where(nearer, cost.labels + offset, labels)
+        explained |= cost.explained_mask
+        commission |= cost.commission_mask
+        offset += len(rec.parts)
+        totals += [cost.total, cost.parts, cost.explained, cost.commission, cost.omission]
+    t, n, e, c, o = totals
+    return EncodingCost(float(t), int(n), int(e), int(c), int(o), rendered, labels, explained, commission)
+
+
+@dataclasses.dataclass
+class SceneRecovery:
+    """What :func:`recover_scene` found: one :class:`Recovery` per figure.
+
+    Attributes
+    ----------
+    figures : list of Recovery, largest figure first.
+    camera : the camera of the (possibly binned) image the search ran on.
+    depth : that image after clean-up, NaN = no return.
+    factor : the binning factor applied to the input.
+    cleaned : the :class:`~sqparts.CleanedRange` report, or None.
+    figure_ground : the :class:`~sqparts.FigureGround` result, or None.
+    prettify : per figure, per part: what prettifying tried and kept (or None).
+    timings : seconds: ``preprocess``, ``recovery`` (all figures), ``total``.
+    """
+
+    figures: list
+    camera: Camera
+    depth: np.ndarray
+    factor: int
+    cleaned: object
+    figure_ground: object
+    prettify: list | None
+    timings: dict
+
+    @property
+    def parts(self) -> Part:
+        return stack_parts([r.parts[i] for r in self.figures for i in range(len(r.parts))])
+
+    @property
+    def part_stats(self) -> list:
+        return [dict(s, figure=k) for k, r in enumerate(self.figures) for s in r.part_stats]
+
+    @property
+    def figure(self) -> np.ndarray:
+        out = np.zeros(self.depth.shape, bool)
+        for r in self.figures:
+            out |= r.figure
+        return out
+
+    @property
+    def cost(self) -> EncodingCost:
+        return _composite_cost([(r, r.cost) for r in self.figures], self.depth.shape)
+
+    @property
+    def initial_cost(self) -> EncodingCost:
+        return _composite_cost([(r, r.initial_cost) for r in self.figures], self.depth.shape)
+
+    @property
+    def initial_parts(self) -> Part:
+        return stack_parts([r.initial_parts[i] for r in self.figures for i in range(len(r.initial_parts))])
+
+    @property
+    def settings(self) -> dict:
+        return {"sigma": max(r.settings["sigma"] for r in self.figures), "figures": [r.settings for r in self.figures]}
+
+    @property
+    def fraction_explained(self) -> float:
+        return self.cost.explained / max(int(self.figure.sum()), 1)
+
+    @property
+    def commission_fraction(self) -> float:
+        return self.cost.commission / max(int(self.figure.sum()), 1)
+
+    def summary(self) -> str:
+        n = len(self.parts)
+        fg = self.figure_ground
+        ground = "" if fg is None else f"{len(fg.planes)} background plane(s) removed, "
+        per = ", ".join(str(len(r.parts)) for r in self.figures)
+        return (
+            f"{ground}{len(self.figures)} figure(s) at {self.camera.width}x{self.camera.height}; "
+            f"{n} parts ({per}), E = {self.cost.total:.0f} bits, {self.fraction_explained:.1%} of "
+            f"{int(self.figure.sum())} figure pixels explained, commission {self.commission_fraction:.1%}; "
+            f"total {self.timings['total']:.1f} s"
+        )
+
+    def scene_dict(self, names=None) -> dict:
+        from ._io import scene_to_dict
+
+        fg = self.figure_ground
+        ann = self.part_stats
+        if self.prettify:
+            flat = [e for rep in self.prettify for e in rep]
+            ann = [dict(a, prettify=e) for a, e in zip(ann, flat)]
+        return scene_to_dict(
+            self.parts,
+            ann,
+            description_length_bits=self.cost.total,
+            fraction_explained=self.fraction_explained,
+            commission_fraction=self.commission_fraction,
+            camera=self.camera.to_json(),
+            binning=self.factor,
+            clean_up=None if self.cleaned is None else self.cleaned.summary(),
+            ground_plane=None if fg is None or fg.ground is None else fg.ground.to_json(),
+            background_planes=[] if fg is None else [p.to_json() for p in fg.planes],
+            figures=[
+                {"pixels": int(r.figure.sum()), "parts": len(r.parts), "description_length_bits": r.cost.total,
+                 "fraction_explained": r.fraction_explained, "timings_s": r.timings, "settings": r.settings}
+                for r in self.figures
+            ],
+            timings_s=self.timings,
+        )
+
+
+def _snap_window(window: int) -> int:
+    return next((w for w in WINDOW_SIZES if w >= window), int(window))
+
+
+def recover_scene(
+    depth,
+    camera: Camera,
+    *,
+    resolution: int | None = 160,
+    clean: bool = True,
+    figure_ground: bool = True,
+    tear: float | None = None,
+    planes: int = 2,
+    plane_threshold: float | None = None,
+    min_figure_pixels: int | None = None,
+    max_figures: int | None = None,
+    max_height: float | None = None,
+    depth_range=None,
+    prettify: bool = False,
+    up=None,
+    max_angle: float = 15.0,
+    max_bits: float = 56.0,
+    progress=None,
+    **recover_kwargs,
+) -> SceneRecovery:
+    """Recover a real scene: bin, clean, separate figures from ground, recover each
+    figure on its own (the searches compiled once, shared by all figures), optionally
+    prettify.
+
+    Parameters
+    ----------
+    resolution : bin the image (NaN-aware median) so its longest side is about this
+        (None or 0: full resolution).
+    clean : remove missing returns, flying pixels and outliers (:func:`~sqparts.clean_range_image`).
+    figure_ground : remove background planes and split the rest into figures
+        (:func:`~sqparts.figure_ground`); off: the whole image is one figure.
+    tear, planes, plane_threshold, min_figure_pixels, max_figures, max_height :
+        passed to the clean-up and figure/ground stages.
+    depth_range : (near, far): drop returns outside (the paper's "cube of data").
+    prettify : snap near-vertical / near-horizontal parts to gravity
+        (:func:`~sqparts.prettify`) with ``up`` (default: the ground plane's normal),
+        ``max_angle`` degrees and ``max_bits``.
+    recover_kwargs : passed to :func:`recover` for every figure (grid, max_size, ...).
+    """
+    from ._postprocess import prettify as _prettify
+    from ._fit import encoding_for
+    from ._preprocess import DEFAULT_TEAR, auto_factor, clean_range_image, downsample, estimate_noise
+    from ._preprocess import figure_ground as _figure_ground
+    from ._search import default_max_size, prepare, window_for
+
+    t0 = time.perf_counter()
+    tear = DEFAULT_TEAR if tear is None else tear
+    d = np.asarray(depth, np.float32)
+    if d.ndim != 2:
+        raise ValueError(f"depth: expected a 2-D range image, got shape {d.shape}")
+    if resolution is not None and not (isinstance(resolution, (int, np.integer)) and resolution >= 0):
+        raise ValueError(f"resolution: expected an integer >= 0 or None, got {resolution!r}")
+    factor = auto_factor(d.shape, resolution) if resolution else 1
+    if factor > 1:
+        d, camera = downsample(d, camera, factor)
+    cleaned = clean_range_image(d, camera, tear=tear, depth_range=depth_range) if clean else None
+    if cleaned is not None:
+        d = cleaned.depth
+    fg = None
+    if figure_ground:
+        fg = _figure_ground(d, camera, planes=planes, plane_threshold=plane_threshold, tear=tear,
+                            min_pixels=min_figure_pixels, max_figures=max_figures, max_height=max_height)
+        masks = fg.figures
+        if not masks:
+            raise ValueError("depth: no figure left after removing the background; try figure_ground=False or a smaller min_figure_pixels")
+    else:
+        masks = [np.isfinite(d)]
+    t1 = time.perf_counter()
+    recoveries, reports = [], []
+    noise = estimate_noise(d)
+    for mask in masks:
+        kw = dict(recover_kwargs)
+        if kw.get("encoding") is None:  # σ covers the sensor's noise: ±σ/2 is ±2 sd
+            enc = encoding_for(d[mask & np.isfinite(d)])
+            kw["encoding"] = encoding_for(d[mask & np.isfinite(d)], sigma=max(enc.sigma, 4.0 * noise))
+        if kw.get("window") is None:
+            data = prepare(d, camera, figure=mask, encoding=kw.get("encoding"))
+            size = kw.get("max_size") or default_max_size(data)
+            kw["window"] = _snap_window(window_for(data, size))
+        try:
+            rec = recover(d, camera, figure=mask, progress=progress, **kw)
+        except ValueError as e:
+            if "found no part" in str(e):
+                continue
+            raise
+        recoveries.append(rec)
+    if not recoveries:
+        raise ValueError("depth: the search found no part on any figure")
+    if prettify:
+        gravity = up if up is not None else (fg.up if fg is not None else None)
+        if gravity is None:
+            raise ValueError("up: prettifying needs the gravity direction; no ground plane was found, so give up=(x, y, z)")
+        for rec in recoveries:
+            parts, cost, report = _prettify(rec.parts, rec.data, rec.costs, up=gravity, max_angle=max_angle, max_bits=max_bits)
+            rec.parts, rec.cost = parts, cost
+            rec.part_stats = part_statistics(parts, rec.data, cost)
+            rec.history.append(("prettify", cost.total))
+            reports.append(report)
+    t2 = time.perf_counter()
+    return SceneRecovery(recoveries, camera, d, factor, cleaned, fg, reports if prettify else None,
+                         {"preprocess": t1 - t0, "recovery": t2 - t1, "total": t2 - t0})
+
+
+# --- multiscale ---------------------------------------------------------------------
+
+
+@dataclasses.dataclass
+class MultiscaleRecovery:
+    """Recoveries at several scales, coarse to fine (paper sections 1 and 4.1).
+
+    Attributes
+    ----------
+    levels : list of Recovery, coarsest first.
+    factors : the binning factor of each level's image.
+    cameras : each level's camera.
+    max_sizes : each level's largest semi-axis searched.
+    parents : per level, per part, the index of the part one level coarser that covers
+        most of its pixels (-1: none, and every part of level 0).
+    """
+
+    levels: list
+    factors: list
+    cameras: list
+    max_sizes: list
+    parents: list
+
+    def summary(self) -> str:
+        return "; ".join(
+            f"level {i} ({c.width}x{c.height}, parts up to {s:.3g}): {len(r.parts)} parts, {r.fraction_explained:.0%} explained"
+            for i, (r, c, s) in enumerate(zip(self.levels, self.cameras, self.max_sizes))
+        )
+
+    def tree(self) -> dict:
+        """The hierarchy as JSON: per level, its parts (scene format) with ``parent``."""
+        from ._io import part_to_dict
+
+        return {
+            "levels": [
+                {
+                    "binning": f,
+                    "max_size": s,
+                    "camera": c.to_json(),
+                    "parts": [part_to_dict(r.parts[j], parent=int(p[j]), **r.part_stats[j]) for j in range(len(r.parts))],
+                }
+                for r, f, c, s, p in zip(self.levels, self.factors, self.cameras, self.max_sizes, self.parents)
+            ]
+        }
+
+
+def recover_multiscale(depth, camera: Camera, *, levels: int = 3, figure=None, max_size: float | None = None, progress=None, **recover_kwargs) -> MultiscaleRecovery:
+    """Recover a coarse-to-fine hierarchy of part models.
+
+    Level k of ``levels`` (0 = coarsest) searches parts up to ``max_size`` / 2^k
+    (default ``max_size``: half the figure's largest extent) on the image binned by
+    2^(levels-1-k). Small images give "summarizing" descriptions, since each part must
+    still pay its κ0 bits from fewer pixels: a person as one blob; as head, torso and
+    limbs; with hands and feet. Each part is linked to its parent one level up.
+    """
+    from ._preprocess import downsample, downsample_mask
+    from ._search import prepare
+
+    if not (isinstance(levels, (int, np.integer)) and 1 <= levels <= 6):
+        raise ValueError(f"levels: expected an integer in [1, 6], got {levels!r}")
+    d0 = np.asarray(depth, np.float32)
+    data0 = prepare(d0, camera, figure=figure)
+    if max_size is None:
+        pts = camera.points(data0.image)[data0.figure_mask]
+        max_size = float(np.max(np.ptp(pts, axis=0))) / 2.0
+    fig0 = data0.figure_region
+    out_levels, factors, cameras, sizes, parents = [], [], [], [], []
+    for k in range(levels):
+        f = 2 ** (levels - 1 - k)
+        if f > 1:
+            d, cam = downsample(d0, camera, f)
+            fig = downsample_mask(fig0, f)
+        else:
+            d, cam, fig = d0, camera, fig0
+        size = max_size / 2**k
+        rec = recover(d, cam, figure=fig, max_size=size, progress=progress, **recover_kwargs)
+        if out_levels:
+            _, coarse = render_range_image(out_levels[-1].parts, cam, return_labels=True)
+            coarse = np.asarray(coarse)
+            par = []
+            for j in range(len(rec.parts)):
+                under = coarse[(rec.cost.labels == j) & (coarse >= 0)]
+                par.append(int(np.bincount(under).argmax()) if under.size else -1)
+            parents.append(np.asarray(par, np.int64))
+        else:
+            parents.append(np.full(len(rec.parts), -1, np.int64))
+        out_levels.append(rec)
+        factors.append(f)
+        cameras.append(cam)
+        sizes.append(size)
+    return MultiscaleRecovery(out_levels, factors, cameras, sizes, parents)

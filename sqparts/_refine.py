@@ -67,7 +67,7 @@ class EncodingCost:
 
 def encoding_cost(parts: Part | None, data: RangeData, costs: Costs) -> EncodingCost:
     """Render ``parts`` together and count E (Eq. 6 evaluated on the joint rendering)."""
-    measured, figure = data.image, data.figure_mask
+    measured, figure = data.image, data.figure_region
     if parts is None or len(parts) == 0:
         n, rendered, labels = 0, np.full(measured.shape, np.nan, np.float32), np.full(measured.shape, -1)
     else:

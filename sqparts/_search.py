@@ -108,16 +108,25 @@ class RangeData:
         return np.asarray(self.depth)[p:-p, p:-p]
 
     @property
-    def figure_mask(self) -> np.ndarray:
+    def figure_region(self) -> np.ndarray:
+        """The figure's pixels, including those without a return inside its outline
+        (neither explained nor commission)."""
         p = self.pad
         return np.asarray(self.figure)[p:-p, p:-p]
+
+    @property
+    def figure_mask(self) -> np.ndarray:
+        """The figure's pixels that have a return (the pixels to be explained)."""
+        return self.figure_region & np.isfinite(self.image)
 
 
 def prepare(depth, camera: Camera, *, figure=None, encoding: Encoding | None = None, pad: int = 64) -> RangeData:
     """Check a range image and pad it for windowed search.
 
     ``figure`` (bool, same shape) marks the figure of interest; default: every pixel with
-    a return. ``encoding`` defaults to :func:`~sqparts.encoding_for` of the figure.
+    a return. Figure pixels without a return (holes in a sensor's data) are *unknown*: a
+    part drawn there is neither an explained pixel nor an error of commission.
+    ``encoding`` defaults to :func:`~sqparts.encoding_for` of the figure.
     """
     if not isinstance(camera, _Camera):
         raise TypeError(f"camera: expected a sqparts camera, got {type(camera).__name__}")
@@ -129,12 +138,12 @@ def prepare(depth, camera: Camera, *, figure=None, encoding: Encoding | None = N
             f"depth: expected shape {(camera.height, camera.width)} to match the camera, got {d.shape}"
         )
     d = np.where(np.isfinite(d) & (d > 0), d, np.nan).astype(np.float32)
-    fig = np.isfinite(d) if figure is None else np.asarray(figure, bool) & np.isfinite(d)
+    fig = np.isfinite(d) if figure is None else np.asarray(figure, bool)
     if fig.shape != d.shape:
         raise ValueError(f"figure: expected shape {d.shape}, got {fig.shape}")
-    if fig.sum() < 4:
-        raise ValueError(f"depth: expected a figure of at least 4 pixels, got {int(fig.sum())}")
-    enc = encoding or encoding_for(d[fig])
+    if (fig & np.isfinite(d)).sum() < 4:
+        raise ValueError(f"depth: expected a figure of at least 4 pixels with returns, got {int((fig & np.isfinite(d)).sum())}")
+    enc = encoding or encoding_for(d[fig & np.isfinite(d)])
     return RangeData(
         jnp.asarray(np.pad(d, pad, constant_values=np.nan)),
         jnp.asarray(np.pad(fig, pad, constant_values=False)),
@@ -496,7 +505,7 @@ def fit_image(
     settings = make_settings(data, grid=grid, max_size=max_size, window=window, **settings_kwargs)
     if centres is None:
         px = settings.window / 2.2
-        centres = region_centers(data.figure_mask, spacing=spacing or max(3.0, px / 3), method=region_method)
+        centres = region_centers(data.figure_region, spacing=spacing or max(3.0, px / 3), method=region_method)
     centres = np.asarray(centres, np.int32).reshape(-1, 2)
     it = progress(centres) if progress else centres
     return [fit_region(data, settings, c, prune=prune) for c in it], data, settings

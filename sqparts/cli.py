@@ -90,13 +90,36 @@ def _write_recovery(out: Path, recovery, *, title: str, names=None) -> None:
 
 def _recover_options(args) -> dict:
     opts = dict(grid=args.grid, max_size=args.max_size, selection=args.selection,
-                refine_rounds=args.refine_rounds)
-    for name in ("max_size", "sigma"):
+                refine_rounds=args.refine_rounds, resolution=args.resolution, clean=args.clean,
+                figure_ground=args.figure_ground, planes=args.planes, tear=args.tear,
+                min_figure_pixels=args.min_figure_pixels, max_figures=args.max_figures,
+                prettify=args.prettify, max_angle=args.max_angle, max_bits=args.max_bits)
+    for name in ("max_size", "sigma", "tear"):
         v = getattr(args, name)
         if v is not None and not v > 0:
             raise ValueError(f"--{name.replace('_', '-')}: expected a number > 0, got {v}")
-    if args.refine_rounds < 0:
-        raise ValueError(f"--refine-rounds: expected an integer >= 0, got {args.refine_rounds}")
+    for name in ("refine_rounds", "resolution", "planes"):
+        v = getattr(args, name)
+        if v < 0:
+            raise ValueError(f"--{name.replace('_', '-')}: expected an integer >= 0, got {v}")
+    for name in ("min_figure_pixels", "max_figures"):
+        v = getattr(args, name)
+        if v is not None and v < 1:
+            raise ValueError(f"--{name.replace('_', '-')}: expected an integer >= 1, got {v}")
+    if args.up is not None:
+        try:
+            up = [float(x) for x in args.up.split(",")]
+        except ValueError:
+            up = []
+        if len(up) != 3 or not np.all(np.isfinite(up)) or not any(up):
+            raise ValueError(f"--up: expected three numbers x,y,z (camera frame), got {args.up!r}")
+        opts["up"] = up
+    if args.depth_range is not None:
+        try:
+            near, far = (float(x) for x in args.depth_range.split(","))
+        except ValueError:
+            raise ValueError(f"--depth-range: expected NEAR,FAR, got {args.depth_range!r}") from None
+        opts["depth_range"] = (near, far)
     return opts
 
 
@@ -120,7 +143,7 @@ def _inputs(paths) -> list[Path]:
 def cmd_recover(args) -> int:
     from ._fit import encoding_for
     from ._io import load_camera, read_range_image
-    from ._recover import recover
+    from ._recover import recover_scene
 
     inputs = _inputs(args.input)
     camera_arg = load_camera(args.camera) if args.camera else None
@@ -146,7 +169,7 @@ def cmd_recover(args) -> int:
         progress = lambda it: tqdm(it, desc="regions", unit="region", leave=False)  # noqa: E731
     for path, depth, camera in loaded:
         enc = encoding_for(depth[np.isfinite(depth)], sigma=args.sigma) if args.sigma else None
-        recovery = recover(depth, camera, encoding=enc, progress=progress, **opts)
+        recovery = recover_scene(depth, camera, encoding=enc, progress=progress, **opts)
         target = out if len(loaded) == 1 else out / path.stem
         _write_recovery(target, recovery, title=path.name)
         _say(args, f"{path.name}: {recovery.summary()}\n  wrote {target}/parts.json, model.ply, report.png")
@@ -220,6 +243,24 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--selection", default="auto", choices=["auto", "exact", "best-first"])
     p.add_argument("--refine-rounds", type=int, default=2)
     p.add_argument("--depth-scale", type=float, default=0.001, help="PNG units per value (m)")
+    g = p.add_argument_group("real data (clean-up, figure/ground, prettifying)")
+    g.add_argument("--resolution", type=int, default=160,
+                   help="bin the image so its longest side is about this many pixels (0 = full resolution)")
+    g.add_argument("--no-clean", dest="clean", action="store_false",
+                   help="keep flying pixels and isolated outliers")
+    g.add_argument("--no-figure-ground", dest="figure_ground", action="store_false",
+                   help="no plane removal or splitting: the whole image is one figure")
+    g.add_argument("--planes", type=int, default=2, help="background planes (table, floor, wall) to remove")
+    g.add_argument("--tear", type=float, default=None,
+                   help="depth jump, in pixel footprints, that separates figures (default 8)")
+    g.add_argument("--min-figure-pixels", type=int, default=None, help="smallest figure kept")
+    g.add_argument("--max-figures", type=int, default=None, help="recover at most this many figures")
+    g.add_argument("--depth-range", default=None, help="NEAR,FAR: drop returns outside (scene units)")
+    g.add_argument("--prettify", action="store_true",
+                   help="snap nearly vertical/horizontal parts to gravity (section 4.3)")
+    g.add_argument("--up", default=None, help="x,y,z gravity up in the camera frame (default: ground normal)")
+    g.add_argument("--max-angle", type=float, default=15.0, help="prettify parts within this many degrees")
+    g.add_argument("--max-bits", type=float, default=56.0, help="prettify only if E rises at most this")
     p.set_defaults(func=cmd_recover)
 
     p = sub.add_parser("demo", help="recover the built-in articulated human (Figure 7)")

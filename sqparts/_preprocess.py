@@ -1,0 +1,428 @@
+"""Real range data, before the search: sensor clean-up and figure/ground (paper sections 3, 4).
+
+The stages, in order:
+
+1. :func:`downsample`: bin a sensor-sized image (640×480) to the resolution the search
+   needs, with a NaN-aware median, and the matching camera;
+2. :func:`clean_range_image`: missing returns (NaN, 0, negative, inf) become NaN,
+   mixed-range ("flying") pixels at depth edges and isolated outliers are removed, and
+   the depth quantum is estimated;
+3. :func:`figure_ground`: the paper's recipe (section 3, ref. [23]): "chop out a cube
+   of data, locate the ground plane, and the remaining data is figure". Large planes that
+   run off the image (table, floor, wall) are found by RANSAC and removed; what is left is
+   a *rubber sheet* spanning neighbouring pixels that **tears** wherever depth jumps by
+   more than ``tear`` pixel footprints, and each piece of the torn sheet is a figure.
+
+Depth jumps are measured in *pixel footprints* (the metric width of a pixel at that
+depth, :meth:`~sqparts.PinholeCamera.pixel_size_at`): a jump of ``tear`` footprints
+between neighbours is a surface at atan(tear) from face-on (83° for the default 8),
+steeper than any surface a sensor measures reliably, so the threshold needs no tuning per
+sensor or resolution.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+
+import numpy as np
+from scipy import ndimage
+from scipy.sparse import coo_matrix
+from scipy.sparse.csgraph import connected_components
+
+from ._camera import Camera, _Camera
+
+DEFAULT_TEAR = 8.0
+"""Depth jump, in pixel footprints, that tears the rubber sheet."""
+
+
+def _check_depth(depth, camera: Camera) -> np.ndarray:
+    if not isinstance(camera, _Camera):
+        raise TypeError(f"camera: expected a sqparts camera, got {type(camera).__name__}")
+    d = np.asarray(depth, np.float64)
+    if d.ndim != 2:
+        raise ValueError(f"depth: expected a 2-D range image, got shape {d.shape}")
+    if d.shape != (camera.height, camera.width):
+        raise ValueError(f"depth: expected shape {(camera.height, camera.width)} to match the camera, got {d.shape}")
+    with np.errstate(invalid="ignore"):
+        return np.where(np.isfinite(d) & (d > 0), d, np.nan)
+
+
+def _check_positive(name: str, value, *, integer: bool = False):
+    ok = isinstance(value, (int, np.integer)) if integer else isinstance(value, (int, float, np.number))
+    if not ok or not math.isfinite(value) or value <= 0:
+        kind = "an integer" if integer else "a finite number"
+        raise ValueError(f"{name}: expected {kind} > 0, got {value!r}")
+    return value
+
+
+def footprint(depth, camera: Camera) -> np.ndarray:
+    """Metric width of each pixel at its depth (NaN where there is no return)."""
+    return np.asarray(camera.pixel_size_at(np.asarray(depth, np.float32)), np.float64)
+
+
+# --- 1. resolution -------------------------------------------------------------------
+
+
+def downsample(depth, camera: Camera, factor: int) -> tuple[np.ndarray, Camera]:
+    """Bin ``factor`` × ``factor`` blocks to their median valid depth (NaN if none is
+    valid), cropping the image to a multiple of ``factor``; returns (depth, camera)."""
+    _check_positive("factor", factor, integer=True)
+    d = _check_depth(depth, camera)
+    cam = camera.downsampled(int(factor))
+    f = int(factor)
+    h, w = cam.height, cam.width
+    blocks = d[: h * f, : w * f].reshape(h, f, w, f).transpose(0, 2, 1, 3).reshape(h, w, f * f)
+    with np.errstate(all="ignore"):
+        import warnings
+
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore", RuntimeWarning)
+            out = np.nanmedian(blocks, axis=-1)
+    return out.astype(np.float32), cam
+
+
+def downsample_mask(mask, factor: int) -> np.ndarray:
+    """Bin a boolean mask: a block is set when at least half of it is."""
+    m = np.asarray(mask, bool)
+    f = int(factor)
+    h, w = m.shape[0] // f, m.shape[1] // f
+    return m[: h * f, : w * f].reshape(h, f, w, f).mean(axis=(1, 3)) >= 0.5
+
+
+def auto_factor(shape, target: int = 160) -> int:
+    """The binning factor that brings an image's longest side to about ``target``."""
+    return max(1, int(max(shape)) // int(target))
+
+
+# --- 2. sensor clean-up --------------------------------------------------------------
+
+
+def _shifted(a: np.ndarray, dy: int, dx: int) -> np.ndarray:
+    """out[i, j] = a[i + dy, j + dx], NaN outside the image."""
+    out = np.full_like(a, np.nan)
+    h, w = a.shape
+    ys, yd = (slice(dy, h), slice(0, h - dy)) if dy >= 0 else (slice(0, h + dy), slice(-dy, h))
+    xs, xd = (slice(dx, w), slice(0, w - dx)) if dx >= 0 else (slice(0, w + dx), slice(-dx, w))
+    out[yd, xd] = a[ys, xs]
+    return out
+
+
+def flying_pixels(depth, camera: Camera, *, tear: float = DEFAULT_TEAR) -> np.ndarray:
+    """Mixed-range ("flying") pixels: a return that lies *between* two surfaces across a
+    depth edge, as sensors report where a pixel sees both. A pixel is flagged when, along
+    a row, column or diagonal, its two neighbours straddle it, each more than ``tear``/2
+    footprints away, and each of those gaps is more than twice the step between that
+    neighbour and the next one out: the surfaces either side are continuous and the pixel
+    belongs to neither (a steep ramp, where every step is alike, is not flagged)."""
+    _check_positive("tear", tear)
+    d = _check_depth(depth, camera)
+    thr = footprint(d, camera) * tear
+    out = np.zeros(d.shape, bool)
+    with np.errstate(invalid="ignore"):
+        for dy, dx in ((0, 1), (1, 0), (1, 1), (1, -1)):
+            a, b = _shifted(d, -dy, -dx), _shifted(d, dy, dx)
+            a2, b2 = _shifted(d, -2 * dy, -2 * dx), _shifted(d, 2 * dy, 2 * dx)
+            ga, gb = np.abs(d - a), np.abs(b - d)
+            sa, sb = np.nan_to_num(np.abs(a - a2)), np.nan_to_num(np.abs(b2 - b))
+            between = (d - np.fmin(a, b) > 0) & (np.fmax(a, b) - d > 0)
+            out |= between & (ga > thr / 2) & (gb > thr / 2) & (ga > 2 * sa) & (gb > 2 * sb)
+    return out & np.isfinite(d)
+
+
+def torn_components(depth, camera: Camera, mask=None, *, tear: float = DEFAULT_TEAR) -> np.ndarray:
+    """The rubber sheet: 4-neighbours in ``mask`` (default: every return) are joined
+    unless their depths differ by more than ``tear`` footprints; returns the labels of
+    the pieces (0, 1, ... by decreasing size; -1 outside the mask)."""
+    _check_positive("tear", tear)
+    d = _check_depth(depth, camera)
+    m = np.isfinite(d) if mask is None else (np.asarray(mask, bool) & np.isfinite(d))
+    h, w = d.shape
+    thr = footprint(d, camera) * tear
+    idx = np.arange(h * w).reshape(h, w)
+    rows, cols = [], []
+    with np.errstate(invalid="ignore"):
+        for sa, sb in (((slice(None), slice(0, -1)), (slice(None), slice(1, None))),
+                       ((slice(0, -1), slice(None)), (slice(1, None), slice(None)))):
+            joined = m[sa] & m[sb] & (np.abs(d[sa] - d[sb]) <= np.fmin(thr[sa], thr[sb]))
+            rows.append(idx[sa][joined])
+            cols.append(idx[sb][joined])
+    r, c = np.concatenate(rows), np.concatenate(cols)
+    graph = coo_matrix((np.ones(len(r), np.int8), (r, c)), shape=(h * w, h * w))
+    _, lab = connected_components(graph, directed=False)
+    lab = lab.reshape(h, w)
+    out = np.full((h, w), -1, np.int64)
+    if m.any():
+        ids, counts = np.unique(lab[m], return_counts=True)
+        order = ids[np.argsort(-counts, kind="stable")]
+        remap = np.full(lab.max() + 1, -1)
+        remap[order] = np.arange(len(order))
+        out[m] = remap[lab[m]]
+    return out
+
+
+def estimate_quantum(depth) -> float | None:
+    """The depth step of quantised data (median gap between consecutive distinct depths
+    when they are fewer than a quarter of the returns), or None for continuous data."""
+    v = np.asarray(depth, np.float64)
+    v = v[np.isfinite(v)]
+    values = np.unique(v)
+    if v.size < 8 or len(values) >= v.size / 4 or len(values) < 2:
+        return None
+    return float(np.median(np.diff(values)))
+
+
+def estimate_noise(depth) -> float:
+    """Robust standard deviation of the sensor's depth noise: the median absolute
+    deviation of d[i] - (d[i-1] + d[i+1]) / 2 along rows and columns (zero on any plane
+    seen face-on or not), scaled by 1.4826 / sqrt(1.5) for Gaussian noise. Depth edges are
+    rare enough not to move the median."""
+    d = np.asarray(depth, np.float64)
+    second = np.concatenate([(d[:, 1:-1] - 0.5 * (d[:, :-2] + d[:, 2:])).ravel(),
+                             (d[1:-1] - 0.5 * (d[:-2] + d[2:])).ravel()])
+    second = second[np.isfinite(second)]
+    if second.size < 16:
+        return 0.0
+    return float(1.4826 * np.median(np.abs(second - np.median(second))) / math.sqrt(1.5))
+
+
+@dataclasses.dataclass
+class CleanedRange:
+    """What :func:`clean_range_image` did.
+
+    Attributes
+    ----------
+    depth : (H, W) float32, NaN where there is no (trusted) return.
+    missing : pixels that had no return on input (NaN, 0, negative or inf).
+    flying : mask of mixed-range pixels removed.
+    outliers : mask of isolated returns removed (pieces of the rubber sheet smaller than
+        ``min_pixels``).
+    quantum : the data's depth step, or None when continuous.
+    noise : robust standard deviation of the depth noise (:func:`estimate_noise`).
+    """
+
+    depth: np.ndarray
+    missing: int
+    flying: np.ndarray
+    outliers: np.ndarray
+    quantum: float | None
+    noise: float = 0.0
+
+    def summary(self) -> str:
+        q = "continuous" if self.quantum is None else f"quantum {self.quantum:.3g}"
+        return (f"{self.missing} missing, {int(self.flying.sum())} flying and {int(self.outliers.sum())} "
+                f"outlier pixels removed; {q}; noise {self.noise:.3g}")
+
+
+def clean_range_image(
+    depth,
+    camera: Camera,
+    *,
+    tear: float = DEFAULT_TEAR,
+    min_pixels: int = 4,
+    depth_range: tuple[float, float] | None = None,
+) -> CleanedRange:
+    """Clean a sensor's range image: missing returns to NaN, drop returns outside
+    ``depth_range`` (near, far), remove flying pixels (:func:`flying_pixels`) and
+    isolated outliers (pieces of the rubber sheet under ``min_pixels``)."""
+    _check_positive("min_pixels", min_pixels, integer=True)
+    raw = np.asarray(depth, np.float64)
+    d = _check_depth(raw, camera)
+    missing = int((~np.isfinite(d)).sum())
+    if depth_range is not None:
+        try:
+            near, far = (float(x) for x in depth_range)
+        except (TypeError, ValueError):
+            raise ValueError(f"depth_range: expected (near, far), got {depth_range!r}") from None
+        if not (0 <= near < far):
+            raise ValueError(f"depth_range: expected 0 <= near < far, got {depth_range!r}")
+        with np.errstate(invalid="ignore"):
+            d = np.where((d >= near) & (d <= far), d, np.nan)
+    quantum = estimate_quantum(d)
+    flying = flying_pixels(d, camera, tear=tear)
+    d = np.where(flying, np.nan, d)
+    labels = torn_components(d, camera, tear=tear)
+    sizes = np.bincount(labels[labels >= 0], minlength=1)
+    small = (labels >= 0) & (sizes[np.maximum(labels, 0)] < min_pixels)
+    d = np.where(small, np.nan, d)
+    return CleanedRange(d.astype(np.float32), missing, flying, small, quantum, estimate_noise(d))
+
+
+# --- 3. figure / ground --------------------------------------------------------------
+
+
+@dataclasses.dataclass(frozen=True)
+class Plane:
+    """The plane n·x + offset = 0 with unit normal n on the camera's side (the camera
+    centre has positive distance)."""
+
+    normal: np.ndarray
+    offset: float
+
+    def distance(self, points) -> np.ndarray:
+        """Signed distance of points (..., 3), positive on the camera's side."""
+        return np.asarray(points, np.float64) @ self.normal + self.offset
+
+    def to_json(self) -> dict:
+        return {"normal": [float(x) for x in self.normal], "offset": float(self.offset)}
+
+
+def fit_plane(points, *, threshold: float, iterations: int = 256, sample: int = 4096, seed: int = 0) -> tuple[Plane, np.ndarray]:
+    """RANSAC plane through points (N, 3), refitted by least squares to its inliers
+    (distance ≤ ``threshold``); returns (plane, inlier mask). Deterministic for a seed."""
+    _check_positive("threshold", threshold)
+    p = np.asarray(points, np.float64)
+    if p.ndim != 2 or p.shape[1] != 3 or len(p) < 3:
+        raise ValueError(f"points: expected at least 3 points of shape (N, 3), got {p.shape}")
+    rng = np.random.default_rng(seed)
+    test = p if len(p) <= sample else p[rng.choice(len(p), sample, replace=False)]
+    tri = p[rng.integers(0, len(p), (iterations, 3))]
+    n = np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0])
+    norm = np.linalg.norm(n, axis=1)
+    ok = norm > 1e-12
+    n = n[ok] / norm[ok, None]
+    off = -np.einsum("ij,ij->i", n, tri[ok, 0])
+    if len(n) == 0:
+        raise ValueError("points: all samples are collinear; no plane")
+    score = (np.abs(test @ n.T + off) <= threshold).sum(axis=0)
+    best = int(np.argmax(score))
+    normal, offset = n[best], off[best]
+    for _ in range(2):  # least-squares refit on the inliers
+        inl = np.abs(p @ normal + offset) <= threshold
+        if inl.sum() < 3:
+            break
+        c = p[inl].mean(axis=0)
+        _, _, vt = np.linalg.svd(p[inl] - c, full_matrices=False)
+        normal = vt[-1]
+        offset = -normal @ c
+    if offset < 0:  # the camera centre (origin) on the positive side
+        normal, offset = -normal, -offset
+    plane = Plane(normal / np.linalg.norm(normal), float(offset))
+    return plane, np.abs(plane.distance(p)) <= threshold
+
+
+def _outer_frame(valid: np.ndarray, width: int = 3) -> np.ndarray:
+    """Returns within ``width`` pixels of the edge of the measured area: the bounding box
+    of the returns when they fill at least half of it and of the image (a sensor's image,
+    often with a dead frame), else the image border (an object rendered against nothing
+    touches no frame)."""
+    out = np.zeros(valid.shape, bool)
+    rows, cols = np.nonzero(valid)
+    if rows.size == 0:
+        return out
+    r0, r1, c0, c1 = rows.min(), rows.max() + 1, cols.min(), cols.max() + 1
+    if valid.mean() < 0.5 or valid[r0:r1, c0:c1].mean() < 0.5:
+        r0, r1, c0, c1 = 0, valid.shape[0], 0, valid.shape[1]
+    out[r0:r1, c0:c1] = True
+    out[r0 + width : r1 - width, c0 + width : c1 - width] = False
+    return out & valid
+
+
+@dataclasses.dataclass
+class FigureGround:
+    """What :func:`figure_ground` found.
+
+    Attributes
+    ----------
+    figures : list of (H, W) bool masks, largest first. A mask may include pixels with no
+        return inside the figure's outline (holes): those are neither explained nor
+        errors of commission.
+    planes : the background planes removed (table, floor, wall), largest first.
+    ground : the supporting plane (the removed plane whose normal points most nearly up
+        in the image, -y), or None.
+    background : (H, W) bool, returns assigned to planes or behind them.
+    labels : (H, W) int, figure index per pixel, -1 = none.
+    """
+
+    figures: list
+    planes: list
+    ground: Plane | None
+    background: np.ndarray
+    labels: np.ndarray
+
+    @property
+    def up(self) -> np.ndarray | None:
+        """Gravity's "up" in the camera frame: the ground plane's normal, or None."""
+        return None if self.ground is None else self.ground.normal
+
+
+def figure_ground(
+    depth,
+    camera: Camera,
+    *,
+    planes: int = 2,
+    plane_threshold: float | None = None,
+    min_plane_fraction: float = 0.1,
+    tear: float = DEFAULT_TEAR,
+    min_pixels: int | None = None,
+    max_figures: int | None = None,
+    max_height: float | None = None,
+    seed: int = 0,
+) -> FigureGround:
+    """Separate figures from ground.
+
+    Up to ``planes`` background planes are removed: each is the RANSAC plane of the
+    returns on the outer frame of the measured area (a table, floor or wall runs off the
+    image; an object's face does not), kept if it holds at least ``min_plane_fraction``
+    of the remaining returns and 5% of the frame. Returns within
+    ``plane_threshold`` (default: 1% of the median depth, at least 3 depth quanta) of a
+    plane, or below the ground plane, are background; with ``max_height`` so is everything farther than that above the ground
+    (the paper's "cube of data"). The rest is torn into pieces at depth discontinuities
+    (:func:`torn_components`), and the pieces of at least ``min_pixels`` (default: 0.25%
+    of the returns, at least 16) are the figures.
+    """
+    d = _check_depth(depth, camera)
+    if not (isinstance(planes, (int, np.integer)) and planes >= 0):
+        raise ValueError(f"planes: expected an integer >= 0, got {planes!r}")
+    if not (0 < min_plane_fraction <= 1):
+        raise ValueError(f"min_plane_fraction: expected a number in (0, 1], got {min_plane_fraction!r}")
+    valid = np.isfinite(d)
+    if valid.sum() < 16:
+        raise ValueError(f"depth: expected at least 16 returns, got {int(valid.sum())}")
+    if plane_threshold is None:
+        q = estimate_quantum(d) or 0.0
+        plane_threshold = max(0.01 * float(np.median(d[valid])), 3 * q)
+    _check_positive("plane_threshold", plane_threshold)
+    if min_pixels is None:
+        min_pixels = max(16, int(0.0025 * valid.sum()))
+    _check_positive("min_pixels", min_pixels, integer=True)
+    pts = camera.points(d)
+    frame = _outer_frame(valid)
+    background = np.zeros(d.shape, bool)
+    found = []
+    for _ in range(int(planes)):
+        rest = valid & ~background
+        if rest.sum() < 16:
+            break
+        if (rest & frame).sum() < 3:
+            break
+        plane, _ = fit_plane(pts[rest & frame], threshold=plane_threshold, seed=seed + len(found))
+        with np.errstate(invalid="ignore"):
+            inl = rest & (np.abs(plane.distance(pts)) <= plane_threshold)
+        if inl.sum() < min_plane_fraction * rest.sum() or (inl & frame).sum() < 0.05 * frame.sum():
+            break
+        found.append(plane)
+        background |= inl
+        ground = max(found, key=lambda p: -p.normal[1])
+        with np.errstate(invalid="ignore"):  # what lies below the ground is not figure either
+            background |= valid & (ground.distance(pts) <= plane_threshold)
+    ground = max(found, key=lambda p: -p.normal[1]) if found else None
+    if ground is not None and max_height is not None:
+        _check_positive("max_height", max_height)
+        with np.errstate(invalid="ignore"):
+            background |= valid & (ground.distance(pts) > max_height)
+    # A figure's rim: drop one-pixel slivers the planes leave along the objects' bases.
+    keep = ndimage.binary_opening(valid & ~background, structure=np.ones((2, 2), bool)) if found else valid
+    pieces = torn_components(d, camera, keep, tear=tear)
+    sizes = np.bincount(pieces[pieces >= 0], minlength=1)
+    figures = []
+    labels = np.full(d.shape, -1, np.int64)
+    for i in np.flatnonzero(sizes >= min_pixels):
+        if max_figures is not None and len(figures) >= max_figures:
+            break
+        piece = pieces == i
+        holes = ndimage.binary_fill_holes(piece) & ~valid  # no return inside the outline
+        mask = piece | holes
+        labels[mask & (labels < 0)] = len(figures)
+        figures.append(mask)
+    return FigureGround(figures, found, ground, background, labels)

@@ -1,0 +1,200 @@
+"""Sensor clean-up and figure/ground on synthetic scenes with known answers."""
+
+import numpy as np
+import pytest
+
+import sqparts
+from sqparts._preprocess import auto_factor, downsample_mask
+from sqparts._scenes import limb
+
+CAM = sqparts.PinholeCamera(160, 120, 150.0, 150.0, 79.5, 59.5)
+# A table seen from above at an angle: unit normal toward the camera, 1.2 m away.
+TABLE_N = np.array([0.0, -np.cos(np.radians(40)), -np.sin(np.radians(40))])
+TABLE_D = 1.2
+
+
+def plane_depth(camera, normal, offset):
+    """Closed-form z-depth of the plane n·x + offset = 0 along each pixel's ray."""
+    o, d = (np.asarray(a, np.float64) for a in camera.rays())
+    with np.errstate(divide="ignore", invalid="ignore"):
+        t = -(o @ normal + offset) / (d @ normal)
+    return np.where(t > 0, t, np.nan)
+
+
+def on_table(centre_2d, half_height, width):
+    """A vertical part standing on the table (local z along the table normal; the camera
+    is on the +n side, since n·0 + d > 0)."""
+    up = TABLE_N
+    e1 = np.array([1.0, 0.0, 0.0])
+    e2 = np.cross(up, e1)
+    middle = np.array([0.0, 0.0, TABLE_D / np.sin(np.radians(40))])  # the table at the image centre
+    base = middle + centre_2d[0] * e1 + centre_2d[1] * e2
+    return limb(base, base + 2 * half_height * up, width, width, (0.3, 1.0))
+
+
+@pytest.fixture(scope="module")
+def table_scene():
+    parts = sqparts.stack_parts([on_table((-0.25, 0.05), 0.12, 0.07), on_table((0.2, -0.05), 0.09, 0.1)])
+    depth_parts, labels = (np.asarray(a) for a in sqparts.render_range_image(parts, CAM, return_labels=True))
+    table = plane_depth(CAM, TABLE_N, TABLE_D)
+    depth = np.fmin(depth_parts, table)
+    truth = [np.isfinite(depth_parts) & (labels == i) & (depth_parts <= table) for i in range(2)]
+    return depth.astype(np.float32), truth
+
+
+def test_plane_depth_reference_is_on_plane():
+    d = plane_depth(CAM, TABLE_N, TABLE_D)
+    pts = CAM.points(d)
+    ok = np.isfinite(d)
+    assert ok.mean() > 0.9
+    np.testing.assert_allclose(pts[ok] @ TABLE_N + TABLE_D, 0, atol=1e-9)
+
+
+def test_downsample_keeps_geometry():
+    # The binned image seen through the binned camera lies on the same 3-D plane.
+    d = plane_depth(CAM, TABLE_N, TABLE_D)
+    for f in (2, 3, 4):
+        small, cam = sqparts.downsample(d, CAM, f)
+        assert small.shape == (CAM.height // f, CAM.width // f) == (cam.height, cam.width)
+        pts = cam.points(small)
+        ok = np.isfinite(small)
+        assert ok.mean() > 0.9
+        assert np.max(np.abs(pts[ok] @ TABLE_N + TABLE_D)) < 2e-4 * TABLE_D
+    with pytest.raises(ValueError, match="factor"):
+        sqparts.downsample(d, CAM, 0)
+    assert auto_factor((480, 640), 160) == 4 and auto_factor((100, 120), 160) == 1
+    m = np.zeros((4, 4), bool)
+    m[:2, :2] = True
+    m[2, 2] = True
+    np.testing.assert_array_equal(downsample_mask(m, 2), [[True, False], [False, False]])
+
+
+def test_downsample_other_cameras():
+    for cam in (sqparts.OrthographicCamera(64, 48, 0.01, 31.5, 23.5), sqparts.ScannerCamera(64, 48, 0.004, 0.004, 31.5, 23.5)):
+        small = cam.downsampled(4)
+        # The centre of binned pixel (i, j) looks along the mean ray of its 4x4 block.
+        o, d = (np.asarray(a) for a in cam.rays())
+        o2, d2 = (np.asarray(a) for a in small.rays())
+        block_o = o.reshape(12, 4, 16, 4, 3).mean(axis=(1, 3))
+        np.testing.assert_allclose(o2, block_o, atol=1e-6)
+        block_d = d.reshape(12, 4, 16, 4, 3).mean(axis=(1, 3))
+        block_d /= np.linalg.norm(block_d, axis=-1, keepdims=True)
+        np.testing.assert_allclose(d2 / np.linalg.norm(d2, axis=-1, keepdims=True), block_d, atol=2e-5)
+
+
+def test_fit_plane_ransac(rng):
+    n = rng.normal(size=3)
+    n /= np.linalg.norm(n)
+    u = np.cross(n, [1.0, 0, 0])
+    u /= np.linalg.norm(u)
+    v = np.cross(n, u)
+    ab = rng.uniform(-1, 1, (700, 2))
+    inliers = -0.8 * n + ab[:, :1] * u + ab[:, 1:] * v + rng.normal(0, 0.002, (700, 1)) * n
+    outliers = rng.uniform(-1, 1, (300, 3))
+    plane, mask = sqparts.fit_plane(np.concatenate([inliers, outliers]), threshold=0.01)
+    assert abs(abs(plane.normal @ n) - 1) < 1e-4
+    assert plane.offset > 0 and abs(plane.offset - 0.8) < 2e-3
+    assert mask[:700].mean() > 0.99
+    # Outliers that happen to lie within the threshold are few.
+    assert mask[700:].mean() < 0.05
+
+
+def test_estimate_noise(rng):
+    yy, xx = np.mgrid[:120, :160]
+    for sd in (0.001, 0.004):
+        d = 1.0 + 0.004 * xx + 0.002 * yy + rng.normal(0, sd, xx.shape)
+        assert abs(sqparts.estimate_noise(d) / sd - 1) < 0.1
+
+
+def test_figure_ground_plane_plus_parts(table_scene):
+    depth, truth = table_scene
+    fg = sqparts.figure_ground(depth, CAM)
+    assert fg.ground is not None
+    angle = np.degrees(np.arccos(min(1.0, fg.ground.normal @ TABLE_N)))
+    assert angle < 0.5, angle
+    assert abs(fg.ground.offset - TABLE_D) < 0.01
+    np.testing.assert_allclose(fg.up, TABLE_N, atol=1e-2)
+    assert len(fg.figures) == 2
+    for mask in fg.figures:
+        ious = [(mask & t).sum() / (mask | t).sum() for t in truth]
+        assert max(ious) > 0.9, ious
+    # No table pixel is figure.
+    table_only = np.isfinite(depth) & ~truth[0] & ~truth[1]
+    assert (fg.labels[table_only] >= 0).mean() < 0.005
+
+
+def test_figure_ground_without_ground_keeps_everything(table_scene):
+    depth, truth = table_scene
+    parts_only = np.where(truth[0] | truth[1], depth, np.nan)
+    fg = sqparts.figure_ground(parts_only, CAM)
+    assert fg.ground is None and fg.planes == []
+    assert len(fg.figures) == 2
+    assert sum(int(m.sum()) for m in fg.figures) == int((truth[0] | truth[1]).sum())
+
+
+def test_rubber_sheet_tears_only_at_jumps():
+    # A steep but continuous surface (60 degrees) stays in one piece; a step splits it.
+    cam = sqparts.OrthographicCamera(40, 30, 0.01, 19.5, 14.5)
+    xx = np.arange(40)[None, :].repeat(30, 0)
+    slope = 1.0 + np.tan(np.radians(60)) * 0.01 * xx
+    assert np.unique(sqparts.torn_components(slope, cam)).tolist() == [0]
+    step = slope + np.where(xx >= 25, 0.2, 0.0)
+    lab = sqparts.torn_components(step, cam)
+    assert np.unique(lab).tolist() == [0, 1]
+    assert (lab[:, :25] == 0).all() and (lab[:, 25:] == 1).all()
+
+
+def _box_on_wall(rng):
+    cam = sqparts.OrthographicCamera(80, 60, 0.01, 39.5, 29.5)
+    depth = np.full((60, 80), 2.0)
+    depth[15:45, 20:60] = 1.5  # a box face 0.5 m in front of a wall
+    fg = np.zeros(depth.shape, bool)
+    fg[15:45, 20:60] = True
+    edge = ~fg & (np.roll(fg, 1, 0) | np.roll(fg, -1, 0) | np.roll(fg, 1, 1) | np.roll(fg, -1, 1))
+    inject = edge & (rng.random(depth.shape) < 0.6)
+    mixed = depth.copy()
+    mixed[inject] = 1.5 + rng.uniform(0.25, 0.75, inject.sum()) * 0.5
+    return cam, depth, mixed, inject
+
+
+def test_flying_pixels_found_and_removed(rng):
+    cam, clean, mixed, inject = _box_on_wall(rng)
+    found = sqparts.flying_pixels(mixed, cam)
+    assert found[inject].mean() > 0.95
+    assert found[~inject].mean() < 0.002
+    assert not sqparts.flying_pixels(clean, cam).any()
+    out = sqparts.clean_range_image(mixed, cam)
+    assert np.isnan(out.depth[inject]).mean() > 0.95
+    # With the flying pixels gone, the rubber sheet separates box from wall exactly.
+    lab = sqparts.torn_components(out.depth, cam)
+    box = lab[15:45, 20:60]
+    assert len(np.unique(box[box >= 0])) == 1
+
+
+def test_clean_missing_and_outliers():
+    cam = sqparts.OrthographicCamera(30, 20, 0.01, 14.5, 9.5)
+    d = np.full((20, 30), 1.0, np.float64)
+    d[0, 0], d[0, 1], d[0, 2], d[0, 3] = 0.0, -1.0, np.inf, np.nan
+    d[10, 10] = 0.2  # a lone return far in front of the surface
+    out = sqparts.clean_range_image(d, cam)
+    assert out.missing == 4
+    assert np.isnan(out.depth[10, 10]) and out.outliers[10, 10]
+    assert np.isfinite(out.depth).sum() == 20 * 30 - 5
+    assert out.depth.dtype == np.float32
+    near = sqparts.clean_range_image(d, cam, depth_range=(0.1, 0.5))
+    assert np.isfinite(near.depth).sum() == 0 or np.nanmax(near.depth) <= 0.5
+    with pytest.raises(ValueError, match="depth_range"):
+        sqparts.clean_range_image(d, cam, depth_range=(2, 1))
+    with pytest.raises(ValueError, match="tear"):
+        sqparts.flying_pixels(d, cam, tear=-1)
+    with pytest.raises(ValueError, match="depth: expected shape"):
+        sqparts.clean_range_image(d[:5], cam)
+
+
+def test_quantised_data():
+    yy, xx = np.mgrid[:60, :80]
+    d = np.round((1.0 + 0.003 * xx) / 0.004) * 0.004  # 4 mm steps, like a 16-bit PNG in mm
+    from sqparts._preprocess import estimate_quantum
+
+    assert abs(estimate_quantum(d) - 0.004) < 1e-9
+    assert estimate_quantum(d + 1e-4 * np.random.default_rng(0).random(d.shape)) is None
