@@ -243,6 +243,20 @@ class ScannerCamera(_Camera):
 Camera = PinholeCamera | OrthographicCamera | ScannerCamera
 
 
+def check_range_image(depth, camera: Camera) -> np.ndarray:
+    """A range image checked against its camera, as float64 with NaN for every pixel
+    without a return (NaN, inf, 0 or negative)."""
+    if not isinstance(camera, _Camera):
+        raise TypeError(f"camera: expected a sqparts camera, got {type(camera).__name__}")
+    d = np.asarray(depth, np.float64)
+    if d.ndim != 2:
+        raise ValueError(f"depth: expected a 2-D range image, got shape {d.shape}")
+    if d.shape != (camera.height, camera.width):
+        raise ValueError(f"depth: expected shape {(camera.height, camera.width)} to match the camera, got {d.shape}")
+    with np.errstate(invalid="ignore"):
+        return np.where(np.isfinite(d) & (d > 0), d, np.nan)
+
+
 def camera_from_json(data: dict) -> Camera:
     """Build a camera from its JSON dict (Open3D pinhole, orthographic or scanner)."""
     if not isinstance(data, dict):

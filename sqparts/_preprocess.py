@@ -30,22 +30,10 @@ from scipy import ndimage
 from scipy.sparse import coo_matrix
 from scipy.sparse.csgraph import connected_components
 
-from ._camera import Camera, _Camera
+from ._camera import Camera, check_range_image as _check_depth
 
 DEFAULT_TEAR = 8.0
 """Depth jump, in pixel footprints, that tears the rubber sheet."""
-
-
-def _check_depth(depth, camera: Camera) -> np.ndarray:
-    if not isinstance(camera, _Camera):
-        raise TypeError(f"camera: expected a sqparts camera, got {type(camera).__name__}")
-    d = np.asarray(depth, np.float64)
-    if d.ndim != 2:
-        raise ValueError(f"depth: expected a 2-D range image, got shape {d.shape}")
-    if d.shape != (camera.height, camera.width):
-        raise ValueError(f"depth: expected shape {(camera.height, camera.width)} to match the camera, got {d.shape}")
-    with np.errstate(invalid="ignore"):
-        return np.where(np.isfinite(d) & (d > 0), d, np.nan)
 
 
 def _check_positive(name: str, value, *, integer: bool = False):

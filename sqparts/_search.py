@@ -31,7 +31,7 @@ import numpy as np
 import optimistix as optx
 from jax.sharding import Mesh, PartitionSpec as P
 
-from ._camera import Camera, _Camera
+from ._camera import Camera, check_range_image
 from ._fit import Encoding, encoding_for, gamma_terms
 from ._grid import Grid, grid_preset
 from ._part import (
@@ -128,16 +128,7 @@ def prepare(depth, camera: Camera, *, figure=None, encoding: Encoding | None = N
     part drawn there is neither an explained pixel nor an error of commission.
     ``encoding`` defaults to :func:`~sqparts.encoding_for` of the figure.
     """
-    if not isinstance(camera, _Camera):
-        raise TypeError(f"camera: expected a sqparts camera, got {type(camera).__name__}")
-    d = np.asarray(depth, np.float32)
-    if d.ndim != 2:
-        raise ValueError(f"depth: expected a 2-D range image, got shape {d.shape}")
-    if d.shape != (camera.height, camera.width):
-        raise ValueError(
-            f"depth: expected shape {(camera.height, camera.width)} to match the camera, got {d.shape}"
-        )
-    d = np.where(np.isfinite(d) & (d > 0), d, np.nan).astype(np.float32)
+    d = check_range_image(depth, camera).astype(np.float32)
     fig = np.isfinite(d) if figure is None else np.asarray(figure, bool)
     if fig.shape != d.shape:
         raise ValueError(f"figure: expected shape {d.shape}, got {fig.shape}")
