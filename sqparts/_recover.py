@@ -30,8 +30,21 @@ from ._search import RangeData, fit_image
 from ._select import Costs, SelectionProblem, select_parts
 
 
+class _Fractions:
+    """Explained and commission pixels as fractions of the figure's pixels with a return
+    (for any result with ``cost`` and ``figure``)."""
+
+    @property
+    def fraction_explained(self) -> float:
+        return self.cost.explained / max(int(self.figure.sum()), 1)
+
+    @property
+    def commission_fraction(self) -> float:
+        return self.cost.commission / max(int(self.figure.sum()), 1)
+
+
 @dataclasses.dataclass
-class Recovery:
+class Recovery(_Fractions):
     """What :func:`recover` found.
 
     Attributes
@@ -79,14 +92,6 @@ class Recovery:
     def description_length(self) -> float:
         return self.cost.total
 
-    @property
-    def fraction_explained(self) -> float:
-        return self.cost.explained / max(int(self.figure.sum()), 1)
-
-    @property
-    def commission_fraction(self) -> float:
-        """Commission pixels as a fraction of the figure's pixels."""
-        return self.cost.commission / max(int(self.figure.sum()), 1)
 
     def summary(self) -> str:
         n = len(self.parts)
@@ -258,7 +263,7 @@ def _composite_cost(recoveries, shape) -> EncodingCost:
 
 
 @dataclasses.dataclass
-class SceneRecovery:
+class SceneRecovery(_Fractions):
     """What :func:`recover_scene` found: one :class:`Recovery` per figure.
 
     Attributes
@@ -313,14 +318,6 @@ class SceneRecovery:
     def settings(self) -> dict:
         return {"sigma": max(r.settings["sigma"] for r in self.figures), "figures": [r.settings for r in self.figures]}
 
-    @property
-    def fraction_explained(self) -> float:
-        return self.cost.explained / max(int(self.figure.sum()), 1)
-
-    @property
-    def commission_fraction(self) -> float:
-        return self.cost.commission / max(int(self.figure.sum()), 1)
-
     def summary(self) -> str:
         n = len(self.parts)
         fg = self.figure_ground
@@ -354,10 +351,11 @@ class SceneRecovery:
             background_planes=[] if fg is None else [p.to_json() for p in fg.planes],
             figures=[
                 {"pixels": int(r.figure.sum()), "parts": len(r.parts), "description_length_bits": r.cost.total,
-                 "fraction_explained": r.fraction_explained, "timings_s": r.timings, "settings": r.settings}
+                 "fraction_explained": r.fraction_explained, "timings_s": r.timings}
                 for r in self.figures
             ],
             timings_s=self.timings,
+            settings=self.settings,
         )
 
 
