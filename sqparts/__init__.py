@@ -12,6 +12,7 @@ from ._part import (
     inside_outside,
     rotation_matrix,
     stack_parts,
+    surface_distance,
     surface_point,
 )
 from ._camera import OrthographicCamera, PinholeCamera, ScannerCamera, camera_from_json
@@ -39,9 +40,11 @@ from ._search import (
     fit_image,
     fit_region,
     gamma_profile,
+    grow_polish,
     make_settings,
     polish_part,
     prepare,
+    ray_penetration,
     region_centers,
     score_region,
 )
@@ -87,6 +90,7 @@ __all__ = [
     "TAPER_RANGE",
     "Part",
     "inside_outside",
+    "surface_distance",
     "rotation_matrix",
     "stack_parts",
     "surface_point",
@@ -128,6 +132,8 @@ __all__ = [
     "gamma_profile",
     "make_settings",
     "polish_part",
+    "grow_polish",
+    "ray_penetration",
     "prepare",
     "region_centers",
     "score_region",

@@ -331,6 +331,23 @@ def gauge(part: Part, local_point: Float[ArrayLike, "3"]) -> Float[Array, ""]:
     return abs_pow(f, part.squareness[0] / 2.0) - 1.0
 
 
+def surface_distance(part: Part, point: Float[ArrayLike, "3"]) -> Float[Array, ""]:
+    """Signed radial distance of a camera-frame point from the part's surface (< 0 inside).
+
+    ``|q| (1 - F(q)^(-ε1/2))`` with ``q`` the undeformed local point: the distance along
+    the ray from the part's centre through the point (exact for spheres; Gross & Boult's
+    radial Euclidean distance). Unlike the algebraic inside-outside value it hardly
+    favours small parts or points near the ends of long axes.
+    """
+    q = undeform(part, to_local(part, point))
+    # At the centre the direction is undefined: step off it by a millionth of a1.
+    tiny = 1e-6 * part.size[0]
+    q = jnp.where(jnp.sum(q * q) < tiny * tiny, q + jnp.stack([tiny, 0.0 * tiny, 0.0 * tiny]), q)
+    norm = abs_pow(superquadric_function(part, q), part.squareness[0] / 2.0)
+    length = jnp.sqrt(jnp.sum(q * q))
+    return length - length / norm
+
+
 def surface_point(part: Part, eta: ArrayLike, omega: ArrayLike) -> Float[Array, "3"]:
     """Camera-frame point of Eq. (1) at latitude η in [-π/2, π/2], longitude ω in [-π, π].
 

@@ -159,7 +159,15 @@ def recover(
     selection : ``"auto"``, ``"exact"`` or ``"best-first"``.
     refine_rounds : rounds of joint polishing (0 = none); ``merge`` allows bent merges.
     progress : optional wrapper for the region loop (e.g. ``tqdm.tqdm``).
+    **search_kwargs : :class:`~sqparts.SearchSettings` fields. Unlike a single
+        :func:`~sqparts.fit_region`, recovery polishes only the ``top_k`` best starts per
+        region, lightly (``polish_candidates=top_k, polish_rounds=3, polish_steps=10``):
+        selection and joint refinement follow, and on the built-in scenes longer
+        region-growing polishes let a part spread onto its neighbours (human: 73% of the
+        figure explained with 6 rounds of 15 steps, 83% with 3 of 10).
     """
+    for name, value in (("polish_candidates", top_k), ("polish_rounds", 3), ("polish_steps", 10)):
+        search_kwargs.setdefault(name, value)
     t0 = time.perf_counter()
     fits, data, settings = fit_image(
         depth, camera, grid=grid, figure=figure, encoding=encoding, max_size=max_size, window=window,
@@ -202,6 +210,7 @@ def recover(
             "top_k": settings.top_k,
             "stride": settings.stride,
             "survivors": settings.survivors,
+            "polish_candidates": settings.polish_candidates,
             "sigma": enc.sigma,
             "quantum": enc.quantum,
             "commission_weight": enc.commission_weight,

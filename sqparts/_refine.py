@@ -180,10 +180,10 @@ def _merge_candidate(a: Part, b: Part) -> list[Part]:
 
 @jax.jit
 def _surface_distance(parts, points):
-    """Approximate distance (gauge × smallest semi-axis) of every point to every part."""
-    from ._part import gauge, to_local
+    """Radial distance (:func:`~sqparts.surface_distance`) of every point to every part."""
+    from ._part import surface_distance
 
-    return jax.vmap(lambda p: jax.vmap(lambda x: gauge(p, to_local(p, x)) * jnp.min(p.size))(points))(parts)
+    return jax.vmap(lambda p: jax.vmap(lambda x: surface_distance(p, x))(points))(parts)
 
 
 def merge_adjacent(parts: Part, data: RangeData, costs: Costs, *, steps: int = 20, tries: int = 3):

@@ -37,20 +37,24 @@ from ._grid import Grid, grid_preset
 from ._part import (
     Part,
     from_unconstrained,
-    gauge,
     matrix_to_rotation_vector,
     rotation_matrix,
-    to_local,
+    surface_distance,
     to_unconstrained,
 )
 from ._render import cast_part
 
 SEARCH_NEWTON_STEPS = 6
+"""Newton steps when scoring hypotheses (grazing silhouette pixels barely move Γ)."""
 NUM_BINS = 1024
 """Histogram bins of width σ/2 (offsets of ±256 σ around the anchor pixel's own)."""
 CHUNK_RAYS = 2**16
 """Rays per chunk of hypotheses: ``batch_size`` is capped at CHUNK_RAYS / window pixels."""
-"""Newton steps when scoring hypotheses (grazing silhouette pixels barely move Γ)."""
+POLISH_SCALE = 0.05
+"""Width of the polishing's Cauchy weights, as a fraction of the hypothesis' largest
+semi-axis (never below σ)."""
+POLISH_STRIDE = 2
+"""Polishing fits every POLISH_STRIDE-th row and column of the window's points."""
 
 
 # --- the image as the search sees it --------------------------------------------------
@@ -68,15 +72,16 @@ class SearchSettings:
     survivors: int = 64
     batch_size: int = 256
     newton_steps: int = SEARCH_NEWTON_STEPS
-    polish_steps: int = 10
-    polish_rounds: int = 2
+    polish_steps: int = 15
+    polish_rounds: int = 6
+    polish_candidates: int = 12
 
     def __post_init__(self):
         for name in ("window", "top_k", "stride", "survivors", "batch_size", "newton_steps"):
             v = getattr(self, name)
             if not isinstance(v, (int, np.integer)) or isinstance(v, bool) or v <= 0:
                 raise ValueError(f"{name}: expected a positive integer, got {v!r}")
-        for name in ("polish_steps", "polish_rounds"):
+        for name in ("polish_steps", "polish_rounds", "polish_candidates"):
             v = getattr(self, name)
             if not (isinstance(v, int) and v >= 0):
                 raise ValueError(f"{name}: expected an integer >= 0, got {v!r}")
@@ -362,47 +367,94 @@ def _finish(arrays, orientation_rel, shape, offsets, corner, centre, max_size, *
         return mu - lam * eps, off, explained.reshape(hit.shape), hit
 
     gam, off, explained, hit = jax.vmap(score)(parts)
-    points = (origins + jnp.where(jnp.isfinite(measured), measured, 0.0)[..., None] * directions).reshape(-1, 3)
-
-    def polish_round(carry, _):
-        # ICP-like: fit the points a part explains, re-explain, keep improvements.
-        parts, gam, off, explained, hit = carry
-        aligned = jax.vmap(lambda pr, p: Part.from_vector(pr.to_vector().at[:3].add(-p * c_d)))(parts, off)
-        polished = jax.vmap(lambda pr, m: polish_part(pr, points, m.reshape(-1), steps=polish_steps))(aligned, explained)
-        new = jax.vmap(score)(polished)
-        better = new[0] > gam
-        pick = lambda a, b: jnp.where(better.reshape((-1,) + (1,) * (a.ndim - 1)), a, b)  # noqa: E731
-        return jax.tree_util.tree_map(pick, (polished, *new), (parts, gam, off, explained, hit)), None
-
     if polish_steps > 0 and polish_rounds > 0:
-        (parts, gam, off, explained, hit), _ = jax.lax.scan(
-            polish_round, (parts, gam, off, explained, hit), None, length=polish_rounds
-        )
+        # Polish on every other row and column: a quarter of the rays, the same fit.
+        s = slice(0, None, POLISH_STRIDE)
+
+        def polish(part, p, seed):
+            aligned = Part.from_vector(part.to_vector().at[:3].add(-p * c_d))
+            scale = jnp.maximum(POLISH_SCALE * jnp.max(part.size), sigma)
+            return grow_polish(aligned, origins[s, s], directions[s, s], measured[s, s], figure[s, s],
+                               seed.reshape(measured.shape)[s, s], scale=scale,
+                               rounds=polish_rounds, steps=polish_steps)
+
+        polished = jax.vmap(polish)(parts, off, explained)
+        new = jax.vmap(score)(polished)
+        better = new[0] > gam  # a polished part is kept only if its Γ improves
+        pick = lambda a, b: jnp.where(better.reshape((-1,) + (1,) * (a.ndim - 1)), a, b)  # noqa: E731
+        parts, gam, off, explained, hit = jax.tree_util.tree_map(pick, (polished, *new), (parts, gam, off, explained, hit))
     return parts, gam, explained, hit
 
 
-def polish_part(part: Part, points, weights, *, steps: int = 20) -> Part:
-    """Levenberg-Marquardt (optimistix) on inside-outside residuals at weighted points.
+def ray_penetration(part: Part, origin, direction):
+    """Signed radial distance (:func:`~sqparts.surface_distance`) of the ray's point
+    deepest inside the part's ellipsoid of semi-axes ``size``: negative when the ray
+    enters the part (exact for ellipsoids, a smooth proxy for the rest)."""
+    r = rotation_matrix(part.orientation)
+    o = (r.T @ (origin - part.position)) / part.size
+    d = (r.T @ direction) / part.size
+    t = -jnp.dot(o, d) / jnp.dot(d, d)
+    return surface_distance(part, origin + t * direction)
 
-    Residual i is ``w_i sqrt(a1 a2 a3) (F^(ε1/2) - 1)`` (the volume factor of Solina and
-    Bajcsy keeps the unseen back of the part from growing). Runs a fixed number of steps
-    and never raises; returns the input if the solve produced non-finite values.
+
+def polish_part(part: Part, points, weights, *, rays=None, steps: int = 20) -> Part:
+    """Levenberg-Marquardt (optimistix) on the weighted radial distances
+    (:func:`~sqparts.surface_distance`) of ``points`` from the part's surface.
+
+    ``rays`` = (origins, directions, weights), optional: rays off the figure, which the
+    part must miss; each adds its weighted penetration (:func:`ray_penetration`) so the
+    part cannot swell past the silhouette while hugging the visible points.
+    Runs a fixed number of steps and never raises; returns the input if the solve produced
+    non-finite values or the weights cover fewer than 8 points.
     """
     u0 = to_unconstrained(part)
     w = weights.astype(u0.dtype)
 
     def residuals(u, _):
         p = from_unconstrained(u)
-        g = jax.vmap(lambda x: gauge(p, to_local(p, x)))(points)
-        r = w * jnp.sqrt(jnp.prod(p.size)) * g
-        # Keep the shape near its start a little (a weak prior on the 14 numbers).
+        r = w * jax.vmap(lambda x: surface_distance(p, x))(points)
+        if rays is not None:
+            o, d, wr = rays
+            r = jnp.concatenate([r, wr * jnp.minimum(jax.vmap(lambda a, b: ray_penetration(p, a, b))(o, d), 0.0)])
+        # A weak prior on the 14 numbers keeps unobserved ones near their start.
         return r, 1e-3 * (u - u0)
 
     sol = optx.least_squares(
-        residuals, optx.LevenbergMarquardt(rtol=1e-5, atol=1e-7), u0, max_steps=steps, throw=False
+        residuals, optx.LevenbergMarquardt(rtol=1e-6, atol=1e-8), u0, max_steps=steps, throw=False
     )
-    ok = jnp.all(jnp.isfinite(sol.value)) & (jnp.sum(w) >= 8)
+    ok = jnp.all(jnp.isfinite(sol.value)) & (jnp.sum(w > 0) >= 8)
     return from_unconstrained(jnp.where(ok, sol.value, u0))
+
+
+def grow_polish(part: Part, origins, directions, depth, figure, seed, *, scale, rounds: int, steps: int, grow: int = 2) -> Part:
+    """Polish a hypothesis on a window of the image by region growing (an ICP).
+
+    ``origins``, ``directions`` (H, W, 3) are the window's rays, ``depth`` (H, W) its
+    measured depth (NaN: no return), ``figure`` (H, W) its figure pixels and ``seed`` (H, W)
+    the pixels the hypothesis explains. Each round grows the support by ``grow`` pixels
+    into neighbours within ``3 scale`` of the surface and fits the support with Cauchy
+    weights of width ``scale`` (:func:`polish_part`), while rays off the figure must miss
+    the part. So a coarse hypothesis walks onto its whole visible surface without jumping
+    to an occluder or a neighbouring part, or swelling past its silhouette.
+    """
+    valid = figure & jnp.isfinite(depth)
+    flat = (origins + jnp.where(valid, depth, 0.0)[..., None] * directions).reshape(-1, 3)
+    # Every other off-figure ray is enough to keep the part inside its silhouette.
+    r = slice(0, None, 2)
+    rays = (origins[r, r].reshape(-1, 3), directions[r, r].reshape(-1, 3), (~figure[r, r]).reshape(-1).astype(flat.dtype))
+    size = 2 * grow + 1
+
+    def one_round(carry, first):
+        p, support = carry
+        d = jnp.abs(jax.vmap(lambda x: surface_distance(p, x))(flat)).reshape(valid.shape)
+        grown = jax.lax.reduce_window(support.astype(jnp.float32), 0.0, jax.lax.max, (size, size), (1, 1), "SAME") > 0
+        support = jnp.where(first, support & valid, grown & valid & (d < 3 * scale))
+        w = jnp.where(support, jax.lax.rsqrt(1 + (d / scale) ** 2), 0.0)
+        return (polish_part(p, flat, w.reshape(-1), rays=rays, steps=steps), support), None
+
+    first = jnp.arange(rounds) == 0
+    (part, _), _ = jax.lax.scan(one_round, (part, seed), first)
+    return part
 
 
 def fit_region(data: RangeData, settings: SearchSettings, centre, *, prune: bool = True) -> RegionFit:
@@ -421,11 +473,13 @@ def fit_region(data: RangeData, settings: SearchSettings, centre, *, prune: bool
         gam_full, off_full = score_region(data, settings, centre, stride=1)
         index = np.arange(n)
     k = min(settings.top_k, len(index))
-    best_g, best_i = jax.lax.top_k(gam_full, k)
-    best_i = np.asarray(best_i)
-    chosen = index[best_i]
-    g_sorted = np.asarray(best_g)
+    gam_full = np.asarray(gam_full)
+    ranked = np.argsort(-gam_full, kind="stable")
+    g_sorted = gam_full[ranked]
     ratio = float(g_sorted[0] / g_sorted[1]) if k > 1 and g_sorted[1] > 0 else float("inf")
+    best_i = _distinct(hyp["orientation"][index[ranked]], hyp["shape"][index[ranked]], max(k, settings.polish_candidates))
+    best_i = ranked[best_i]
+    chosen = index[best_i]
     parts, gam, explained, hit = _finish(
         data.arrays,
         jnp.asarray(hyp["orientation"][chosen]),
@@ -435,7 +489,7 @@ def fit_region(data: RangeData, settings: SearchSettings, centre, *, prune: bool
         camera=data.camera, pad=data.pad, window=settings.window, newton_steps=SEARCH_NEWTON_STEPS + 2,
         polish_steps=settings.polish_steps, polish_rounds=settings.polish_rounds,
     )
-    order = np.argsort(-np.asarray(gam), kind="stable")
+    order = np.argsort(-np.asarray(gam), kind="stable")[:k]
     h, w = data.camera.height, data.camera.width
     full_e = _to_image(np.asarray(explained)[order], corner, (h, w))
     full_h = _to_image(np.asarray(hit)[order], corner, (h, w))
@@ -450,6 +504,30 @@ def fit_region(data: RangeData, settings: SearchSettings, centre, *, prune: bool
         centre=tuple(int(x) for x in np.asarray(centre)),
         corner=tuple(int(x) for x in np.asarray(corner)),
     )
+
+
+def _distinct(orientation, shape, n: int, *, angle: float = 30.0, log_size: float = 0.3, squareness: float = 0.5) -> np.ndarray:
+    """Indices of up to ``n`` of the (best-first) hypotheses, skipping near-duplicates of
+    those already taken (axes within ``angle`` degrees, every size within a factor
+    e^``log_size`` and both squareness values within ``squareness``), so the polished
+    starts are diverse; padded with the best skipped ones if too few are distinct."""
+    rot = np.asarray(jax.vmap(rotation_matrix)(jnp.asarray(orientation)))
+    logs, sq = np.log(shape[:, :3]), shape[:, 3:5]
+    cos_max = math.cos(math.radians(angle))
+    taken: list[int] = []
+    for i in range(len(shape)):
+        if len(taken) == n:
+            break
+        dup = any(
+            (np.trace(rot[i].T @ rot[j]) - 1) / 2 > cos_max
+            and np.max(np.abs(logs[i] - logs[j])) < log_size
+            and np.max(np.abs(sq[i] - sq[j])) < squareness
+            for j in taken
+        )
+        if not dup:
+            taken.append(i)
+    rest = [i for i in range(len(shape)) if i not in taken]
+    return np.asarray((taken + rest)[:n], np.int64)
 
 
 def _to_image(masks, corner, shape) -> np.ndarray:

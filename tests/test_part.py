@@ -93,3 +93,31 @@ def test_inside_outside_gradients_finite_at_singular_places(x64, squareness):
     for p in ([0.0, 0.0, 2.0], [0.0, 0.0, 2.3], [0.1, 0.0, 2.0], [0.0, 0.1, 2.0]):
         g_v, g_p = jax.grad(f, argnums=(0, 1))(vec, jnp.asarray(p))
         assert np.all(np.isfinite(g_v)) and np.all(np.isfinite(g_p)), (squareness, p)
+
+
+def test_surface_distance_closed_forms():
+    # A sphere: the radial distance is the Euclidean distance, |x - c| - r.
+    c = np.array([0.1, -0.2, 2.0])
+    sphere = sqparts.Part(size=[0.3, 0.3, 0.3], squareness=[1.0, 1.0], position=c, orientation=[0.3, -1.0, 0.5])
+    rng = np.random.default_rng(0)
+    x = c + rng.normal(size=(50, 3)) * 0.4
+    got = np.asarray(jax.vmap(lambda p: sqparts.surface_distance(sphere, p))(jnp.asarray(x)))
+    np.testing.assert_allclose(got, np.linalg.norm(x - c, axis=1) - 0.3, atol=2e-6)
+    # Any superquadric: along the ray from the centre the distance is (s - 1) r(direction),
+    # with r found here by bisection of the inside-outside function.
+    part = sqparts.Part(size=[0.2, 0.1, 0.35], squareness=[0.4, 1.6], position=[0.0, 0.1, 1.5], orientation=[1.0, 0.2, -0.4])
+    rot = np.asarray(sqparts.rotation_matrix(part.orientation))
+    for u in rng.normal(size=(10, 3)):
+        u /= np.linalg.norm(u)
+        lo, hi = 0.0, 1.0
+        for _ in range(60):
+            mid = 0.5 * (lo + hi)
+            inside = float(sqparts.inside_outside(part, jnp.asarray(np.asarray(part.position) + rot @ (mid * u)))) < 1
+            lo, hi = (mid, hi) if inside else (lo, mid)
+        r = lo
+        for s in (0.5, 1.0, 1.7):
+            x = np.asarray(part.position) + rot @ (s * r * u)
+            assert float(sqparts.surface_distance(part, jnp.asarray(x, jnp.float32))) == pytest.approx((s - 1) * r, abs=3e-5)
+    # Finite value and gradient at the centre itself.
+    g = jax.grad(lambda p: sqparts.surface_distance(sphere, p))(jnp.asarray(c, jnp.float32))
+    assert np.all(np.isfinite(np.asarray(g)))

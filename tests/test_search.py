@@ -3,6 +3,7 @@ import os
 import subprocess
 import sys
 
+import jax.numpy as jnp
 import numpy as np
 import pytest
 
@@ -147,3 +148,35 @@ def test_search_errors(data):
         sqparts.make_settings(data, grid=SMALL, max_size=0.2, top_k=0)
     with pytest.raises(ValueError, match=r"window: expected at most 128 pixels"):
         sqparts.make_settings(data, grid=SMALL, max_size=0.2, window=300)
+
+
+def test_ray_penetration_sphere():
+    # A ray passing at distance b from a sphere's centre gets as deep as b - r.
+    sphere = sqparts.Part(size=[0.2, 0.2, 0.2], squareness=[1.0, 1.0], position=[0.0, 0.0, 2.0])
+    for b in (0.0, 0.05, 0.15, 0.3):
+        got = float(sqparts.ray_penetration(sphere, np.array([b, 0.0, 0.0], np.float32), np.array([0.0, 0.6, 0.8], np.float32)))
+        o, d, c = np.array([b, 0, 0.0]), np.array([0.0, 0.6, 0.8]), np.array([0, 0, 2.0])
+        t = (c - o) @ d / (d @ d)
+        assert got == pytest.approx(np.linalg.norm(o + t * d - c) - 0.2, abs=1e-5)
+
+
+def test_grow_polish_ignores_an_occluder():
+    # A part half hidden by a plate in front: polishing a perturbed start fits the part's
+    # visible surface and stays inside its silhouette, not on the plate.
+    plate = sqparts.Part(size=[0.3, 0.3, 0.01], squareness=[0.2, 0.2], position=[-0.3, 0.0, 1.7])
+    depth, labels = (np.asarray(x) for x in sqparts.render_range_image(sqparts.stack_parts([TRUTH, plate]), CAM, return_labels=True))
+    alone = np.isfinite(np.asarray(sqparts.render_range_image(TRUTH, CAM))).sum()
+    assert 0.3 < (labels == 0).sum() / alone < 0.7
+    start = sqparts.Part(size=np.asarray(TRUTH.size) * [1.2, 0.85, 1.15], squareness=[0.8, 0.8],
+                         position=np.asarray(TRUTH.position) + [0.01, -0.01, 0.01], orientation=np.asarray(TRUTH.orientation) + 0.1)
+    seed = (labels == 0) & (np.abs(np.asarray(sqparts.render_range_image(start, CAM)) - depth) < 0.02)
+    o, d = CAM.rays()
+    polished = sqparts.grow_polish(start, o, d, jnp.asarray(depth), jnp.asarray(np.isfinite(depth)), jnp.asarray(seed),
+                                   scale=0.01, rounds=6, steps=15)
+    rendered = np.asarray(sqparts.render_range_image(polished, CAM))
+    visible = labels == 0
+    close = np.abs(rendered - depth) < 0.005
+    assert close[visible].mean() > 0.95  # the part's own visible pixels are fitted
+    assert not close[labels == 1].any()  # and none of the plate's
+    assert (np.isfinite(rendered) & ~np.isfinite(depth)).sum() <= 0.03 * visible.sum()  # no swelling past the silhouette
+    np.testing.assert_allclose(np.asarray(polished.position), np.asarray(TRUTH.position), atol=0.01)
