@@ -23,7 +23,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from ._part import Part, stack_parts
+from ._part import Part, stack_parts, surface_distance
 from ._render import DEFAULT_NEWTON_STEPS, cast_scene
 from ._search import RangeData, polish_part
 from ._select import Costs
@@ -181,8 +181,6 @@ def _merge_candidate(a: Part, b: Part) -> list[Part]:
 @jax.jit
 def _surface_distance(parts, points):
     """Radial distance (:func:`~sqparts.surface_distance`) of every point to every part."""
-    from ._part import surface_distance
-
     return jax.vmap(lambda p: jax.vmap(lambda x: surface_distance(p, x))(points))(parts)
 
 

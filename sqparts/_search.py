@@ -40,6 +40,7 @@ from ._part import (
     matrix_to_rotation_vector,
     rotation_matrix,
     surface_distance,
+    to_local,
     to_unconstrained,
 )
 from ._render import cast_part
@@ -355,9 +356,11 @@ def _finish(arrays, orientation_rel, shape, offsets, corner, centre, max_size, *
     depth, fig, sigma, lam = arrays
     measured, figure, origins, directions, c_o, c_d, surface_t = _region_inputs(depth, fig, camera, pad, corner, centre, window)
 
-    def posed(o, s, p):
-        part = pose_hypothesis(o, s, max_size, c_o, c_d, surface_t)
+    def shifted(part, p):  # move a part by -p in depth along the region's centre ray
         return Part.from_vector(part.to_vector().at[:3].add(-p * c_d))
+
+    def posed(o, s, p):
+        return shifted(pose_hypothesis(o, s, max_size, c_o, c_d, surface_t), p)
 
     parts = jax.vmap(posed)(orientation_rel, shape, offsets)
 
@@ -372,11 +375,9 @@ def _finish(arrays, orientation_rel, shape, offsets, corner, centre, max_size, *
         s = slice(0, None, POLISH_STRIDE)
 
         def polish(part, p, seed):
-            aligned = Part.from_vector(part.to_vector().at[:3].add(-p * c_d))
             scale = jnp.maximum(POLISH_SCALE * jnp.max(part.size), sigma)
-            return grow_polish(aligned, origins[s, s], directions[s, s], measured[s, s], figure[s, s],
-                               seed.reshape(measured.shape)[s, s], scale=scale,
-                               rounds=polish_rounds, steps=polish_steps)
+            return grow_polish(shifted(part, p), origins[s, s], directions[s, s], measured[s, s], figure[s, s],
+                               seed[s, s], scale=scale, rounds=polish_rounds, steps=polish_steps)
 
         polished = jax.vmap(polish)(parts, off, explained)
         new = jax.vmap(score)(polished)
@@ -390,9 +391,8 @@ def ray_penetration(part: Part, origin, direction):
     """Signed radial distance (:func:`~sqparts.surface_distance`) of the ray's point
     deepest inside the part's ellipsoid of semi-axes ``size``: negative when the ray
     enters the part (exact for ellipsoids, a smooth proxy for the rest)."""
-    r = rotation_matrix(part.orientation)
-    o = (r.T @ (origin - part.position)) / part.size
-    d = (r.T @ direction) / part.size
+    o = to_local(part, origin) / part.size
+    d = (rotation_matrix(part.orientation).T @ direction) / part.size
     t = -jnp.dot(o, d) / jnp.dot(d, d)
     return surface_distance(part, origin + t * direction)
 
