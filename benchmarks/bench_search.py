@@ -22,6 +22,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parent))
 
 import jax
 import numpy as np
+from scipy.ndimage import distance_transform_edt
 
 import sqparts
 
@@ -61,7 +62,10 @@ def make_case(i: int):
         lo, hi = np.nanmin(depth), np.nanmax(depth)
         depth = (lo + np.round((depth - lo) / (hi - lo) * 63) / 63 * (hi - lo)).astype(np.float32)
     visible = labels == 0
-    centre = np.argwhere(visible).mean(0).round().astype(int)
+    # The region's centre: the visible pixel deepest inside the part's visible outline
+    # (the maximum of its distance transform, i.e. on its skeleton, as region_centers picks).
+    inside = distance_transform_edt(visible)
+    centre = np.array(np.unravel_index(np.argmax(inside), inside.shape))
     return dict(truth=truth, camera=cam, depth=depth, centre=centre, variant=variant, pinhole=pinhole,
                 deformed=deformed, visible=int(visible.sum()), occluded_fraction=None)
 

@@ -63,7 +63,15 @@ POLISH_STRIDE = 2
 
 @dataclasses.dataclass(frozen=True)
 class SearchSettings:
-    """Static settings of a search (part of the compiled computation's key)."""
+    """Static settings of a search (part of the compiled computation's key).
+
+    ``top_k`` candidates are returned per region; hypotheses are first scored on every
+    ``stride``-th pixel and the best ``survivors`` rescored at full resolution; the
+    ``polish_candidates`` best distinct survivors are polished (``polish_rounds`` of
+    region growing × ``polish_steps`` Levenberg-Marquardt steps); the best polished part
+    is restarted from 3 · ``restarts``² starts (axis labellings × squareness values; 0:
+    none) and polished again.
+    """
 
     grid: Grid
     max_size: float
@@ -76,13 +84,14 @@ class SearchSettings:
     polish_steps: int = 15
     polish_rounds: int = 6
     polish_candidates: int = 12
+    restarts: int = 3
 
     def __post_init__(self):
         for name in ("window", "top_k", "stride", "survivors", "batch_size", "newton_steps"):
             v = getattr(self, name)
             if not isinstance(v, (int, np.integer)) or isinstance(v, bool) or v <= 0:
                 raise ValueError(f"{name}: expected a positive integer, got {v!r}")
-        for name in ("polish_steps", "polish_rounds", "polish_candidates"):
+        for name in ("polish_steps", "polish_rounds", "polish_candidates", "restarts"):
             v = getattr(self, name)
             if not (isinstance(v, int) and v >= 0):
                 raise ValueError(f"{name}: expected an integer >= 0, got {v!r}")
@@ -349,12 +358,38 @@ def _corner(settings, centre):
     return corner, centre
 
 
-@functools.partial(jax.jit, static_argnames=("camera", "pad", "window", "newton_steps", "polish_steps", "polish_rounds"))
-def _finish(arrays, orientation_rel, shape, offsets, corner, centre, max_size, *, camera, pad, window, newton_steps, polish_steps, polish_rounds):
-    """Pose the chosen hypotheses, shift them by -p in depth, polish, and score at full
-    resolution over the window; returns parts, Γ and explained/rendered window masks."""
+def _restart_starts(part: Part, levels: int) -> Part:
+    """Restarts for a polished part: its three cyclic relabellings of the local axes
+    (which axis is z decides which squareness is ε1 and where a bend can act) times a
+    ``levels`` × ``levels`` grid of squareness values ((i + ½) · 2 / levels), with bend and
+    taper reset to zero. Polishing converges to the nearest minimum; these starts reach
+    the minima a near-symmetric part or a wrong squareness hides. Returns a batch of
+    ``3 levels²`` parts."""
+    plain = eqx.tree_at(lambda q: (q.bend, q.taper), part, (jnp.zeros_like(part.bend), jnp.zeros_like(part.taper)))
+    rot = rotation_matrix(part.orientation)
+    sq = (jnp.arange(levels) + 0.5) * 2.0 / levels
+    sq = jnp.stack(jnp.meshgrid(sq, sq, indexing="ij"), -1).reshape(-1, 2)
+    starts = []
+    for k in range(3):
+        idx = jnp.array([(k + i) % 3 for i in range(3)])
+        relabelled = eqx.tree_at(lambda q: (q.size, q.orientation), plain, (part.size[idx], matrix_to_rotation_vector(rot[:, idx])))
+        starts.append(jax.vmap(lambda e: eqx.tree_at(lambda q: q.squareness, relabelled, e))(sq))
+    return jax.tree_util.tree_map(lambda *x: jnp.concatenate(x), *starts)
+
+
+@functools.partial(jax.jit, static_argnames=("camera", "pad", "window", "newton_steps", "polish_steps", "polish_rounds", "restarts"))
+def _finish(arrays, orientation_rel, shape, offsets, corner, centre, max_size, *, camera, pad, window, newton_steps, polish_steps, polish_rounds, restarts):
+    """Pose the chosen hypotheses, shift them by -p in depth, polish, restart the best
+    polished part (:func:`_restart_starts`) and score at full resolution over the window.
+
+    Returns parts, Γ, explained/rendered window masks and ``anchored``: whether the part
+    explains a pixel within one of the region's centre. A part belongs to the region it
+    was posed at (the paper's hypotheses pass through the region's centre), so a polish
+    that walks onto a neighbour is not kept, and unanchored candidates rank last.
+    """
     depth, fig, sigma, lam = arrays
     measured, figure, origins, directions, c_o, c_d, surface_t = _region_inputs(depth, fig, camera, pad, corner, centre, window)
+    c = window // 2
 
     def shifted(part, p):  # move a part by -p in depth along the region's centre ray
         return Part.from_vector(part.to_vector().at[:3].add(-p * c_d))
@@ -362,14 +397,14 @@ def _finish(arrays, orientation_rel, shape, offsets, corner, centre, max_size, *
     def posed(o, s, p):
         return shifted(pose_hypothesis(o, s, max_size, c_o, c_d, surface_t), p)
 
-    parts = jax.vmap(posed)(orientation_rel, shape, offsets)
-
     def score(part):
         t, hit = cast_part(part, origins, directions, newton_steps)
         mu, eps, off, explained = gamma_terms(t, hit, measured, figure, sigma=sigma, num_bins=NUM_BINS)
-        return mu - lam * eps, off, explained.reshape(hit.shape), hit
+        explained = explained.reshape(hit.shape)
+        return mu - lam * eps, off, explained, hit, jnp.any(explained[c - 1 : c + 2, c - 1 : c + 2])
 
-    gam, off, explained, hit = jax.vmap(score)(parts)
+    parts = jax.vmap(posed)(orientation_rel, shape, offsets)
+    scored = jax.vmap(score)(parts)
     if polish_steps > 0 and polish_rounds > 0:
         # Polish on every other row and column: a quarter of the rays, the same fit.
         s = slice(0, None, POLISH_STRIDE)
@@ -379,12 +414,21 @@ def _finish(arrays, orientation_rel, shape, offsets, corner, centre, max_size, *
             return grow_polish(shifted(part, p), origins[s, s], directions[s, s], measured[s, s], figure[s, s],
                                seed[s, s], scale=scale, rounds=polish_rounds, steps=polish_steps)
 
+        gam, off, explained, _, anchored = scored
         polished = jax.vmap(polish)(parts, off, explained)
         new = jax.vmap(score)(polished)
-        better = new[0] > gam  # a polished part is kept only if its Γ improves
+        # A polished part is kept only if it stays at the region and its Γ improves.
+        better = new[4] & ((new[0] > gam) | ~anchored)
         pick = lambda a, b: jnp.where(better.reshape((-1,) + (1,) * (a.ndim - 1)), a, b)  # noqa: E731
-        parts, gam, off, explained, hit = jax.tree_util.tree_map(pick, (polished, *new), (parts, gam, off, explained, hit))
-    return parts, gam, explained, hit
+        parts, scored = jax.tree_util.tree_map(pick, (polished, new), (parts, scored))
+        if restarts > 0:
+            gam, off, explained, _, anchored = scored
+            b = jnp.argmax(jnp.where(anchored, gam, -jnp.inf))
+            starts = _restart_starts(jax.tree_util.tree_map(lambda x: x[b], parts), restarts)
+            polished = jax.vmap(lambda q: polish(q, off[b], explained[b]))(starts)
+            cat = lambda a, b: jnp.concatenate([a, b])  # noqa: E731
+            parts, scored = jax.tree_util.tree_map(cat, (parts, scored), (polished, jax.vmap(score)(polished)))
+    return parts, *scored[:1], *scored[2:]
 
 
 def ray_penetration(part: Part, origin, direction):
@@ -480,16 +524,16 @@ def fit_region(data: RangeData, settings: SearchSettings, centre, *, prune: bool
     best_i = _distinct(hyp["orientation"][index[ranked]], hyp["shape"][index[ranked]], max(k, settings.polish_candidates))
     best_i = ranked[best_i]
     chosen = index[best_i]
-    parts, gam, explained, hit = _finish(
+    parts, gam, explained, hit, anchored = _finish(
         data.arrays,
         jnp.asarray(hyp["orientation"][chosen]),
         jnp.asarray(hyp["shape"][chosen]),
         jnp.asarray(np.asarray(off_full)[best_i]),
         corner, centre_j, jnp.float32(settings.max_size),
         camera=data.camera, pad=data.pad, window=settings.window, newton_steps=SEARCH_NEWTON_STEPS + 2,
-        polish_steps=settings.polish_steps, polish_rounds=settings.polish_rounds,
+        polish_steps=settings.polish_steps, polish_rounds=settings.polish_rounds, restarts=settings.restarts,
     )
-    order = np.argsort(-np.asarray(gam), kind="stable")[:k]
+    order = np.lexsort((-np.asarray(gam), ~np.asarray(anchored)))[:k]  # anchored first, then by Γ
     h, w = data.camera.height, data.camera.width
     full_e = _to_image(np.asarray(explained)[order], corner, (h, w))
     full_h = _to_image(np.asarray(hit)[order], corner, (h, w))

@@ -3,12 +3,14 @@ import os
 import subprocess
 import sys
 
+import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
+from scipy.ndimage import distance_transform_edt
 
 import sqparts
-from sqparts._search import _grid_arrays
+from sqparts._search import _grid_arrays, _restart_starts
 
 CAM = sqparts.PinholeCamera(48, 48, 150.0, 150.0, 23.5, 23.5)
 TRUTH = sqparts.Part(size=[0.1, 0.06, 0.22], squareness=[0.6, 1.0], position=[0.01, 0.0, 2.0], orientation=[0.4, 0.9, 0.2])
@@ -180,3 +182,43 @@ def test_grow_polish_ignores_an_occluder():
     assert not close[labels == 1].any()  # and none of the plate's
     assert (np.isfinite(rendered) & ~np.isfinite(depth)).sum() <= 0.03 * visible.sum()  # no swelling past the silhouette
     np.testing.assert_allclose(np.asarray(polished.position), np.asarray(TRUTH.position), atol=0.01)
+
+
+def test_restart_starts_relabel_the_same_ellipsoid():
+    # With ε = (1, 1) every relabelling of the axes is the same ellipsoid: points of the
+    # original's surface (closed form) lie on each restart's surface; deformations reset.
+    part = sqparts.Part(size=[0.1, 0.06, 0.22], squareness=[0.4, 1.7], position=[0.05, -0.02, 2.0],
+                        orientation=[0.4, 0.9, 0.2], bend=[0.2, 0.0], taper=0.3)
+    starts = _restart_starts(part, 1)
+    assert starts.size.shape == (3, 3)
+    np.testing.assert_allclose(np.asarray(starts.squareness), 1.0)
+    assert not np.any(np.asarray(starts.bend)) and not np.any(np.asarray(starts.taper))
+    rng = np.random.default_rng(0)
+    u = rng.normal(size=(200, 3))
+    u /= np.linalg.norm(u, axis=1, keepdims=True)
+    rot = np.asarray(sqparts.rotation_matrix(part.orientation))
+    pts = np.asarray(part.position) + (u * np.asarray(part.size)) @ rot.T
+    for i in range(3):
+        d = np.asarray(jax.vmap(lambda x: sqparts.surface_distance(starts[i], x))(jnp.asarray(pts, jnp.float32)))
+        assert np.max(np.abs(d)) < 1e-4
+    assert len({tuple(np.round(np.asarray(s.size), 4)) for s in starts}) == 3  # three distinct labellings
+
+
+def test_fit_region_stays_at_its_region(data):
+    # A plate beside the part covers half the window and could explain more pixels than
+    # the part; the region's best part must still be the one through its centre.
+    plate = sqparts.Part(size=[0.3, 0.3, 0.01], squareness=[0.2, 0.2], position=[-0.3, 0.0, 1.7])
+    depth, labels = (np.asarray(x) for x in sqparts.render_range_image(sqparts.stack_parts([TRUTH, plate]), CAM, return_labels=True))
+    visible = labels == 0
+    assert (labels == 1).sum() > visible.sum()
+    inside = distance_transform_edt(visible)
+    centre = np.array(np.unravel_index(np.argmax(inside), inside.shape))
+    d2 = sqparts.prepare(depth, CAM)
+    window = sqparts.make_settings(data, grid="coarse", max_size=0.25).window
+    st = sqparts.make_settings(d2, grid="coarse", max_size=0.25, window=window, polish_rounds=6, polish_steps=20)
+    fit = sqparts.fit_region(d2, st, centre)
+    r, c = centre
+    assert np.asarray(fit.explained[0])[r - 1 : r + 2, c - 1 : c + 2].any()
+    best = np.asarray(fit.explained[0])
+    assert best[visible].sum() > 0.8 * visible.sum() and best[labels == 1].sum() < 0.05 * visible.sum()
+    np.testing.assert_allclose(np.asarray(fit.parts[0].position), np.asarray(TRUTH.position), atol=0.03)
