@@ -417,8 +417,9 @@ def _finish(arrays, orientation_rel, shape, offsets, corner, centre, max_size, *
         gam, off, explained, _, anchored = scored
         polished = jax.vmap(polish)(parts, off, explained)
         new = jax.vmap(score)(polished)
+        new_gam, *_, new_anchored = new
         # A polished part is kept only if it stays at the region and its Γ improves.
-        better = new[4] & ((new[0] > gam) | ~anchored)
+        better = new_anchored & ((new_gam > gam) | ~anchored)
         pick = lambda a, b: jnp.where(better.reshape((-1,) + (1,) * (a.ndim - 1)), a, b)  # noqa: E731
         parts, scored = jax.tree_util.tree_map(pick, (polished, new), (parts, scored))
         if restarts > 0:
@@ -428,7 +429,8 @@ def _finish(arrays, orientation_rel, shape, offsets, corner, centre, max_size, *
             polished = jax.vmap(lambda q: polish(q, off[b], explained[b]))(starts)
             cat = lambda a, b: jnp.concatenate([a, b])  # noqa: E731
             parts, scored = jax.tree_util.tree_map(cat, (parts, scored), (polished, jax.vmap(score)(polished)))
-    return parts, *scored[:1], *scored[2:]
+    gam, _, explained, hit, anchored = scored
+    return parts, gam, explained, hit, anchored
 
 
 def ray_penetration(part: Part, origin, direction):
