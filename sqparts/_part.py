@@ -210,7 +210,14 @@ class Part(eqx.Module):
             raise TypeError("len() of a single Part; only a batch of parts has a length")
         return self.batch_shape[0]
 
+    def __iter__(self):
+        # Python's fallback iteration calls __getitem__ until IndexError, which JAX's
+        # clamped indexing never raises: iterate over the leading batch axis explicitly.
+        return (self[i] for i in range(len(self)))
+
     def __getitem__(self, index) -> "Part":
+        if isinstance(index, int) and self.batch_shape and not -len(self) <= index < len(self):
+            raise IndexError(f"index: {index} is out of range for a batch of {len(self)} parts")
         return jax.tree_util.tree_map(lambda x: x[index], self)
 
     def rotation(self) -> Float[Array, "*batch 3 3"]:

@@ -42,6 +42,20 @@ def test_vector_round_trip(rng):
     np.testing.assert_array_equal(sqparts.Part.from_vector(v).to_vector(), v)
 
 
+def test_batch_iterates_and_indexes_within_range(rng):
+    parts = [sqparts.Part(**random_part_kwargs(rng)) for _ in range(3)]
+    batch = sqparts.stack_parts(parts)
+    got = list(batch)  # would never end if iteration fell back to clamped indexing
+    assert len(got) == 3
+    for a, b in zip(got, parts):
+        np.testing.assert_array_equal(a.to_vector(), b.to_vector())
+    np.testing.assert_array_equal(batch[-1].to_vector(), parts[2].to_vector())
+    with pytest.raises(IndexError, match=r"index: 3 is out of range for a batch of 3"):
+        batch[3]
+    with pytest.raises(TypeError, match=r"len\(\) of a single Part"):
+        list(parts[0])
+
+
 def test_rotation_matches_scipy(rng):
     for _ in range(10):
         rv = rng.normal(size=3) * 2
