@@ -33,6 +33,9 @@ def _quarter_angles(e: float, n: int) -> np.ndarray:
     return angles[keep]
 
 
+_surface_points = jax.jit(jax.vmap(surface_point, in_axes=(None, 0, 0)))
+
+
 def part_mesh(part: Part, *, resolution: int = 48) -> trimesh.Trimesh:
     """Watertight triangle mesh of one (unbatched) part in camera coordinates.
 
@@ -53,11 +56,12 @@ def part_mesh(part: Part, *, resolution: int = 48) -> trimesh.Trimesh:
     ee, ww = np.meshgrid(eta, omega, indexing="ij")
     grid = np.stack([ee.ravel(), ww.ravel()], -1)
     poles = np.array([[-np.pi / 2, 0.0], [np.pi / 2, 0.0]])
-    params = jnp.asarray(np.concatenate([grid, poles]), part.size.dtype)
-    verts = np.asarray(
-        jax.jit(jax.vmap(surface_point, in_axes=(None, 0, 0)))(part, params[:, 0], params[:, 1]),
-        np.float64,
-    )
+    params = np.concatenate([grid, poles])
+    # Padded to a power of two so a few compilations serve every part.
+    padded = np.zeros((max(4096, 1 << (len(params) - 1).bit_length()), 2))
+    padded[: len(params)] = params
+    padded = jnp.asarray(padded, part.size.dtype)
+    verts = np.asarray(_surface_points(part, padded[:, 0], padded[:, 1]), np.float64)[: len(params)]
     idx = np.arange(n_lat * n_lon).reshape(n_lat, n_lon)
     nxt = np.roll(idx, -1, axis=1)
     a, b, c, d = idx[:-1], nxt[:-1], idx[1:], nxt[1:]

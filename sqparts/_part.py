@@ -216,7 +216,7 @@ class Part(eqx.Module):
         return (self[i] for i in range(len(self)))
 
     def __getitem__(self, index) -> "Part":
-        if isinstance(index, int) and self.batch_shape and not -len(self) <= index < len(self):
+        if isinstance(index, (int, np.integer)) and self.batch_shape and not -len(self) <= index < len(self):
             raise IndexError(f"index: {index} is out of range for a batch of {len(self)} parts")
         return jax.tree_util.tree_map(lambda x: x[index], self)
 

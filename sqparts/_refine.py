@@ -32,22 +32,37 @@ _BUCKET = 8
 
 
 def _pad_parts(parts: Part) -> tuple[Part, int]:
-    """Pad a batch to a power of two (at least 8) with parts behind the camera (never
-    hit), so the compiled renderers and solvers see few distinct shapes."""
+    """Pad a batch to a multiple of ``_BUCKET`` with parts behind the camera (never hit),
+    so the compiled renderer and solver only ever see batches of ``_BUCKET`` parts."""
     n = len(parts)
-    m = max(_BUCKET, 1 << (n - 1).bit_length())
-    if m == n:
-        return parts, n
-    dummy = Part.from_vector(jnp.asarray([0, 0, -1e3, 0, 0, 0, 1e-3, 1e-3, 1e-3, 1, 1, 0, 0, 0], parts.size.dtype))
-    extra = jax.tree_util.tree_map(lambda x: jnp.broadcast_to(x, (m - n,) + x.shape), dummy)
-    return jax.tree_util.tree_map(lambda a, b: jnp.concatenate([a, b]), parts, extra), n
+    m = -(-n // _BUCKET) * _BUCKET
+    dummy = np.array([0, 0, -1e3, 0, 0, 0, 1e-3, 1e-3, 1e-3, 1, 1, 0, 0, 0], parts.size.dtype)
+    vectors = np.concatenate([np.asarray(parts.to_vector()), np.broadcast_to(dummy, (m - n, 14))])
+    # Host (numpy) leaves: slicing buckets off them compiles nothing.
+    return jax.tree_util.tree_map(np.asarray, Part.from_vector(vectors)), n
 
 
 @functools.partial(jax.jit, static_argnames=("camera", "newton_steps"))
 def _render_labels(parts, camera, newton_steps=DEFAULT_NEWTON_STEPS):
     o, d = camera.rays()
     t, hit, index = cast_scene(parts, o, d, newton_steps)
-    return jnp.where(hit, t, jnp.nan), index
+    return jnp.where(hit, t, jnp.inf), index
+
+
+def render_labels(parts: Part, camera) -> tuple[np.ndarray, np.ndarray]:
+    """The parts rendered together (nearest hit wins): depth (NaN = none) and the
+    visible part's index (-1 = none). Rendered ``_BUCKET`` parts at a time (one
+    compilation for any number of parts) and merged by depth."""
+    padded, _ = _pad_parts(parts)
+    t, labels = None, None
+    for k in range(0, len(padded), _BUCKET):
+        tk, lk = (np.asarray(a) for a in _render_labels(padded[k : k + _BUCKET], camera))
+        if t is None:
+            t, labels = tk, lk
+        else:
+            nearer = tk < t  # ties keep the earlier part, as within a chunk
+            t, labels = np.where(nearer, tk, t), np.where(nearer, lk + k, labels)
+    return np.where(np.isfinite(t), t, np.nan).astype(np.float32), labels
 
 
 @dataclasses.dataclass(frozen=True)
@@ -72,8 +87,7 @@ def encoding_cost(parts: Part | None, data: RangeData, costs: Costs) -> Encoding
         n, rendered, labels = 0, np.full(measured.shape, np.nan, np.float32), np.full(measured.shape, -1)
     else:
         n = len(parts)
-        padded, _ = _pad_parts(parts)
-        rendered, labels = (np.asarray(a) for a in _render_labels(padded, data.camera))
+        rendered, labels = render_labels(parts, data.camera)
     hit = labels >= 0
     with np.errstate(invalid="ignore"):
         explained = hit & figure & (np.abs(rendered - measured) <= data.encoding.sigma / 2)
@@ -98,8 +112,19 @@ def part_statistics(parts: Part, data: RangeData, cost: EncodingCost) -> list[di
 
 
 @functools.partial(jax.jit, static_argnames=("steps",))
-def _polish_all(parts, points, weights, steps):
+def _polish_bucket(parts, points, weights, steps):
     return jax.vmap(lambda p, w: polish_part(p, points, w, steps=steps))(parts, weights)
+
+
+def _polish_all(parts: Part, points, weights, steps: int) -> Part:
+    """Each part polished on its own point weights (``weights[i]``), ``_BUCKET`` parts
+    per compiled call (one compilation for any number of parts)."""
+    padded, n = _pad_parts(parts)
+    w = np.zeros((len(padded), points.shape[0]), np.float32)
+    w[:n] = np.asarray(weights)[:n]
+    out = [_polish_bucket(padded[k : k + _BUCKET], points, jnp.asarray(w[k : k + _BUCKET]), steps)
+           for k in range(0, len(padded), _BUCKET)]
+    return jax.tree_util.tree_map(lambda *a: jnp.concatenate(a)[:n], *out)
 
 
 def _figure_points(data: RangeData, max_points: int = 20000, seed: int = 0):
@@ -125,11 +150,10 @@ def polish_jointly(parts: Part, data: RangeData, costs: Costs, *, steps: int = 2
     flat_labels = cost.labels.reshape(-1)[np.maximum(idx, 0)]
     with np.errstate(invalid="ignore"):
         close = np.abs(cost.rendered - data.image).reshape(-1)[np.maximum(idx, 0)] <= tolerance * data.encoding.sigma
-    padded, n = _pad_parts(parts)
-    weights = np.stack([(flat_labels == i) & close & valid for i in range(len(padded.size))]).astype(np.float32)
-    polished = _polish_all(padded, jnp.asarray(pts), jnp.asarray(weights), steps)
+    weights = np.stack([(flat_labels == i) & close & valid for i in range(len(parts))]).astype(np.float32)
+    polished = _polish_all(parts, jnp.asarray(pts), weights, steps)
     current = parts
-    for i in np.argsort(-weights[:n].sum(1)):
+    for i in np.argsort(-weights.sum(1)):
         trial = jax.tree_util.tree_map(lambda a, b: a.at[i].set(b[i]), current, polished)
         c = encoding_cost(trial, data, costs)
         if c.total < cost.total - 1e-9:
@@ -187,7 +211,7 @@ def _surface_distance(parts, points):
 def merge_adjacent(parts: Part, data: RangeData, costs: Costs, *, steps: int = 20, tries: int = 3):
     """Replace two adjacent parts by one bent part when that lowers E (section 4.1).
 
-    Every adjacent pair gets bent single-part starts, all fitted in one batched LM call
+    Every adjacent pair gets bent single-part starts, all fitted by batched LM calls
     to the pair's explained pixels; the ``tries`` best fits (by the share of the pair's
     points within σ/2 of their surface) are tried in the joint rendering."""
     from scipy.ndimage import binary_dilation
@@ -214,14 +238,14 @@ def merge_adjacent(parts: Part, data: RangeData, costs: Costs, *, steps: int = 2
                     pairs.append((i, j))
         if not inits:
             break
-        batch, m = _pad_parts(stack_parts(inits))
-        w_all = np.zeros((len(batch.size), len(idx)), np.float32)
-        w_all[:m] = np.stack(weights)
-        fitted = _polish_all(batch, jnp.asarray(pts), jnp.asarray(w_all), steps)
+        w_all = np.stack(weights)
+        fitted = _polish_all(stack_parts(inits), jnp.asarray(pts), w_all, steps)
         # Share of each pair's points within σ/2 of the fitted surface (no rendering).
-        dist = _surface_distance(fitted, jnp.asarray(pts))
+        padded, m = _pad_parts(fitted)
+        dist = np.concatenate([np.asarray(_surface_distance(padded[k : k + _BUCKET], jnp.asarray(pts)))
+                               for k in range(0, len(padded), _BUCKET)])[:m]
         close = (np.abs(np.asarray(dist)) <= data.encoding.sigma / 2) * w_all
-        share = close.sum(1)[:m] / np.maximum(w_all.sum(1)[:m], 1)
+        share = close.sum(1) / np.maximum(w_all.sum(1), 1)
         for k in np.argsort(-share)[:tries]:
             i, j = pairs[k]
             keep = [q for q in range(n) if q not in (i, j)]

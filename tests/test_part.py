@@ -52,6 +52,8 @@ def test_batch_iterates_and_indexes_within_range(rng):
     np.testing.assert_array_equal(batch[-1].to_vector(), parts[2].to_vector())
     with pytest.raises(IndexError, match=r"index: 3 is out of range for a batch of 3"):
         batch[3]
+    with pytest.raises(IndexError, match=r"index: -4 is out of range"):
+        batch[np.int64(-4)]
     with pytest.raises(TypeError, match=r"len\(\) of a single Part"):
         list(parts[0])
 
