@@ -166,6 +166,9 @@ def recover(
         built-in scenes longer region-growing polishes let a part spread onto its
         neighbours (human: 73% of the figure explained with 6 rounds of 15 steps, 83% with
         3 of 10), while restarts cost 2.4× the time for 2 points (85%, 22 s warm).
+        Boxy, rigid objects want the single-region settings instead
+        (``restarts=3, polish_rounds=6, polish_steps=15``): flat boxes then come back
+        with ε ≈ 0.1 rather than as rounded blobs (see ``benchmarks/README.md``).
     """
     for name, value in (("polish_candidates", top_k), ("polish_rounds", 3), ("polish_steps", 10), ("restarts", 0)):
         search_kwargs.setdefault(name, value)
