@@ -5,10 +5,12 @@ encoding cost of the whole image is computed by direct pixel count,
 
     E = κ0 n + κ1 |explained| + κ2 |commission| + κ3 (N - |explained|),
 
-with the costs of :class:`~sqparts._select.Costs`. Each round assigns every figure pixel
-to the part visible there, polishes all parts at once (optimistix Levenberg-Marquardt on
-the inside-outside residuals of their pixels, batched over parts) and keeps a change only
-if E falls, like the paper's accept-if-improved descent. Then a part that no longer pays
+with the costs of :class:`~sqparts._select.Costs`. Each round is one step of region
+growing over all parts at once: every part takes the figure pixels where it is visible
+plus the unexplained pixels next to them that lie near its surface, and is polished on
+them (optimistix Levenberg-Marquardt on radial surface distances, batched over parts)
+while the background rays around it must miss it; a change is kept only if E falls, like
+the paper's accept-if-improved descent. Then a part that no longer pays
 for its bits is dropped, and two adjacent parts are merged when one bent part encodes
 them more cheaply.
 """
@@ -111,20 +113,57 @@ def part_statistics(parts: Part, data: RangeData, cost: EncodingCost) -> list[di
     return out
 
 
+_POINTS = 1024
+_RAYS = 512
+
+
 @functools.partial(jax.jit, static_argnames=("steps",))
-def _polish_bucket(parts, points, weights, steps):
-    return jax.vmap(lambda p, w: polish_part(p, points, w, steps=steps))(parts, weights)
+def _polish_bucket(parts, points, weights, origins, directions, ray_weights, steps):
+    def one(p, x, w, o, d, wr):
+        return polish_part(p, x, w, rays=(o, d, wr), steps=steps)
+
+    return jax.vmap(one)(parts, points, weights, origins, directions, ray_weights)
 
 
-def _polish_all(parts: Part, points, weights, steps: int) -> Part:
-    """Each part polished on its own point weights (``weights[i]``), ``_BUCKET`` parts
-    per compiled call (one compilation for any number of parts)."""
+def _gather(weights: np.ndarray, size: int, seed: int = 0) -> tuple[np.ndarray, np.ndarray]:
+    """Per row of ``weights`` (n, m): the indices of up to ``size`` of its non-zero
+    entries (a fixed random subset when there are more) and their weights, padded with
+    index 0 and weight 0."""
+    rng = np.random.default_rng(seed)
+    index = np.zeros((len(weights), size), np.int64)
+    out = np.zeros((len(weights), size), np.float32)
+    for i, w in enumerate(weights):
+        nz = np.flatnonzero(w)
+        if len(nz) > size:
+            nz = np.sort(rng.choice(nz, size, replace=False))
+        index[i, : len(nz)] = nz
+        out[i, : len(nz)] = w[nz]
+    return index, out
+
+
+def _polish_all(parts: Part, points, weights, steps: int, rays, ray_weights) -> Part:
+    """Each part polished on its own points (non-zero ``weights[i]`` over ``points``,
+    at most ``_POINTS`` of them) while missing its background rays (non-zero
+    ``ray_weights[i]`` over ``rays`` = (origins, directions), at most ``_RAYS``);
+    ``_BUCKET`` parts per compiled call, so one compilation serves any number of parts
+    and any image."""
     padded, n = _pad_parts(parts)
-    w = np.zeros((len(padded), points.shape[0]), np.float32)
-    w[:n] = np.asarray(weights)[:n]
-    out = [_polish_bucket(padded[k : k + _BUCKET], points, jnp.asarray(w[k : k + _BUCKET]), steps)
-           for k in range(0, len(padded), _BUCKET)]
+    m = len(padded)
+    pi, pw = _gather(np.asarray(weights)[:n], _POINTS)
+    ri, rw = _gather(np.asarray(ray_weights)[:n], _RAYS)
+    pi, pw, ri, rw = (np.concatenate([a, np.zeros((m - n,) + a.shape[1:], a.dtype)]) for a in (pi, pw, ri, rw))
+    x = np.asarray(points, np.float32)[pi]
+    if len(rays[0]) == 0:  # no background in view: nothing to miss
+        rays = (np.zeros((1, 3), np.float32), np.float32([[0.0, 0.0, 1.0]]))
+    o, d = (np.asarray(a, np.float32)[ri] for a in rays)
+    d[rw == 0] = (0.0, 0.0, 1.0)  # padding rays stay finite
+    out = [_polish_bucket(padded[k : k + _BUCKET], *(jnp.asarray(a[k : k + _BUCKET]) for a in (x, pw, o, d, rw)), steps)
+           for k in range(0, m, _BUCKET)]
     return jax.tree_util.tree_map(lambda *a: jnp.concatenate(a)[:n], *out)
+
+
+def _pad_rows(a: np.ndarray, m: int) -> np.ndarray:
+    return np.concatenate([a, np.zeros((m - len(a),) + a.shape[1:], a.dtype)])
 
 
 def _figure_points(data: RangeData, max_points: int = 20000, seed: int = 0):
@@ -136,22 +175,56 @@ def _figure_points(data: RangeData, max_points: int = 20000, seed: int = 0):
         idx = np.sort(np.random.default_rng(seed).choice(idx, max_points, replace=False))
     pts = data.camera.points(data.image).reshape(-1, 3)[idx]
     m = int(math.ceil(len(idx) / 1024) * 1024)
-    pad = m - len(idx)
-    return np.concatenate([pts, np.zeros((pad, 3))]).astype(np.float32), np.concatenate([idx, np.full(pad, -1)])
+    return _pad_rows(pts.astype(np.float32), m), np.concatenate([idx, np.full(m - len(idx), -1)])
 
 
-def polish_jointly(parts: Part, data: RangeData, costs: Costs, *, steps: int = 20, tolerance: float = 2.0):
-    """One round: assign each figure pixel to the part visible there (if within
-    ``tolerance`` σ), polish every part on its pixels at once, and accept each part's
-    change only if the joint E falls. Returns (parts, cost)."""
+def _background_rays(data: RangeData):
+    """Rays through background pixels (no return, off the figure) within 3 pixels of the
+    figure, where a part that swells past its silhouette shows first: (origins,
+    directions, flat pixel indices)."""
+    from scipy.ndimage import binary_dilation
+
+    figure = data.figure_region
+    idx = np.flatnonzero(binary_dilation(figure, iterations=3) & ~figure & ~np.isfinite(data.image))
+    o, d = (np.asarray(a).reshape(-1, 3)[idx].astype(np.float32) for a in data.camera.rays())
+    return (o, d), idx
+
+
+def _rays_near(mask: np.ndarray, ray_index: np.ndarray, margin: int) -> np.ndarray:
+    """1 for each background ray within ``margin`` pixels of ``mask``, else 0."""
+    from scipy.ndimage import binary_dilation
+
+    return binary_dilation(mask, iterations=margin).reshape(-1)[ray_index].astype(np.float32)
+
+
+def polish_jointly(parts: Part, data: RangeData, costs: Costs, *, steps: int = 20, tolerance: float = 2.0, grow: int = 2):
+    """One round of region growing over all parts at once: each part is fitted to the
+    figure pixels where it is visible (within ``tolerance`` σ) and to the unexplained
+    figure pixels within ``grow`` pixels of them that lie within 3 scale of its surface
+    (scale = max(σ, 5% of its largest semi-axis); Cauchy weights of that width), while
+    background rays near the silhouette must miss it. A part's change is accepted only
+    if the joint E falls. Returns (parts, cost)."""
+    from scipy.ndimage import binary_dilation
+
     cost = encoding_cost(parts, data, costs)
     pts, idx = _figure_points(data)
     valid = idx >= 0
-    flat_labels = cost.labels.reshape(-1)[np.maximum(idx, 0)]
+    at = np.maximum(idx, 0)
+    flat_labels = cost.labels.reshape(-1)[at]
     with np.errstate(invalid="ignore"):
-        close = np.abs(cost.rendered - data.image).reshape(-1)[np.maximum(idx, 0)] <= tolerance * data.encoding.sigma
-    weights = np.stack([(flat_labels == i) & close & valid for i in range(len(parts))]).astype(np.float32)
-    polished = _polish_all(parts, jnp.asarray(pts), weights, steps)
+        close = np.abs(cost.rendered - data.image).reshape(-1)[at] <= tolerance * data.encoding.sigma
+    free = ~cost.explained_mask.reshape(-1)[at] & valid
+    dist = np.abs(_distances(parts, pts))
+    scale = np.maximum(0.05 * np.asarray(parts.size).max(1), data.encoding.sigma)[:, None]
+    weights = []
+    for i in range(len(parts)):
+        near = binary_dilation(cost.labels == i, iterations=grow).reshape(-1)[at]
+        support = ((flat_labels == i) & close & valid) | (free & near & (dist[i] < 3 * scale[i]))
+        weights.append(np.where(support, 1.0 / np.sqrt(1.0 + (dist[i] / scale[i]) ** 2), 0.0))
+    weights = np.stack(weights).astype(np.float32)
+    rays, ray_index = _background_rays(data)
+    ray_weights = np.stack([_rays_near(cost.labels == i, ray_index, grow + 3) for i in range(len(parts))])
+    polished = _polish_all(parts, pts, weights, steps, rays, ray_weights)
     current = parts
     for i in np.argsort(-weights.sum(1)):
         trial = jax.tree_util.tree_map(lambda a, b: a.at[i].set(b[i]), current, polished)
@@ -204,8 +277,16 @@ def _merge_candidate(a: Part, b: Part) -> list[Part]:
 
 @jax.jit
 def _surface_distance(parts, points):
-    """Radial distance (:func:`~sqparts.surface_distance`) of every point to every part."""
     return jax.vmap(lambda p: jax.vmap(lambda x: surface_distance(p, x))(points))(parts)
+
+
+def _distances(parts: Part, points) -> np.ndarray:
+    """(n, m) radial distance (:func:`~sqparts.surface_distance`) of every point to every
+    part, ``_BUCKET`` parts per compiled call."""
+    padded, n = _pad_parts(parts)
+    pts = jnp.asarray(points)
+    return np.concatenate([np.asarray(_surface_distance(padded[k : k + _BUCKET], pts))
+                           for k in range(0, len(padded), _BUCKET)])[:n]
 
 
 def merge_adjacent(parts: Part, data: RangeData, costs: Costs, *, steps: int = 20, tries: int = 3):
@@ -218,12 +299,13 @@ def merge_adjacent(parts: Part, data: RangeData, costs: Costs, *, steps: int = 2
 
     cost = encoding_cost(parts, data, costs)
     pts, idx = _figure_points(data)
+    rays, ray_index = _background_rays(data)
     merged = True
     while merged and len(parts) > 1:
         merged = False
         n = len(parts)
         grown = [binary_dilation(cost.labels == i, iterations=2) for i in range(n)]
-        inits, weights, pairs = [], [], []
+        inits, weights, ray_weights, pairs = [], [], [], []
         for i in range(n):
             for j in range(i + 1, n):
                 if not (grown[i] & (cost.labels == j)).any():
@@ -232,18 +314,18 @@ def merge_adjacent(parts: Part, data: RangeData, costs: Costs, *, steps: int = 2
                 w = np.where(idx >= 0, union.reshape(-1)[np.maximum(idx, 0)], False).astype(np.float32)
                 if w.sum() < 8:
                     continue
+                wr = _rays_near((cost.labels == i) | (cost.labels == j), ray_index, 5)
                 for init in _merge_candidate(parts[i], parts[j]):
                     inits.append(init)
                     weights.append(w)
+                    ray_weights.append(wr)
                     pairs.append((i, j))
         if not inits:
             break
         w_all = np.stack(weights)
-        fitted = _polish_all(stack_parts(inits), jnp.asarray(pts), w_all, steps)
+        fitted = _polish_all(stack_parts(inits), pts, w_all, steps, rays, np.stack(ray_weights))
         # Share of each pair's points within σ/2 of the fitted surface (no rendering).
-        padded, m = _pad_parts(fitted)
-        dist = np.concatenate([np.asarray(_surface_distance(padded[k : k + _BUCKET], jnp.asarray(pts)))
-                               for k in range(0, len(padded), _BUCKET)])[:m]
+        dist = _distances(fitted, pts)
         close = (np.abs(np.asarray(dist)) <= data.encoding.sigma / 2) * w_all
         share = close.sum(1) / np.maximum(w_all.sum(1), 1)
         for k in np.argsort(-share)[:tries]:

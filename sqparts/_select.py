@@ -182,6 +182,12 @@ def select_exact(problem: SelectionProblem, *, time_limit: float = 30.0) -> tupl
         else:  # y <= x_i, y <= x_j
             h.addRow(-inf, 0.0, 2, np.array([y, i], np.int32), np.array([1.0, -1.0]))
             h.addRow(-inf, 0.0, 2, np.array([y, j], np.int32), np.array([1.0, -1.0]))
+    # Start from the best-first selection: its E bounds the branch and bound at once.
+    start = select_best_first(problem).astype(np.float64)
+    y0 = [start[i] * start[j] for i, j in pairs]
+    sol = highspy.HighsSolution()
+    sol.col_value = list(np.concatenate([start, y0]))
+    h.setSolution(sol)
     h.run()
     status = h.getModelStatus()
     values = np.asarray(h.getSolution().col_value[:n])
