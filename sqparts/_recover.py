@@ -155,7 +155,7 @@ def recover(
     camera : the camera that took it (``depth.shape == (camera.height, camera.width)``).
     figure : optional (H, W) bool mask of the figure (default: every return).
     grid : a :class:`~sqparts.Grid` or preset name (``"coarse"``, ``"default"``, ``"fine"``).
-    max_size : largest semi-axis searched (default: a third of the figure's extent).
+    max_size : largest semi-axis searched (default: a quarter of the figure's largest extent).
     selection : ``"auto"``, ``"exact"`` or ``"best-first"``.
     refine_rounds : rounds of joint polishing (0 = none); ``merge`` allows bent merges.
     progress : optional wrapper for the region loop (e.g. ``tqdm.tqdm``).
