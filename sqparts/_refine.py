@@ -25,7 +25,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from ._part import Part, stack_parts, surface_distance
+from ._part import Part, surface_distance
 from ._render import DEFAULT_NEWTON_STEPS, cast_scene
 from ._search import RangeData, polish_part
 from ._select import Costs
@@ -33,15 +33,29 @@ from ._select import Costs
 _BUCKET = 8
 
 
+_PART_TREE = jax.tree_util.tree_structure(Part(size=np.ones(3, np.float32)))
+
+
+def _host_parts(vectors) -> Part:
+    """A batch of parts with host (numpy) leaves from valid (n, 14) vectors (the order of
+    :meth:`~sqparts.Part.to_vector`), built without dispatching JAX operations: slicing,
+    stacking and editing them is plain numpy, and they enter compiled calls as they are."""
+    v = np.asarray(vectors, np.float32)
+    return jax.tree_util.tree_unflatten(_PART_TREE, [v[:, 0:3], v[:, 3:6], v[:, 6:9], v[:, 9:11], v[:, 11:13], v[:, 13]])
+
+
+def _vectors(parts: Part) -> np.ndarray:
+    """(n, 14) host copy of ``parts.to_vector()``."""
+    return np.asarray(parts.to_vector(), np.float32).reshape(-1, 14)
+
+
 def _pad_parts(parts: Part) -> tuple[Part, int]:
     """Pad a batch to a multiple of ``_BUCKET`` with parts behind the camera (never hit),
     so the compiled renderer and solver only ever see batches of ``_BUCKET`` parts."""
     n = len(parts)
     m = -(-n // _BUCKET) * _BUCKET
-    dummy = np.array([0, 0, -1e3, 0, 0, 0, 1e-3, 1e-3, 1e-3, 1, 1, 0, 0, 0], parts.size.dtype)
-    vectors = np.concatenate([np.asarray(parts.to_vector()), np.broadcast_to(dummy, (m - n, 14))])
-    # Host (numpy) leaves: slicing buckets off them compiles nothing.
-    return jax.tree_util.tree_map(np.asarray, Part.from_vector(vectors)), n
+    dummy = np.array([0, 0, -1e3, 0, 0, 0, 1e-3, 1e-3, 1e-3, 1, 1, 0, 0, 0], np.float32)
+    return _host_parts(np.concatenate([_vectors(parts), np.broadcast_to(dummy, (m - n, 14))])), n
 
 
 @functools.partial(jax.jit, static_argnames=("camera", "newton_steps"))
@@ -159,7 +173,7 @@ def _polish_all(parts: Part, points, weights, steps: int, rays, ray_weights) -> 
     d[rw == 0] = (0.0, 0.0, 1.0)  # padding rays stay finite
     out = [_polish_bucket(padded[k : k + _BUCKET], *(jnp.asarray(a[k : k + _BUCKET]) for a in (x, pw, o, d, rw)), steps)
            for k in range(0, m, _BUCKET)]
-    return jax.tree_util.tree_map(lambda *a: jnp.concatenate(a)[:n], *out)
+    return _host_parts(np.concatenate([_vectors(p) for p in out])[:n])
 
 
 def _pad_rows(a: np.ndarray, m: int) -> np.ndarray:
@@ -225,13 +239,14 @@ def polish_jointly(parts: Part, data: RangeData, costs: Costs, *, steps: int = 2
     rays, ray_index = _background_rays(data)
     ray_weights = np.stack([_rays_near(cost.labels == i, ray_index, grow + 3) for i in range(len(parts))])
     polished = _polish_all(parts, pts, weights, steps, rays, ray_weights)
-    current = parts
+    current, new = _vectors(parts), _vectors(polished)
     for i in np.argsort(-weights.sum(1)):
-        trial = jax.tree_util.tree_map(lambda a, b: a.at[i].set(b[i]), current, polished)
-        c = encoding_cost(trial, data, costs)
+        trial = current.copy()
+        trial[i] = new[i]
+        c = encoding_cost(_host_parts(trial), data, costs)
         if c.total < cost.total - 1e-9:
             current, cost = trial, c
-    return current, cost
+    return _host_parts(current), cost
 
 
 def drop_unprofitable(parts: Part, data: RangeData, costs: Costs):
@@ -257,22 +272,27 @@ def drop_unprofitable(parts: Part, data: RangeData, costs: Costs):
     return parts, cost
 
 
-def _merge_candidate(a: Part, b: Part) -> list[Part]:
-    """Initial single parts spanning two parts: straight and bent both ways, at two rolls."""
-    from ._scenes import limb
+def _merge_candidates(a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    """(6, 14) vectors of single parts spanning the parts with vectors ``a`` and ``b``
+    from end to end: straight and bent both ways, at two rolls (none if they coincide)."""
+    from scipy.spatial.transform import Rotation
 
-    pa, pb = np.asarray(a.position, np.float64), np.asarray(b.position, np.float64)
+    from ._scenes import _frame_from_z
+
+    pa, pb = a[0:3].astype(np.float64), b[0:3].astype(np.float64)
     length = np.linalg.norm(pb - pa)
     if length < 1e-9:
-        return []
-    reach = 0.5 * (float(jnp.max(a.size)) + float(jnp.max(b.size))) * (pb - pa) / length
-    width = max(float(jnp.sort(a.size)[1]), float(jnp.sort(b.size)[1]))
-    depth = max(float(jnp.min(a.size)), float(jnp.min(b.size)))
-    return [
-        limb(pa - reach, pb + reach, width, depth, roll=roll, bend=(bend, 0.0))
-        for roll in (0.0, np.pi / 2)
-        for bend in (-0.3, 0.0, 0.3)
-    ]
+        return np.zeros((0, 14), np.float32)
+    axis = (pb - pa) * (1.0 + (a[6:9].max() + b[6:9].max()) / length)  # ends past the centres by the mean half-length
+    width = max(np.sort(a[6:9])[1], np.sort(b[6:9])[1])
+    depth = max(a[6:9].min(), b[6:9].min())
+    frame = Rotation.from_rotvec(_frame_from_z(axis))
+    rows = []
+    for roll in (0.0, np.pi / 2):
+        rv = (frame * Rotation.from_rotvec([0.0, 0.0, roll])).as_rotvec()
+        for bend in (-0.3, 0.0, 0.3):
+            rows.append([*(pa + pb) / 2, *rv, width, depth, np.linalg.norm(axis) / 2, 1.0, 1.0, bend, 0.0, 0.0])
+    return np.asarray(rows, np.float32)
 
 
 @jax.jit
@@ -305,6 +325,7 @@ def merge_adjacent(parts: Part, data: RangeData, costs: Costs, *, steps: int = 2
         merged = False
         n = len(parts)
         grown = [binary_dilation(cost.labels == i, iterations=2) for i in range(n)]
+        vec = _vectors(parts)
         inits, weights, ray_weights, pairs = [], [], [], []
         for i in range(n):
             for j in range(i + 1, n):
@@ -315,7 +336,7 @@ def merge_adjacent(parts: Part, data: RangeData, costs: Costs, *, steps: int = 2
                 if w.sum() < 8:
                     continue
                 wr = _rays_near((cost.labels == i) | (cost.labels == j), ray_index, 5)
-                for init in _merge_candidate(parts[i], parts[j]):
+                for init in _merge_candidates(vec[i], vec[j]):
                     inits.append(init)
                     weights.append(w)
                     ray_weights.append(wr)
@@ -323,7 +344,8 @@ def merge_adjacent(parts: Part, data: RangeData, costs: Costs, *, steps: int = 2
         if not inits:
             break
         w_all = np.stack(weights)
-        fitted = _polish_all(stack_parts(inits), pts, w_all, steps, rays, np.stack(ray_weights))
+        fitted = _polish_all(_host_parts(np.stack(inits)), pts, w_all, steps, rays, np.stack(ray_weights))
+        fitted_vec = _vectors(fitted)
         # Share of each pair's points within σ/2 of the fitted surface (no rendering).
         dist = _distances(fitted, pts)
         close = (np.abs(np.asarray(dist)) <= data.encoding.sigma / 2) * w_all
@@ -331,7 +353,7 @@ def merge_adjacent(parts: Part, data: RangeData, costs: Costs, *, steps: int = 2
         for k in np.argsort(-share)[:tries]:
             i, j = pairs[k]
             keep = [q for q in range(n) if q not in (i, j)]
-            trial = stack_parts([parts[q] for q in keep] + [fitted[int(k)]])
+            trial = _host_parts(np.concatenate([vec[keep], fitted_vec[k : k + 1]]))
             c = encoding_cost(trial, data, costs)
             if c.total < cost.total - 1e-9:
                 parts, cost, merged = trial, c, True
@@ -342,6 +364,7 @@ def merge_adjacent(parts: Part, data: RangeData, costs: Costs, *, steps: int = 2
 def refine_parts(parts: Part, data: RangeData, costs: Costs, *, rounds: int = 3, steps: int = 20, merge: bool = True):
     """Joint refinement: ``rounds`` of :func:`polish_jointly`, then drop and merge.
     Returns (parts, final cost, history of E after each stage)."""
+    parts = _host_parts(_vectors(parts))
     cost = encoding_cost(parts, data, costs)
     history = [("initial", cost.total)]
     for r in range(rounds):
@@ -352,4 +375,4 @@ def refine_parts(parts: Part, data: RangeData, costs: Costs, *, rounds: int = 3,
     if merge:
         parts, cost = merge_adjacent(parts, data, costs)
         history.append(("merge", cost.total))
-    return parts, cost, history
+    return Part.from_vector(_vectors(parts)), cost, history
