@@ -142,6 +142,8 @@ def recover(
     top_k: int = 3,
     selection: str = "auto",
     refine_rounds: int = 2,
+    split: bool = True,
+    fill: bool = True,
     merge: bool = True,
     centres=None,
     progress=None,
@@ -157,7 +159,10 @@ def recover(
     grid : a :class:`~sqparts.Grid` or preset name (``"coarse"``, ``"default"``, ``"fine"``).
     max_size : largest semi-axis searched (default: a quarter of the figure's largest extent).
     selection : ``"auto"``, ``"exact"`` or ``"best-first"``.
-    refine_rounds : rounds of joint polishing (0 = none); ``merge`` allows bent merges.
+    refine_rounds : rounds of joint polishing (0 = none); then ``split`` allows a part to
+        be split in two along its axis, ``fill`` searches the blobs of pixels still
+        unexplained again at their own scale (for small parts: hands, feet), ``merge``
+        allows two parts to be merged into one bent part; each only when E falls.
     progress : optional wrapper for the region loop (e.g. ``tqdm.tqdm``).
     **search_kwargs : :class:`~sqparts.SearchSettings` fields. Unlike a single
         :func:`~sqparts.fit_region`, recovery polishes only the ``top_k`` best starts per
@@ -190,8 +195,10 @@ def recover(
     initial = jax.tree_util.tree_map(lambda x: x[np.flatnonzero(chosen)], parts)
     t2 = time.perf_counter()
     initial_cost = encoding_cost(initial, data, costs)
-    if refine_rounds > 0 or merge:
-        final, cost, history = refine_parts(initial, data, costs, rounds=refine_rounds, merge=merge)
+    if refine_rounds > 0 or split or fill or merge:
+        final, cost, history = refine_parts(
+            initial, data, costs, rounds=refine_rounds, split=split, merge=merge, search=settings if fill else None
+        )
     else:
         final, cost, history = initial, initial_cost, [("initial", initial_cost.total)]
     t3 = time.perf_counter()
@@ -216,6 +223,7 @@ def recover(
             "survivors": settings.survivors,
             "polish_candidates": settings.polish_candidates,
             "restarts": settings.restarts,
+            "refinement": {"rounds": refine_rounds, "split": split, "fill": fill, "merge": merge},
             "sigma": enc.sigma,
             "quantum": enc.quantum,
             "commission_weight": enc.commission_weight,

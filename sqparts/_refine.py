@@ -10,9 +10,11 @@ growing over all parts at once: every part takes the figure pixels where it is v
 plus the unexplained pixels next to them that lie near its surface, and is polished on
 them (optimistix Levenberg-Marquardt on radial surface distances, batched over parts)
 while the background rays around it must miss it; a change is kept only if E falls, like
-the paper's accept-if-improved descent. Then a part that no longer pays
-for its bits is dropped, and two adjacent parts are merged when one bent part encodes
-them more cheaply.
+the paper's accept-if-improved descent. Then a part that spans two (a torso with its
+pelvis) is split in two along its axis, blobs of unexplained pixels are searched again
+at their own scale for the parts the first search missed, a part that no longer pays for
+its bits is dropped, and two adjacent parts are merged when one bent part encodes them more cheaply
+(section 4.1); each only when E falls.
 """
 
 from __future__ import annotations
@@ -98,12 +100,41 @@ class EncodingCost:
 
 def encoding_cost(parts: Part | None, data: RangeData, costs: Costs) -> EncodingCost:
     """Render ``parts`` together and count E (Eq. 6 evaluated on the joint rendering)."""
-    measured, figure = data.image, data.figure_region
+    measured = data.image
     if parts is None or len(parts) == 0:
-        n, rendered, labels = 0, np.full(measured.shape, np.nan, np.float32), np.full(measured.shape, -1)
-    else:
-        n = len(parts)
-        rendered, labels = render_labels(parts, data.camera)
+        return _count(0, np.full(measured.shape, np.nan, np.float32), np.full(measured.shape, -1), data, costs)
+    return _count(len(parts), *render_labels(parts, data.camera), data, costs)
+
+
+@functools.partial(jax.jit, static_argnames=("camera", "newton_steps"))
+def _render_each(parts, camera, newton_steps=DEFAULT_NEWTON_STEPS):
+    o, d = camera.rays()
+
+    def one(part):
+        t, hit, _ = cast_scene(jax.tree_util.tree_map(lambda x: x[None], part), o, d, newton_steps)
+        return jnp.where(hit, t, jnp.inf)
+
+    return jax.vmap(one)(parts)
+
+
+def costs_adding(cost: EncodingCost, extra, data: RangeData, costs: Costs) -> list[EncodingCost]:
+    """E of the parts behind ``cost`` plus each one of the (k, 14) vectors ``extra`` in
+    turn: each extra part is rendered on its own (all of them in ``_BUCKET`` batches) and
+    merged by depth into ``cost``'s rendering, as :func:`render_labels` merges, instead
+    of rendering every scene again."""
+    padded, k = _pad_parts(_host_parts(extra))
+    depths = np.concatenate([np.asarray(_render_each(padded[j : j + _BUCKET], data.camera)) for j in range(0, len(padded), _BUCKET)])
+    base = np.where(cost.labels >= 0, cost.rendered, np.inf)
+    out = []
+    for t in depths[:k]:
+        nearer = t < base
+        rendered = np.where(nearer, t, base)
+        out.append(_count(cost.parts + 1, np.where(np.isfinite(rendered), rendered, np.nan).astype(np.float32), np.where(nearer, cost.parts, cost.labels), data, costs))
+    return out
+
+
+def _count(n: int, rendered, labels, data: RangeData, costs: Costs) -> EncodingCost:
+    measured, figure = data.image, data.figure_region
     hit = labels >= 0
     with np.errstate(invalid="ignore"):
         explained = hit & figure & (np.abs(rendered - measured) <= data.encoding.sigma / 2)
@@ -211,16 +242,19 @@ def _rays_near(mask: np.ndarray, ray_index: np.ndarray, margin: int) -> np.ndarr
     return binary_dilation(mask, iterations=margin).reshape(-1)[ray_index].astype(np.float32)
 
 
-def polish_jointly(parts: Part, data: RangeData, costs: Costs, *, steps: int = 20, tolerance: float = 2.0, grow: int = 2):
-    """One round of region growing over all parts at once: each part is fitted to the
-    figure pixels where it is visible (within ``tolerance`` σ) and to the unexplained
-    figure pixels within ``grow`` pixels of them that lie within 3 scale of its surface
-    (scale = max(σ, 5% of its largest semi-axis); Cauchy weights of that width), while
-    background rays near the silhouette must miss it. A part's change is accepted only
-    if the joint E falls. Returns (parts, cost)."""
+def _grow_inputs(parts: Part, data: RangeData, cost: EncodingCost, which, *, tolerance: float = 2.0, grow: int = 2):
+    """What one region-growing fit of the parts ``which`` (indices) needs, given their
+    joint rendering ``cost``: their (k, 14) vectors, point weights and ray weights (for
+    :func:`_polish_all` with :func:`_figure_points` and :func:`_background_rays`).
+
+    Each part takes the figure pixels where it is visible (within ``tolerance`` σ) and
+    the unexplained figure pixels within ``grow`` pixels of them that lie within 3 scale
+    of its surface (scale = max(σ, 5% of its largest semi-axis); Cauchy weights of that
+    width); background rays within ``grow`` + 3 pixels of it must miss it.
+    """
     from scipy.ndimage import binary_dilation
 
-    cost = encoding_cost(parts, data, costs)
+    which = np.asarray(which, np.int64)
     pts, idx = _figure_points(data)
     valid = idx >= 0
     at = np.maximum(idx, 0)
@@ -228,25 +262,142 @@ def polish_jointly(parts: Part, data: RangeData, costs: Costs, *, steps: int = 2
     with np.errstate(invalid="ignore"):
         close = np.abs(cost.rendered - data.image).reshape(-1)[at] <= tolerance * data.encoding.sigma
     free = ~cost.explained_mask.reshape(-1)[at] & valid
-    dist = np.abs(_distances(parts, pts))
-    scale = np.maximum(0.05 * np.asarray(parts.size).max(1), data.encoding.sigma)[:, None]
-    weights = []
-    for i in range(len(parts)):
-        near = binary_dilation(cost.labels == i, iterations=grow).reshape(-1)[at]
-        support = ((flat_labels == i) & close & valid) | (free & near & (dist[i] < 3 * scale[i]))
-        weights.append(np.where(support, 1.0 / np.sqrt(1.0 + (dist[i] / scale[i]) ** 2), 0.0))
-    weights = np.stack(weights).astype(np.float32)
-    rays, ray_index = _background_rays(data)
-    ray_weights = np.stack([_rays_near(cost.labels == i, ray_index, grow + 3) for i in range(len(parts))])
-    polished = _polish_all(parts, pts, weights, steps, rays, ray_weights)
-    current, new = _vectors(parts), _vectors(polished)
-    for i in np.argsort(-weights.sum(1)):
+    vec = _vectors(parts)[which]
+    chosen = _host_parts(vec)
+    dist = np.abs(_distances(chosen, pts))
+    scale = np.maximum(0.05 * np.asarray(chosen.size).max(1), data.encoding.sigma)[:, None]
+    _, ray_index = _background_rays(data)
+    weights, ray_weights = [], []
+    for k, i in enumerate(which):
+        mine = cost.labels == i
+        near = binary_dilation(mine, iterations=grow).reshape(-1)[at]
+        support = ((flat_labels == i) & close & valid) | (free & near & (dist[k] < 3 * scale[k]))
+        weights.append(np.where(support, 1.0 / np.sqrt(1.0 + (dist[k] / scale[k]) ** 2), 0.0))
+        ray_weights.append(_rays_near(mine, ray_index, grow + 3))
+    return vec, np.stack(weights), np.stack(ray_weights)
+
+
+def _grow(data: RangeData, inputs, *, steps: int) -> np.ndarray:
+    """Fit every part of a list of :func:`_grow_inputs` results in one batch; returns
+    their (Σk, 14) fitted vectors."""
+    vec, weights, ray_weights = (np.concatenate(a) for a in zip(*inputs))
+    pts, _ = _figure_points(data)
+    rays, _ = _background_rays(data)
+    return _vectors(_polish_all(_host_parts(vec), pts, weights, steps, rays, ray_weights))
+
+
+def polish_jointly(parts: Part, data: RangeData, costs: Costs, *, steps: int = 20):
+    """One round of region growing over all parts at once (:func:`_grow`); each part's
+    change is accepted only if the joint E falls, largest parts first. Returns (parts,
+    cost)."""
+    cost = encoding_cost(parts, data, costs)
+    current = _vectors(parts)
+    new = _grow(data, [_grow_inputs(parts, data, cost, np.arange(len(parts)))], steps=steps)
+    order = np.argsort([-(cost.labels == i).sum() for i in range(len(parts))])
+    for i in order:
         trial = current.copy()
         trial[i] = new[i]
         c = encoding_cost(_host_parts(trial), data, costs)
         if c.total < cost.total - 1e-9:
             current, cost = trial, c
     return _host_parts(current), cost
+
+
+def split_parts(parts: Part, data: RangeData, costs: Costs, *, steps: int = 20, rounds: int = 4, tries: int = 3):
+    """Replace a part by two, its halves along its longest axis grown by ``rounds`` of
+    region growing (:func:`_grow_inputs`), when that lowers E: the inverse of
+    :func:`merge_adjacent`, for a part that spans two (a torso with its pelvis). Tried,
+    all in one batch, on the ``tries`` parts with the most unexplained figure pixels
+    beside them, if those could pay for one more part; the best split is kept."""
+    from scipy.ndimage import binary_dilation
+
+    from ._part import rotation_matrix
+
+    cost = encoding_cost(parts, data, costs)
+    least = costs.part / max(costs.omission - costs.explained, 1e-9)
+    omitted = data.figure_mask & ~cost.explained_mask
+    beside = np.array([(binary_dilation(cost.labels == i, iterations=2) & omitted).sum() for i in range(len(parts))])
+    vec = _vectors(parts)
+    trials = []
+    for i in [int(i) for i in np.argsort(-beside)[:tries] if beside[i] >= least]:
+        v = vec[i].astype(np.float64)
+        axis = np.asarray(rotation_matrix(v[3:6]))[:, 2] * v[8] / 2
+        halves = np.stack([v, v])
+        halves[:, 0:3] = [v[0:3] - axis, v[0:3] + axis]
+        halves[:, 8] = v[8] / 2
+        halves[:, 11:14] = 0.0
+        trials.append(np.concatenate([np.delete(vec, i, 0), halves]).astype(np.float32))
+    if not trials:
+        return parts, cost
+    n = len(parts) + 1
+    scores = [encoding_cost(_host_parts(t), data, costs) for t in trials]
+    for _ in range(rounds):
+        new = _grow(data, [_grow_inputs(_host_parts(t), data, c, [n - 2, n - 1]) for t, c in zip(trials, scores)], steps=steps)
+        for k, t in enumerate(trials):
+            t[-2:] = new[2 * k : 2 * k + 2]
+        scores = [encoding_cost(_host_parts(t), data, costs) for t in trials]
+    best = int(np.argmin([c.total for c in scores]))
+    if scores[best].total < cost.total - 1e-9:
+        return _host_parts(trials[best]), scores[best]
+    return parts, cost
+
+
+def fill_gaps(parts: Part, data: RangeData, costs: Costs, settings, *, steps: int = 20, rounds: int = 3, blobs: int = 4):
+    """Search the figure's unexplained blobs for parts the first search missed (a hand, a
+    foot: too small for the scales searched around the skeleton): the ``blobs`` largest
+    connected sets of unexplained figure pixels that could pay for a part (and are at
+    least 3 pixels thick: not slivers along a part's edge) are searched again with
+    :func:`~sqparts._search.fit_region` at their innermost pixel, ``max_size`` 3/4 of
+    the blob's extent across the image (same window and grid: nothing is recompiled), each candidate is grown
+    by ``rounds`` of region growing beside the current parts, and the best one per blob
+    is added, largest gain first, when E falls. ``settings`` are the first search's
+    :class:`~sqparts.SearchSettings`."""
+    from scipy.ndimage import distance_transform_edt, label
+
+    from ._search import fit_region
+
+    cost = encoding_cost(parts, data, costs)
+    least = costs.part / max(costs.omission - costs.explained, 1e-9)
+    omitted = data.figure_mask & ~cost.explained_mask
+    blob_labels, count = label(omitted, structure=np.ones((3, 3)))
+    if count == 0:
+        return parts, cost
+    sizes = np.bincount(blob_labels.ravel(), minlength=count + 1)[1:]
+    inner = distance_transform_edt(omitted)
+    vec = _vectors(parts)
+    trials, owner = [], []
+    for b in np.argsort(-sizes, kind="stable")[:blobs]:
+        blob = blob_labels == b + 1
+        if sizes[b] < least or inner[blob].max() < 1.5:
+            continue
+        centre = np.unravel_index(int(np.argmax(np.where(blob, inner, -1.0))), blob.shape)
+        rows, cols = np.nonzero(blob)
+        pixel = float(data.camera.pixel_size_at(float(np.nanmedian(data.image[blob]))))
+        extent = pixel * (max(np.ptp(rows), np.ptp(cols)) + 1)  # across the image, not in depth
+        local = dataclasses.replace(settings, max_size=float(np.clip(0.75 * extent, 1e-6, settings.max_size)))
+        fit = fit_region(data, local, centre)
+        found = _vectors(fit.parts)[np.asarray(fit.gamma) > 0]
+        trials += [np.concatenate([vec, f[None]]).astype(np.float32) for f in found]
+        owner += [int(b)] * len(found)
+    if not trials:
+        return parts, cost
+    n = len(parts)
+    scores = costs_adding(cost, np.stack([t[n] for t in trials]), data, costs)
+    for _ in range(rounds):
+        new = _grow(data, [_grow_inputs(_host_parts(t), data, c, [n]) for t, c in zip(trials, scores)], steps=steps)
+        for k, (v, c) in enumerate(zip(new, costs_adding(cost, new, data, costs))):
+            if c.total < scores[k].total:
+                trials[k], scores[k] = np.concatenate([vec, v[None]]), c
+    best = {}
+    for k, (b, c) in enumerate(zip(owner, scores)):
+        if b not in best or c.total < scores[best[b]].total:
+            best[b] = k
+    for k in sorted(best.values(), key=lambda k: scores[k].total):
+        trial = np.concatenate([vec, trials[k][n:]])
+        c = encoding_cost(_host_parts(trial), data, costs)
+        if c.total < cost.total - 1e-9:
+            vec, cost = trial, c
+    return _host_parts(vec), cost
 
 
 def drop_unprofitable(parts: Part, data: RangeData, costs: Costs):
@@ -361,18 +512,29 @@ def merge_adjacent(parts: Part, data: RangeData, costs: Costs, *, steps: int = 2
     return parts, cost
 
 
-def refine_parts(parts: Part, data: RangeData, costs: Costs, *, rounds: int = 3, steps: int = 20, merge: bool = True):
-    """Joint refinement: ``rounds`` of :func:`polish_jointly`, then drop and merge.
-    Returns (parts, final cost, history of E after each stage)."""
+def refine_parts(
+    parts: Part, data: RangeData, costs: Costs, *, rounds: int = 3, steps: int = 20, split: bool = True, merge: bool = True, search=None
+):
+    """Joint refinement: ``rounds`` of :func:`polish_jointly` (``steps`` solver steps
+    each), then :func:`split_parts` (when ``split``), :func:`fill_gaps` (when ``search``,
+    the first search's :class:`~sqparts.SearchSettings`, is given),
+    :func:`drop_unprofitable` and :func:`merge_adjacent` (when ``merge``). Returns
+    (parts, final cost, history of E after each stage)."""
     parts = _host_parts(_vectors(parts))
     cost = encoding_cost(parts, data, costs)
     history = [("initial", cost.total)]
     for r in range(rounds):
         parts, cost = polish_jointly(parts, data, costs, steps=steps)
         history.append((f"polish {r + 1}", cost.total))
+    if split:
+        parts, cost = split_parts(parts, data, costs, steps=steps)
+        history.append(("split", cost.total))
+    if search is not None:
+        parts, cost = fill_gaps(parts, data, costs, search, steps=steps)
+        history.append(("fill gaps", cost.total))
     parts, cost = drop_unprofitable(parts, data, costs)
     history.append(("drop", cost.total))
     if merge:
-        parts, cost = merge_adjacent(parts, data, costs)
+        parts, cost = merge_adjacent(parts, data, costs, steps=steps)
         history.append(("merge", cost.total))
     return Part.from_vector(_vectors(parts)), cost, history

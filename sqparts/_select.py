@@ -9,7 +9,8 @@ For n candidate parts with explained-pixel masks e_i and commission masks c_i:
 * ``E(X) = κ0 |X| + κ1 X M_a X^T + κ2 X M_c X^T + κ3 (N - X M_a X^T)`` (Eq. 6), with the
   costs derived from :class:`~sqparts.Encoding`:
 
-  - κ0 = bits of one part (14 parameters × ``bits_per_parameter``);
+  - κ0 = bits of one part (14 parameters × ``bits_per_parameter``, by default ½ log2 N
+    each: see :func:`~sqparts.encoding_for`);
   - κ1 = log2(σ/q), bits of a pixel explained within ±σ/2;
   - κ2 = λ (b - κ1), bits of a commission error (Eq. 5's definition of λ);
   - κ3 = b = log2(D/q), bits of a pixel left unexplained (sent raw);
@@ -210,15 +211,19 @@ def select_brute_force(problem: SelectionProblem) -> np.ndarray:
     return best_x
 
 
-def select_parts(problem: SelectionProblem, *, method: str = "auto", exact_limit: int = 200) -> tuple[np.ndarray, str]:
+def select_parts(
+    problem: SelectionProblem, *, method: str = "auto", exact_limit: int = 200, time_limit: float = 5.0
+) -> tuple[np.ndarray, str]:
     """Choose parts: ``"exact"``, ``"best-first"`` or ``"auto"`` (exact when the
-    candidate count is at most ``exact_limit`` and HiGHS proves optimality, else
-    best-first). Returns (selection, method used)."""
+    candidate count is at most ``exact_limit``; HiGHS starts from the best-first
+    selection and stops after ``time_limit`` seconds with the best selection it has
+    found, reported as ``"exact (time limit)"``, never worse than best-first). Returns
+    (selection, method used)."""
     if method not in ("auto", "exact", "best-first"):
         raise ValueError(f"method: expected 'auto', 'exact' or 'best-first', got {method!r}")
     if method == "best-first" or (method == "auto" and problem.size > exact_limit):
         return select_best_first(problem), "best-first"
-    x, optimal = select_exact(problem)
+    x, optimal = select_exact(problem, time_limit=time_limit)
     if optimal:
         return x, "exact"
     greedy = select_best_first(problem)

@@ -63,6 +63,7 @@ def test_encoding_bits():
     q = np.round(np.random.default_rng(0).uniform(0, 1, 1000) * 32) / 32  # 5-bit data
     enc = sqparts.encoding_for(q)
     assert enc.quantum == pytest.approx(1 / 32) and enc.sigma == pytest.approx(4 / 32)
+    assert enc.part_bits == pytest.approx(14 * 0.5 * np.log2(1000))  # ½ log2 N bits per parameter
     with pytest.raises(ValueError, match=r"sigma: expected a finite number > 0"):
         sqparts.Encoding(sigma=-1.0, quantum=1.0, depth_range=2.0)
     with pytest.raises(ValueError, match=r"depth: expected at least 2 valid pixels"):
