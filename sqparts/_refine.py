@@ -28,7 +28,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from ._part import Part, surface_distance
-from ._render import DEFAULT_NEWTON_STEPS, cast_scene
+from ._render import DEFAULT_NEWTON_STEPS, cast_part
 from ._search import RangeData, polish_part
 from ._select import Costs
 
@@ -61,26 +61,36 @@ def _pad_parts(parts: Part) -> tuple[Part, int]:
 
 
 @functools.partial(jax.jit, static_argnames=("camera", "newton_steps"))
-def _render_labels(parts, camera, newton_steps=DEFAULT_NEWTON_STEPS):
+def _render_each(parts, camera, newton_steps=DEFAULT_NEWTON_STEPS):
     o, d = camera.rays()
-    t, hit, index = cast_scene(parts, o, d, newton_steps)
-    return jnp.where(hit, t, jnp.inf), index
+    t, hit = jax.vmap(cast_part, in_axes=(0, None, None, None))(parts, o, d, newton_steps)
+    return jnp.where(hit, t, jnp.inf)
+
+
+def render_each(vectors, camera) -> np.ndarray:
+    """(k, H, W) depth of each of the (k, 14) part vectors rendered on its own (inf =
+    miss), ``_BUCKET`` parts per compiled call. A scene's rendering is their nearest hit
+    (:func:`_compose`), so a trial that adds, replaces or removes parts re-renders only
+    the parts it changes."""
+    padded, k = _pad_parts(_host_parts(vectors))
+    if k == 0:
+        return np.full((0, camera.height, camera.width), np.inf, np.float32)
+    return np.concatenate([np.asarray(_render_each(padded[j : j + _BUCKET], camera)) for j in range(0, len(padded), _BUCKET)])[:k]
+
+
+def _compose(layers: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Nearest hit of per-part depth layers: depth (NaN = none) and the visible part's
+    index (-1 = none; ties go to the earlier part, as in :func:`~sqparts.cast_scene`)."""
+    index = np.argmin(layers, axis=0)
+    t = np.take_along_axis(layers, index[None], axis=0)[0]
+    hit = np.isfinite(t)
+    return np.where(hit, t, np.nan).astype(np.float32), np.where(hit, index, -1)
 
 
 def render_labels(parts: Part, camera) -> tuple[np.ndarray, np.ndarray]:
     """The parts rendered together (nearest hit wins): depth (NaN = none) and the
-    visible part's index (-1 = none). Rendered ``_BUCKET`` parts at a time (one
-    compilation for any number of parts) and merged by depth."""
-    padded, _ = _pad_parts(parts)
-    t, labels = None, None
-    for k in range(0, len(padded), _BUCKET):
-        tk, lk = (np.asarray(a) for a in _render_labels(padded[k : k + _BUCKET], camera))
-        if t is None:
-            t, labels = tk, lk
-        else:
-            nearer = tk < t  # ties keep the earlier part, as within a chunk
-            t, labels = np.where(nearer, tk, t), np.where(nearer, lk + k, labels)
-    return np.where(np.isfinite(t), t, np.nan).astype(np.float32), labels
+    visible part's index (-1 = none)."""
+    return _compose(render_each(_vectors(parts), camera))
 
 
 @dataclasses.dataclass(frozen=True)
@@ -96,44 +106,31 @@ class EncodingCost:
     labels: np.ndarray  # (H, W) visible part, -1 = none
     explained_mask: np.ndarray  # (H, W) bool
     commission_mask: np.ndarray  # (H, W) bool
+    layers: np.ndarray | None = dataclasses.field(default=None, repr=False)  # (n, H, W) per-part depth, inf = miss
 
 
 def encoding_cost(parts: Part | None, data: RangeData, costs: Costs) -> EncodingCost:
     """Render ``parts`` together and count E (Eq. 6 evaluated on the joint rendering)."""
-    measured = data.image
-    if parts is None or len(parts) == 0:
-        return _count(0, np.full(measured.shape, np.nan, np.float32), np.full(measured.shape, -1), data, costs)
-    return _count(len(parts), *render_labels(parts, data.camera), data, costs)
+    vectors = np.zeros((0, 14), np.float32) if parts is None else _vectors(parts)
+    return layers_cost(render_each(vectors, data.camera), data, costs)
 
 
-@functools.partial(jax.jit, static_argnames=("camera", "newton_steps"))
-def _render_each(parts, camera, newton_steps=DEFAULT_NEWTON_STEPS):
-    o, d = camera.rays()
-
-    def one(part):
-        t, hit, _ = cast_scene(jax.tree_util.tree_map(lambda x: x[None], part), o, d, newton_steps)
-        return jnp.where(hit, t, jnp.inf)
-
-    return jax.vmap(one)(parts)
+def layers_cost(layers: np.ndarray, data: RangeData, costs: Costs) -> EncodingCost:
+    """E of the scene whose parts have the per-part depth ``layers`` (:func:`render_each`)."""
+    if len(layers) == 0:
+        shape = data.image.shape
+        return _count(0, np.full(shape, np.nan, np.float32), np.full(shape, -1), data, costs, layers)
+    return _count(len(layers), *_compose(layers), data, costs, layers)
 
 
 def costs_adding(cost: EncodingCost, extra, data: RangeData, costs: Costs) -> list[EncodingCost]:
     """E of the parts behind ``cost`` plus each one of the (k, 14) vectors ``extra`` in
-    turn: each extra part is rendered on its own (all of them in ``_BUCKET`` batches) and
-    merged by depth into ``cost``'s rendering, as :func:`render_labels` merges, instead
-    of rendering every scene again."""
-    padded, k = _pad_parts(_host_parts(extra))
-    depths = np.concatenate([np.asarray(_render_each(padded[j : j + _BUCKET], data.camera)) for j in range(0, len(padded), _BUCKET)])
-    base = np.where(cost.labels >= 0, cost.rendered, np.inf)
-    out = []
-    for t in depths[:k]:
-        nearer = t < base
-        rendered = np.where(nearer, t, base)
-        out.append(_count(cost.parts + 1, np.where(np.isfinite(rendered), rendered, np.nan).astype(np.float32), np.where(nearer, cost.parts, cost.labels), data, costs))
-    return out
+    turn; only the extra parts are rendered (:func:`render_each`)."""
+    new = render_each(extra, data.camera)
+    return [layers_cost(np.concatenate([cost.layers, t[None]]), data, costs) for t in new]
 
 
-def _count(n: int, rendered, labels, data: RangeData, costs: Costs) -> EncodingCost:
+def _count(n: int, rendered, labels, data: RangeData, costs: Costs, layers=None) -> EncodingCost:
     measured, figure = data.image, data.figure_region
     hit = labels >= 0
     with np.errstate(invalid="ignore"):
@@ -141,7 +138,7 @@ def _count(n: int, rendered, labels, data: RangeData, costs: Costs) -> EncodingC
     commission = hit & ~figure
     e, c = int(explained.sum()), int(commission.sum())
     total = costs.part * n + costs.explained * e + costs.commission * c + costs.omission * (costs.figure_pixels - e)
-    return EncodingCost(float(total), n, e, c, costs.figure_pixels - e, rendered.astype(np.float32), labels, explained, commission)
+    return EncodingCost(float(total), n, e, c, costs.figure_pixels - e, rendered.astype(np.float32), labels, explained, commission, layers)
 
 
 def part_statistics(parts: Part, data: RangeData, cost: EncodingCost) -> list[dict]:
@@ -293,13 +290,15 @@ def polish_jointly(parts: Part, data: RangeData, costs: Costs, *, steps: int = 2
     cost = encoding_cost(parts, data, costs)
     current = _vectors(parts)
     new = _grow(data, [_grow_inputs(parts, data, cost, np.arange(len(parts)))], steps=steps)
+    new_layers = render_each(new, data.camera)
     order = np.argsort([-(cost.labels == i).sum() for i in range(len(parts))])
     for i in order:
-        trial = current.copy()
-        trial[i] = new[i]
-        c = encoding_cost(_host_parts(trial), data, costs)
+        layers = cost.layers.copy()
+        layers[i] = new_layers[i]
+        c = layers_cost(layers, data, costs)
         if c.total < cost.total - 1e-9:
-            current, cost = trial, c
+            current, cost = current.copy(), c
+            current[i] = new[i]
     return _host_parts(current), cost
 
 
@@ -318,7 +317,7 @@ def split_parts(parts: Part, data: RangeData, costs: Costs, *, steps: int = 20, 
     omitted = data.figure_mask & ~cost.explained_mask
     beside = np.array([(binary_dilation(cost.labels == i, iterations=2) & omitted).sum() for i in range(len(parts))])
     vec = _vectors(parts)
-    trials = []
+    trials, kept = [], []
     for i in [int(i) for i in np.argsort(-beside)[:tries] if beside[i] >= least]:
         v = vec[i].astype(np.float64)
         axis = np.asarray(rotation_matrix(v[3:6]))[:, 2] * v[8] / 2
@@ -327,15 +326,21 @@ def split_parts(parts: Part, data: RangeData, costs: Costs, *, steps: int = 20, 
         halves[:, 8] = v[8] / 2
         halves[:, 11:14] = 0.0
         trials.append(np.concatenate([np.delete(vec, i, 0), halves]).astype(np.float32))
+        kept.append(np.delete(cost.layers, i, 0))
     if not trials:
         return parts, cost
     n = len(parts) + 1
-    scores = [encoding_cost(_host_parts(t), data, costs) for t in trials]
+
+    def score(halves):
+        layers = render_each(halves, data.camera)
+        return [layers_cost(np.concatenate([rest, layers[2 * k : 2 * k + 2]]), data, costs) for k, rest in enumerate(kept)]
+
+    scores = score(np.concatenate([t[-2:] for t in trials]))
     for _ in range(rounds):
         new = _grow(data, [_grow_inputs(_host_parts(t), data, c, [n - 2, n - 1]) for t, c in zip(trials, scores)], steps=steps)
         for k, t in enumerate(trials):
             t[-2:] = new[2 * k : 2 * k + 2]
-        scores = [encoding_cost(_host_parts(t), data, costs) for t in trials]
+        scores = score(new)
     best = int(np.argmin([c.total for c in scores]))
     if scores[best].total < cost.total - 1e-9:
         return _host_parts(trials[best]), scores[best]
@@ -394,7 +399,7 @@ def fill_gaps(parts: Part, data: RangeData, costs: Costs, settings, *, steps: in
             best[b] = k
     for k in sorted(best.values(), key=lambda k: scores[k].total):
         trial = np.concatenate([vec, trials[k][n:]])
-        c = encoding_cost(_host_parts(trial), data, costs)
+        c = layers_cost(np.concatenate([cost.layers, scores[k].layers[n:]]), data, costs)
         if c.total < cost.total - 1e-9:
             vec, cost = trial, c
     return _host_parts(vec), cost
@@ -414,7 +419,7 @@ def drop_unprofitable(parts: Part, data: RangeData, costs: Costs):
         for i in np.flatnonzero(gain < 2 * costs.part + costs.commission * cost.commission):
             keep = np.delete(np.arange(len(parts)), i)
             trial = jax.tree_util.tree_map(lambda x: x[keep], parts)
-            c = encoding_cost(trial, data, costs)
+            c = layers_cost(cost.layers[keep], data, costs)
             if c.total < cost.total - 1e-9 and (best is None or c.total < best[1].total):
                 best = (trial, c)
         if best is not None:
@@ -501,11 +506,12 @@ def merge_adjacent(parts: Part, data: RangeData, costs: Costs, *, steps: int = 2
         dist = _distances(fitted, pts)
         close = (np.abs(np.asarray(dist)) <= data.encoding.sigma / 2) * w_all
         share = close.sum(1) / np.maximum(w_all.sum(1), 1)
-        for k in np.argsort(-share)[:tries]:
+        best = np.argsort(-share)[:tries]
+        for k, layer in zip(best, render_each(fitted_vec[best], data.camera)):
             i, j = pairs[k]
             keep = [q for q in range(n) if q not in (i, j)]
             trial = _host_parts(np.concatenate([vec[keep], fitted_vec[k : k + 1]]))
-            c = encoding_cost(trial, data, costs)
+            c = layers_cost(np.concatenate([cost.layers[keep], layer[None]]), data, costs)
             if c.total < cost.total - 1e-9:
                 parts, cost, merged = trial, c, True
                 break
