@@ -13,8 +13,10 @@ while the background rays around it must miss it; a change is kept only if E fal
 the paper's accept-if-improved descent. Then a part that spans two (a torso with its
 pelvis) is split in two along its axis, blobs of unexplained pixels are searched again
 at their own scale for the parts the first search missed, a part that no longer pays for
-its bits is dropped, and two adjacent parts are merged when one bent part encodes them more cheaply
-(section 4.1); each only when E falls.
+its bits is dropped, and two adjacent parts are merged when one bent part encodes them
+more cheaply (section 4.1); each only when E falls. Every stage takes and returns the
+joint rendering's :class:`EncodingCost`, whose per-part depth layers let a trial
+re-render only the parts it changes.
 """
 
 from __future__ import annotations
@@ -128,6 +130,11 @@ def costs_adding(cost: EncodingCost, extra, data: RangeData, costs: Costs) -> li
     turn; only the extra parts are rendered (:func:`render_each`)."""
     new = render_each(extra, data.camera)
     return [layers_cost(np.concatenate([cost.layers, t[None]]), data, costs) for t in new]
+
+
+def _least_pixels(costs: Costs) -> float:
+    """Explained pixels a part needs to pay for its κ0 bits."""
+    return costs.part / max(costs.omission - costs.explained, 1e-9)
 
 
 def _count(n: int, rendered, labels, data: RangeData, costs: Costs, layers=None) -> EncodingCost:
@@ -283,11 +290,11 @@ def _grow(data: RangeData, inputs, *, steps: int) -> np.ndarray:
     return _vectors(_polish_all(_host_parts(vec), pts, weights, steps, rays, ray_weights))
 
 
-def polish_jointly(parts: Part, data: RangeData, costs: Costs, *, steps: int = 20):
+def polish_jointly(parts: Part, data: RangeData, costs: Costs, *, steps: int = 20, cost: EncodingCost | None = None):
     """One round of region growing over all parts at once (:func:`_grow`); each part's
-    change is accepted only if the joint E falls, largest parts first. Returns (parts,
-    cost)."""
-    cost = encoding_cost(parts, data, costs)
+    change is accepted only if the joint E falls, largest parts first. ``cost``: the
+    parts' :func:`encoding_cost`, if known. Returns (parts, cost)."""
+    cost = encoding_cost(parts, data, costs) if cost is None else cost
     current = _vectors(parts)
     new = _grow(data, [_grow_inputs(parts, data, cost, np.arange(len(parts)))], steps=steps)
     new_layers = render_each(new, data.camera)
@@ -302,7 +309,10 @@ def polish_jointly(parts: Part, data: RangeData, costs: Costs, *, steps: int = 2
     return _host_parts(current), cost
 
 
-def split_parts(parts: Part, data: RangeData, costs: Costs, *, steps: int = 20, rounds: int = 4, tries: int = 3):
+def split_parts(
+    parts: Part, data: RangeData, costs: Costs, *, steps: int = 20, rounds: int = 4, tries: int = 3,
+    cost: EncodingCost | None = None,
+):
     """Replace a part by two, its halves along its longest axis grown by ``rounds`` of
     region growing (:func:`_grow_inputs`), when that lowers E: the inverse of
     :func:`merge_adjacent`, for a part that spans two (a torso with its pelvis). Tried,
@@ -312,8 +322,8 @@ def split_parts(parts: Part, data: RangeData, costs: Costs, *, steps: int = 20, 
 
     from ._part import rotation_matrix
 
-    cost = encoding_cost(parts, data, costs)
-    least = costs.part / max(costs.omission - costs.explained, 1e-9)
+    cost = encoding_cost(parts, data, costs) if cost is None else cost
+    least = _least_pixels(costs)
     omitted = data.figure_mask & ~cost.explained_mask
     beside = np.array([(binary_dilation(cost.labels == i, iterations=2) & omitted).sum() for i in range(len(parts))])
     vec = _vectors(parts)
@@ -347,22 +357,25 @@ def split_parts(parts: Part, data: RangeData, costs: Costs, *, steps: int = 20, 
     return parts, cost
 
 
-def fill_gaps(parts: Part, data: RangeData, costs: Costs, settings, *, steps: int = 20, rounds: int = 3, blobs: int = 4):
+def fill_gaps(
+    parts: Part, data: RangeData, costs: Costs, settings, *, steps: int = 20, rounds: int = 3, blobs: int = 4,
+    cost: EncodingCost | None = None,
+):
     """Search the figure's unexplained blobs for parts the first search missed (a hand, a
     foot: too small for the scales searched around the skeleton): the ``blobs`` largest
     connected sets of unexplained figure pixels that could pay for a part (and are at
     least 3 pixels thick: not slivers along a part's edge) are searched again with
     :func:`~sqparts._search.fit_region` at their innermost pixel, ``max_size`` 3/4 of
-    the blob's extent across the image (same window and grid: nothing is recompiled), each candidate is grown
-    by ``rounds`` of region growing beside the current parts, and the best one per blob
-    is added, largest gain first, when E falls. ``settings`` are the first search's
-    :class:`~sqparts.SearchSettings`."""
+    the blob's extent across the image (same window and grid: nothing is recompiled);
+    each candidate is grown by ``rounds`` of region growing beside the current parts,
+    and the best one per blob is added, largest gain first, when E falls. ``settings``
+    are the first search's :class:`~sqparts.SearchSettings`."""
     from scipy.ndimage import distance_transform_edt, label
 
     from ._search import fit_region
 
-    cost = encoding_cost(parts, data, costs)
-    least = costs.part / max(costs.omission - costs.explained, 1e-9)
+    cost = encoding_cost(parts, data, costs) if cost is None else cost
+    least = _least_pixels(costs)
     omitted = data.figure_mask & ~cost.explained_mask
     blob_labels, count = label(omitted, structure=np.ones((3, 3)))
     if count == 0:
@@ -370,7 +383,7 @@ def fill_gaps(parts: Part, data: RangeData, costs: Costs, settings, *, steps: in
     sizes = np.bincount(blob_labels.ravel(), minlength=count + 1)[1:]
     inner = distance_transform_edt(omitted)
     vec = _vectors(parts)
-    trials, owner = [], []
+    found, owner = [], []
     for b in np.argsort(-sizes, kind="stable")[:blobs]:
         blob = blob_labels == b + 1
         if sizes[b] < least or inner[blob].max() < 1.5:
@@ -381,33 +394,35 @@ def fill_gaps(parts: Part, data: RangeData, costs: Costs, settings, *, steps: in
         extent = pixel * (max(np.ptp(rows), np.ptp(cols)) + 1)  # across the image, not in depth
         local = dataclasses.replace(settings, max_size=float(np.clip(0.75 * extent, 1e-6, settings.max_size)))
         fit = fit_region(data, local, centre)
-        found = _vectors(fit.parts)[np.asarray(fit.gamma) > 0]
-        trials += [np.concatenate([vec, f[None]]).astype(np.float32) for f in found]
-        owner += [int(b)] * len(found)
-    if not trials:
+        good = _vectors(fit.parts)[np.asarray(fit.gamma) > 0]
+        found += list(good)
+        owner += [int(b)] * len(good)
+    if not found:
         return parts, cost
     n = len(parts)
-    scores = costs_adding(cost, np.stack([t[n] for t in trials]), data, costs)
+    found = np.stack(found)
+    scores = costs_adding(cost, found, data, costs)
     for _ in range(rounds):
-        new = _grow(data, [_grow_inputs(_host_parts(t), data, c, [n]) for t, c in zip(trials, scores)], steps=steps)
+        trials = [_host_parts(np.concatenate([vec, f[None]])) for f in found]
+        new = _grow(data, [_grow_inputs(t, data, c, [n]) for t, c in zip(trials, scores)], steps=steps)
         for k, (v, c) in enumerate(zip(new, costs_adding(cost, new, data, costs))):
             if c.total < scores[k].total:
-                trials[k], scores[k] = np.concatenate([vec, v[None]]), c
+                found[k], scores[k] = v, c
     best = {}
     for k, (b, c) in enumerate(zip(owner, scores)):
         if b not in best or c.total < scores[best[b]].total:
             best[b] = k
     for k in sorted(best.values(), key=lambda k: scores[k].total):
-        trial = np.concatenate([vec, trials[k][n:]])
+        trial = np.concatenate([vec, found[k : k + 1]])
         c = layers_cost(np.concatenate([cost.layers, scores[k].layers[n:]]), data, costs)
         if c.total < cost.total - 1e-9:
             vec, cost = trial, c
     return _host_parts(vec), cost
 
 
-def drop_unprofitable(parts: Part, data: RangeData, costs: Costs):
+def drop_unprofitable(parts: Part, data: RangeData, costs: Costs, *, cost: EncodingCost | None = None):
     """Remove parts, one at a time, while removing one lowers E."""
-    cost = encoding_cost(parts, data, costs)
+    cost = encoding_cost(parts, data, costs) if cost is None else cost
     improved = True
     while improved and len(parts) > 1:
         improved = False
@@ -465,7 +480,9 @@ def _distances(parts: Part, points) -> np.ndarray:
                            for k in range(0, len(padded), _BUCKET)])[:n]
 
 
-def merge_adjacent(parts: Part, data: RangeData, costs: Costs, *, steps: int = 20, tries: int = 3):
+def merge_adjacent(
+    parts: Part, data: RangeData, costs: Costs, *, steps: int = 20, tries: int = 3, cost: EncodingCost | None = None
+):
     """Replace two adjacent parts by one bent part when that lowers E (section 4.1).
 
     Every adjacent pair gets bent single-part starts, all fitted by batched LM calls
@@ -473,7 +490,7 @@ def merge_adjacent(parts: Part, data: RangeData, costs: Costs, *, steps: int = 2
     points within σ/2 of their surface) are tried in the joint rendering."""
     from scipy.ndimage import binary_dilation
 
-    cost = encoding_cost(parts, data, costs)
+    cost = encoding_cost(parts, data, costs) if cost is None else cost
     pts, idx = _figure_points(data)
     rays, ray_index = _background_rays(data)
     merged = True
@@ -519,7 +536,8 @@ def merge_adjacent(parts: Part, data: RangeData, costs: Costs, *, steps: int = 2
 
 
 def refine_parts(
-    parts: Part, data: RangeData, costs: Costs, *, rounds: int = 3, steps: int = 20, split: bool = True, merge: bool = True, search=None
+    parts: Part, data: RangeData, costs: Costs, *, rounds: int = 3, steps: int = 20, split: bool = True,
+    merge: bool = True, search=None,
 ):
     """Joint refinement: ``rounds`` of :func:`polish_jointly` (``steps`` solver steps
     each), then :func:`split_parts` (when ``split``), :func:`fill_gaps` (when ``search``,
@@ -530,17 +548,17 @@ def refine_parts(
     cost = encoding_cost(parts, data, costs)
     history = [("initial", cost.total)]
     for r in range(rounds):
-        parts, cost = polish_jointly(parts, data, costs, steps=steps)
+        parts, cost = polish_jointly(parts, data, costs, steps=steps, cost=cost)
         history.append((f"polish {r + 1}", cost.total))
     if split:
-        parts, cost = split_parts(parts, data, costs, steps=steps)
+        parts, cost = split_parts(parts, data, costs, steps=steps, cost=cost)
         history.append(("split", cost.total))
     if search is not None:
-        parts, cost = fill_gaps(parts, data, costs, search, steps=steps)
+        parts, cost = fill_gaps(parts, data, costs, search, steps=steps, cost=cost)
         history.append(("fill gaps", cost.total))
-    parts, cost = drop_unprofitable(parts, data, costs)
+    parts, cost = drop_unprofitable(parts, data, costs, cost=cost)
     history.append(("drop", cost.total))
     if merge:
-        parts, cost = merge_adjacent(parts, data, costs, steps=steps)
+        parts, cost = merge_adjacent(parts, data, costs, steps=steps, cost=cost)
         history.append(("merge", cost.total))
     return Part.from_vector(_vectors(parts)), cost, history
