@@ -332,8 +332,10 @@ def score_region(data: RangeData, settings: SearchSettings, centre, *, hypothese
     stride = stride or settings.stride
     # Chunks of about 2^16 rays keep temporaries in cache (one huge vmap is slower).
     pixels = len(range(stride // 2, settings.window, stride)) ** 2
-    batch_size = int(max(1, min(settings.batch_size, CHUNK_RAYS // pixels)))
-    unit = batch_size * len(jax.devices())
+    devices = len(jax.devices())
+    cap = int(max(1, min(settings.batch_size, CHUNK_RAYS // pixels)))
+    batch_size = -(-n // (-(-n // (cap * devices)) * devices))  # as few chunks as the cap allows, least padding
+    unit = batch_size * devices
     padded = int(math.ceil(n / unit) * unit)
     o = np.zeros((padded, 3), np.float32)
     o[:n] = hyp["orientation"]
@@ -350,6 +352,21 @@ def score_region(data: RangeData, settings: SearchSettings, centre, *, hypothese
 @functools.lru_cache(maxsize=8)
 def _grid_arrays(grid: Grid) -> dict:
     return grid.hypotheses()
+
+
+@functools.lru_cache(maxsize=8)
+def _by_window(grid: Grid, window: int, *, multiple: int = 8) -> list[tuple[int, np.ndarray]]:
+    """The grid's hypotheses grouped by length (a3 as a fraction of ``max_size``), each
+    with the window side that covers it: ``length`` × ``window``, rounded up to a multiple
+    of 8 (at least 16, at most ``window``). A part posed at a region projects around the
+    region's centre, so the pruning pass scores a short hypothesis on a smaller window
+    with the same Γ (human, coarse grid: 24, 40 and 64 pixels; half the rays)."""
+    rel = _grid_arrays(grid)["shape"][:, 2]
+    out = []
+    for length in np.unique(rel):
+        side = int(min(window, max(16, math.ceil(length * window / multiple) * multiple)))
+        out.append((side, np.flatnonzero(rel == length)))
+    return out
 
 
 def _corner(settings, centre):
@@ -510,8 +527,12 @@ def fit_region(data: RangeData, settings: SearchSettings, centre, *, prune: bool
     corner, centre_j = _corner(settings, centre)
     n = len(hyp["orientation"])
     if prune and settings.stride > 1 and settings.survivors < n:
-        gam, _ = score_region(data, settings, centre)
-        keep = np.asarray(jax.lax.top_k(gam, settings.survivors)[1])
+        gam = np.empty(n, np.float32)
+        for side, sel in _by_window(settings.grid, settings.window):
+            g, _ = score_region(data, dataclasses.replace(settings, window=side), centre,
+                                hypotheses={k: v[sel] for k, v in hyp.items()})
+            gam[sel] = np.asarray(g)
+        keep = np.argsort(-gam, kind="stable")[: settings.survivors]
         sub = {k: v[keep] for k, v in hyp.items()}
         gam_full, off_full = score_region(data, settings, centre, hypotheses=sub, stride=1)
         index = keep
@@ -557,7 +578,9 @@ def _distinct(orientation, shape, n: int, *, angle: float = 30.0, log_size: floa
     those already taken (axes within ``angle`` degrees, every size within a factor
     e^``log_size`` and both squareness values within ``squareness``), so the polished
     starts are diverse; padded with the best skipped ones if too few are distinct."""
-    rot = np.asarray(jax.vmap(rotation_matrix)(jnp.asarray(orientation)))
+    from scipy.spatial.transform import Rotation
+
+    rot = Rotation.from_rotvec(np.asarray(orientation, np.float64)).as_matrix()  # = rotation_matrix, on the host
     logs, sq = np.log(shape[:, :3]), shape[:, 3:5]
     cos_max = math.cos(math.radians(angle))
     taken: list[int] = []

@@ -193,3 +193,64 @@ def test_joint_rendering_in_buckets_matches_one_pass():
     assert len(s.parts) > 8 and (labels >= 8).any()
     np.testing.assert_array_equal(got_labels, labels)
     np.testing.assert_allclose(got_depth, depth, atol=1e-5)
+
+
+def _knob_scene():
+    """A long block with a small knob at its lower end (a forearm and its hand)."""
+    turn = [np.pi / 2, 0.0, 0.0]  # local z along the image's y axis
+    return sqparts.stack_parts([
+        sqparts.Part(size=[0.05, 0.04, 0.12], squareness=[0.3, 0.3], position=[0.0, -0.03, 2.0], orientation=turn),
+        sqparts.Part(size=[0.03, 0.03, 0.03], squareness=[1.0, 1.0], position=[0.0, 0.12, 1.99]),
+    ])
+
+
+def test_settling_a_small_part_removes_its_commission():
+    # The knob started 10% too large and a third of a pixel off: it hangs over the
+    # silhouette by 14 pixels.
+    # The pattern search on E itself brings it back to about the truth's own cost.
+    # References: the truth rendered with the block, and full joint renderings.
+    from sqparts._refine import render_each, settle_part
+
+    cam = sqparts.PinholeCamera(64, 64, 280.0, 280.0, 31.5, 31.5)
+    scene = _knob_scene()
+    depth, truth = (np.asarray(a) for a in sqparts.render_range_image(scene, cam, return_labels=True))
+    data = sqparts.prepare(depth, cam)
+    costs = sqparts.Costs.from_encoding(data.encoding, int(data.figure_mask.sum()))
+    knob = np.asarray(scene[1].to_vector())
+    start = knob + np.r_[0.0, 0.002, 0.0, 0, 0, 0, 0.003, 0.003, 0.003, np.zeros(5)]
+    block = render_each(np.asarray(scene[:1].to_vector()), cam)
+    settled = settle_part(start, render_each(start[None], cam)[0], block.min(0), data, costs)
+
+    def cost(v):
+        return sqparts.encoding_cost(sqparts.stack_parts([scene[0], sqparts.Part.from_vector(v)]), data, costs)
+
+    before, after, ideal = cost(start), cost(settled), cost(knob)
+    assert before.commission >= 5 and after.commission <= 1
+    assert after.total < before.total and after.total <= ideal.total + 2 * costs.omission
+    assert (after.explained_mask & (truth == 1)).sum() >= 0.9 * (truth == 1).sum()
+
+
+def test_refinement_merges_two_halves_of_a_bent_part():
+    # One limb bent in the image plane, started as two straight halves (the elbow's
+    # two sides): merging replaces them by one bent part (section 4.1) at a lower E.
+    # Reference: the truth's own pixels.
+    from sqparts._part import rotation_vector
+    from sqparts._scenes import limb
+
+    cam = sqparts.PinholeCamera(64, 64, 280.0, 280.0, 31.5, 31.5)
+    c, length, bend = np.array([0.0, -0.02, 2.0]), 0.15, 0.3
+    rot = np.array([[0.0, 0.0, 1.0], [1.0, 0.0, 0.0], [0.0, 1.0, 0.0]])  # local z -> image x, local x -> image y
+    truth_part = sqparts.Part(size=[0.035, 0.035, length], position=c, orientation=rotation_vector(rot),
+                              bend=[bend, 0.0])
+    depth, truth = (np.asarray(a) for a in sqparts.render_range_image(sqparts.stack_parts([truth_part]), cam, return_labels=True))
+    data = sqparts.prepare(depth, cam)
+    costs = sqparts.Costs.from_encoding(data.encoding, int(data.figure_mask.sum()))
+    tips = [c + [-length, bend * length, 0.0], c + [length, bend * length, 0.0]]
+    halves = sqparts.stack_parts([limb(tips[0], c, 0.035), limb(c, tips[1], 0.035)])
+    kw = dict(rounds=1, split=False)
+    two, two_cost, _ = sqparts.refine_parts(halves, data, costs, merge=False, **kw)
+    one, one_cost, history = sqparts.refine_parts(halves, data, costs, merge=True, **kw)
+    assert len(two) == 2 and len(one) == 1 and one_cost.total < two_cost.total
+    assert (one_cost.explained_mask & (truth == 0)).sum() >= 0.9 * (truth == 0).sum()
+    assert one_cost.commission <= 0.02 * data.figure_mask.sum()
+    assert abs(float(one.bend[0, 0])) >= 0.1

@@ -1,3 +1,4 @@
+import dataclasses
 import json
 import os
 import subprocess
@@ -222,3 +223,24 @@ def test_fit_region_stays_at_its_region(data):
     best = np.asarray(fit.explained[0])
     assert best[visible].sum() > 0.8 * visible.sum() and best[labels == 1].sum() < 0.05 * visible.sum()
     np.testing.assert_allclose(np.asarray(fit.parts[0].position), np.asarray(TRUTH.position), atol=0.03)
+
+
+def test_pruning_scores_short_hypotheses_on_smaller_windows(data):
+    # The pruning pass scores each length of the grid on a window sized to it. A short
+    # hypothesis projects around the region's centre, inside its smaller window, so its
+    # Γ there equals Γ over the full window (same stride-4 samples: the windows' corners
+    # differ by multiples of 4). Reference: score_region over the full window.
+    from sqparts._search import _by_window
+
+    grid = sqparts.Grid(lengths=(0.3, 1.0), ratios1=(1.0, 0.5), ratios2=(1.0,), squareness1=(0.5, 1.0),
+                        squareness2=(1.0,), axis_step=45.0, roll_step=90.0, bends=(0.0,))
+    st = sqparts.make_settings(data, grid=grid, max_size=0.3, stride=4)
+    hyp = _grid_arrays(grid)
+    groups = _by_window(grid, st.window)
+    (side, short), (side_long, long) = groups
+    assert side < st.window == side_long and np.allclose(hyp["shape"][short, 2], 0.3) and len(short) + len(long) == grid.size
+    full, _ = sqparts.score_region(data, st, _centre(data))
+    small, _ = sqparts.score_region(data, dataclasses.replace(st, window=side), _centre(data),
+                                    hypotheses={k: v[short] for k, v in hyp.items()})
+    assert np.asarray(small).max() > 0.1 * data.figure_mask.sum()  # they do explain pixels
+    np.testing.assert_allclose(np.asarray(small), np.asarray(full)[short], rtol=1e-5, atol=1e-3)
