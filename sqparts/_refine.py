@@ -220,9 +220,25 @@ def _pad_rows(a: np.ndarray, m: int) -> np.ndarray:
     return np.concatenate([a, np.zeros((m - len(a),) + a.shape[1:], a.dtype)])
 
 
-def _figure_points(data: RangeData, max_points: int = 20000, seed: int = 0):
-    """Figure pixels' 3-D points and their flat indices (subsampled to ``max_points``),
-    padded to a multiple of 1024."""
+def _once(fn):
+    """Compute ``fn(data)`` once per prepared image (kept in the instance's ``__dict__``;
+    :class:`RangeData` is frozen and its arrays are not hashable)."""
+
+    @functools.wraps(fn)
+    def wrapper(data):
+        cache = data.__dict__.setdefault("_refine_cache", {})
+        if fn.__name__ not in cache:
+            cache[fn.__name__] = fn(data)
+        return cache[fn.__name__]
+
+    return wrapper
+
+
+@_once
+def _figure_points(data: RangeData):
+    """Figure pixels' 3-D points and their flat indices (a fixed random 20 000 of them
+    when there are more), padded to a multiple of 1024."""
+    max_points, seed = 20000, 0
     figure = data.figure_mask
     idx = np.flatnonzero(figure)
     if len(idx) > max_points:
@@ -232,6 +248,7 @@ def _figure_points(data: RangeData, max_points: int = 20000, seed: int = 0):
     return _pad_rows(pts.astype(np.float32), m), np.concatenate([idx, np.full(m - len(idx), -1)])
 
 
+@_once
 def _background_rays(data: RangeData):
     """Rays through background pixels (no return, off the figure) within 3 pixels of the
     figure, where a part that swells past its silhouette shows first: (origins,
@@ -478,16 +495,15 @@ def settle_part(vector, layer, rest, data: RangeData, costs: Costs, *, iteration
     pixel = float(data.camera.pixel_size_at(float(vector[2])))
     # Steps: a pixel in position, 0.1 rad, 10% in size, 0.4 in logit squareness, 0.2 in bend and taper.
     base = np.array([pixel] * 3 + [0.1] * 6 + [0.4] * 2 + [0.2] * 3, np.float32)
-    u, scale, value, failures = np.asarray(to_unconstrained(_host_parts(vector[None]))[0]), 1.0, None, 0
+    u, scale, failures = np.asarray(to_unconstrained(_host_parts(vector[None]))[0]), 1.0, 0
     key = jax.random.key(seed)
     for i in range(iterations):
         trials, e, c, border = (np.asarray(a) for a in _crop_trials(
             u, base * scale, jax.random.fold_in(key, i), (r0, c0), *args, camera=data.camera))
         f = np.where(border, np.inf, (costs.explained - costs.omission) * e + costs.commission * c)
-        value = f[0] if value is None else value
         k = int(np.argmin(f))
-        if f[k] < value - 1e-9:
-            u, value, failures = trials[k], f[k], 0
+        if f[k] < f[0] - 1e-9:  # trial 0 is the current part
+            u, failures = trials[k], 0
         else:
             failures += 1
             if failures == 2:  # the random moves differ each time: two misses halve the steps
