@@ -7,11 +7,12 @@ the stage times are the warm runs' medians (recovery is deterministic: the resul
 are the same each time), and the cold run's excess over the median total is reported as
 compile time.
 
-    python benchmarks/bench_recover.py
+    python benchmarks/bench_recover.py [--scenes human chair ...]
 """
 
 from __future__ import annotations
 
+import argparse
 import sys
 import time
 from pathlib import Path
@@ -100,8 +101,11 @@ def candidate_problem(name):
 
 
 def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--scenes", nargs="+", choices=list(SCENE_OPTIONS), default=list(SCENE_OPTIONS))
+    args = ap.parse_args()
     rows = []
-    for name in SCENE_OPTIONS:
+    for name in args.scenes:
         row, r = recover_scene(name)
         rows.append(row)
         from sqparts._plot import save_report

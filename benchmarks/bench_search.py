@@ -170,7 +170,7 @@ def plot(results, path):
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--cases", type=int, default=16)
-    ap.add_argument("--grids", nargs="+", default=["coarse", "default", "orient-45", "orient-30", "sizes-5"])
+    ap.add_argument("--grids", nargs="*", default=["coarse", "default", "orient-45", "orient-30", "sizes-5"])
     ap.add_argument("--no-throughput", action="store_true")
     args = ap.parse_args()
     cases = [make_case(i) for i in range(args.cases)]
@@ -184,7 +184,8 @@ def main() -> None:
     if not args.no_throughput:
         payload["throughput"] = throughput()
     RESULTS.mkdir(exist_ok=True)
-    plot(results, RESULTS / "sampling_densities.png")
+    if results:
+        plot(results, RESULTS / "sampling_densities.png")
     save("search", payload)
 
 

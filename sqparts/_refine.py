@@ -176,7 +176,9 @@ def _polish_bucket(parts, points, weights, origins, directions, ray_weights, ste
     def one(p, x, w, o, d, wr):
         return polish_part(p, x, w, rays=(o, d, wr), steps=steps)
 
-    return jax.vmap(one)(parts, points, weights, origins, directions, ray_weights)
+    # One part after another (lax.map), not vmap: vmapping optimistix's while loop
+    # traces and compiles 2.5x longer (17.9 s against 7.5 s on the CPU) and is no faster.
+    return jax.lax.map(lambda args: one(*args), (parts, points, weights, origins, directions, ray_weights))
 
 
 def _gather(weights: np.ndarray, size: int, seed: int = 0) -> tuple[np.ndarray, np.ndarray]:

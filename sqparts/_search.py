@@ -432,7 +432,8 @@ def _finish(arrays, orientation_rel, shape, offsets, corner, centre, max_size, *
                                seed[s, s], scale=scale, rounds=polish_rounds, steps=polish_steps)
 
         gam, off, explained, _, anchored = scored
-        polished = jax.vmap(polish)(parts, off, explained)
+        # lax.map, not vmap: see _refine._polish_bucket (a vmapped LM compiles twice as long).
+        polished = jax.lax.map(lambda args: polish(*args), (parts, off, explained))
         new = jax.vmap(score)(polished)
         new_gam, *_, new_anchored = new
         # A polished part is kept only if it stays at the region and its Γ improves.
