@@ -138,15 +138,17 @@ def _least_pixels(costs: Costs) -> float:
     return costs.part / max(costs.omission - costs.explained, 1e-9)
 
 
+def _pixel_errors(hit, rendered, measured, figure, sigma):
+    """Explained (on the figure, within ±σ/2 of the measured depth) and commission
+    (rendered off the figure) masks of rendered pixels ``hit``; numpy or jnp arrays."""
+    return hit & figure & (abs(rendered - measured) <= sigma / 2), hit & ~figure
+
+
 def _count(n: int, rendered, labels, data: RangeData, costs: Costs, layers=None) -> EncodingCost:
-    measured, figure = data.image, data.figure_region
-    hit = labels >= 0
     with np.errstate(invalid="ignore"):
-        explained = hit & figure & (np.abs(rendered - measured) <= data.encoding.sigma / 2)
-    commission = hit & ~figure
+        explained, commission = _pixel_errors(labels >= 0, rendered, data.image, data.figure_region, data.encoding.sigma)
     e, c = int(explained.sum()), int(commission.sum())
-    total = costs.part * n + costs.explained * e + costs.commission * c + costs.omission * (costs.figure_pixels - e)
-    return EncodingCost(float(total), n, e, c, costs.figure_pixels - e, rendered.astype(np.float32), labels, explained, commission, layers)
+    return EncodingCost(float(costs.total(n, e, c)), n, e, c, costs.figure_pixels - e, rendered.astype(np.float32), labels, explained, commission, layers)
 
 
 def part_statistics(parts: Part, data: RangeData, cost: EncodingCost) -> list[dict]:
@@ -469,10 +471,9 @@ def _crop_trials(u, steps, key, corner, rest, measured, figure, sigma, camera):
     def one(v):
         t, hit = cast_part(from_unconstrained(v), o, d)
         z = jnp.minimum(jnp.where(hit, t, jnp.inf), rest)
-        seen = jnp.isfinite(z)
-        explained = seen & figure & (jnp.abs(z - measured) <= sigma / 2)
+        explained, commission = _pixel_errors(jnp.isfinite(z), z, measured, figure, sigma)
         border = hit[0].any() | hit[-1].any() | hit[:, 0].any() | hit[:, -1].any()
-        return explained.sum(), (seen & ~figure).sum(), border
+        return explained.sum(), commission.sum(), border
 
     return (trials, *jax.vmap(one)(trials))
 
@@ -502,7 +503,7 @@ def settle_part(vector, layer, rest, data: RangeData, costs: Costs, *, iteration
     for i in range(iterations):
         trials, e, c, border = (np.asarray(a) for a in _crop_trials(
             u, base * scale, jax.random.fold_in(key, i), (r0, c0), *args, camera=data.camera))
-        f = np.where(border, np.inf, (costs.explained - costs.omission) * e + costs.commission * c)
+        f = np.where(border, np.inf, costs.total(0, e, c))  # E up to the pixels outside the crop
         k = int(np.argmin(f))
         if f[k] < f[0] - 1e-9:  # trial 0 is the current part
             u, failures = trials[k], 0

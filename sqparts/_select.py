@@ -54,6 +54,12 @@ class Costs:
             figure_pixels=int(figure_pixels),
         )
 
+    def total(self, parts, explained, commission):
+        """E of Eq. (6) from counts: ``parts`` parts, ``explained`` pixels explained
+        within ±σ/2 and ``commission`` pixels rendered off the figure (numbers or arrays)."""
+        return (self.part * parts + self.explained * explained + self.commission * commission
+                + self.omission * (self.figure_pixels - explained))
+
 
 def area_matrix(masks) -> np.ndarray:
     """M (n, n): diagonal = pixels in each mask, off-diagonal = -1/2 the shared pixels."""
@@ -117,7 +123,7 @@ def description_length(explained, commission, costs: Costs) -> float:
     n = len(explained)
     e = int(explained.any(0).sum()) if n else 0
     c = int(commission.any(0).sum()) if n else 0
-    return costs.part * n + costs.explained * e + costs.commission * c + costs.omission * (costs.figure_pixels - e)
+    return costs.total(n, e, c)
 
 
 @jax.jit
