@@ -73,6 +73,7 @@ def signed_pow(x: ArrayLike, p: ArrayLike) -> Array:
     return jnp.sign(x) * abs_pow(x, p)
 
 
+@jax.jit
 def rotation_matrix(rotation_vector: Float[ArrayLike, "3"]) -> Float[Array, "3 3"]:
     """Rodrigues' formula: rotation vector (axis * angle) to a 3x3 matrix.
 
@@ -147,13 +148,10 @@ class Part(eqx.Module):
         position = jnp.asarray(position, dtype)
         squareness = jnp.asarray(squareness, dtype)
         batch = size.shape[:-1]
-        orientation = (
-            jnp.zeros(batch + (3,), dtype)
-            if orientation is None
-            else jnp.asarray(orientation, dtype)
-        )
-        bend = jnp.zeros(batch + (2,), dtype) if bend is None else jnp.asarray(bend, dtype)
-        taper = jnp.zeros(batch, dtype) if taper is None else jnp.asarray(taper, dtype)
+        # Defaults from numpy: no compiled JAX operation per new batch shape.
+        orientation = jnp.asarray(np.zeros(batch + (3,), dtype) if orientation is None else orientation, dtype)
+        bend = jnp.asarray(np.zeros(batch + (2,), dtype) if bend is None else bend, dtype)
+        taper = jnp.asarray(np.zeros(batch, dtype) if taper is None else taper, dtype)
         fields = dict(
             position=position,
             orientation=orientation,
@@ -174,22 +172,13 @@ class Part(eqx.Module):
     # --- the 14-vector -----------------------------------------------------------
     def to_vector(self) -> Float[Array, "*batch 14"]:
         """The 14 parameters (footnote 4) as one vector, in the module docstring's order."""
-        return jnp.concatenate(
-            [
-                self.position,
-                self.orientation,
-                self.size,
-                self.squareness,
-                self.bend,
-                self.taper[..., None],
-            ],
-            axis=-1,
-        )
+        return _join(self.position, self.orientation, self.size, self.squareness, self.bend, self.taper)
 
     @classmethod
     def from_vector(cls, vector: Float[ArrayLike, "*batch 14"]) -> "Part":
         """Inverse of :meth:`to_vector`; validated when concrete."""
-        v = jnp.asarray(vector)
+        # Concrete vectors are sliced on the host (see _host_op).
+        v = vector if isinstance(vector, jax.core.Tracer) else np.asarray(vector)
         if v.shape[-1:] != (14,):
             raise ValueError(f"vector: expected a trailing axis of 14, got shape {v.shape}")
         return cls(
@@ -218,13 +207,18 @@ class Part(eqx.Module):
     def __getitem__(self, index) -> "Part":
         if isinstance(index, (int, np.integer)) and self.batch_shape and not -len(self) <= index < len(self):
             raise IndexError(f"index: {index} is out of range for a batch of {len(self)} parts")
-        return jax.tree_util.tree_map(lambda x: x[index], self)
+        return jax.tree_util.tree_map(lambda x: _host_op(lambda a: a[index], x), self)
 
     def rotation(self) -> Float[Array, "*batch 3 3"]:
         """Local-to-camera rotation matrix R (p_cam = R p_local + position)."""
         flat = self.orientation.reshape(-1, 3)
         mats = jax.vmap(rotation_matrix)(flat)
         return mats.reshape(self.batch_shape + (3, 3))
+
+
+@jax.jit
+def _join(position, orientation, size, squareness, bend, taper):
+    return jnp.concatenate([position, orientation, size, squareness, bend, taper[..., None]], axis=-1)
 
 
 def _as_float_array(x) -> Array:
@@ -373,9 +367,19 @@ def stack_parts(parts) -> Part:
     parts = list(parts)
     if not parts:
         raise ValueError("parts: expected at least one part, got an empty sequence")
-    return jax.tree_util.tree_map(lambda *xs: jnp.stack(xs), *parts)
+    return jax.tree_util.tree_map(lambda *xs: _host_op(lambda *a: np.stack(a), *xs, traced=jnp.stack), *parts)
 
 
+def _host_op(fn, *arrays, traced=None):
+    """``fn`` on host copies of concrete ``arrays``, returned as a JAX array: indexing and
+    stacking parts outside ``jit`` would otherwise compile one small XLA program per
+    new shape. Traced ``arrays`` go to ``traced`` (default ``fn``) unchanged."""
+    if any(isinstance(a, jax.core.Tracer) for a in arrays):
+        return (traced or fn)(*arrays)
+    return jnp.asarray(fn(*(np.asarray(a) for a in arrays)))
+
+
+@jax.jit
 def matrix_to_rotation_vector(matrix: Float[ArrayLike, "3 3"]) -> Float[Array, "3"]:
     """JAX inverse of :func:`rotation_matrix` (via the quaternion; all four Shepperd
     branches computed and the best-conditioned one selected, so it is jit/vmap safe)."""
@@ -407,6 +411,7 @@ def _logit(x):
     return jnp.log(x) - jnp.log1p(-x)
 
 
+@jax.jit
 def to_unconstrained(part: Part) -> Float[Array, "*batch 14"]:
     """14-vector in an unconstrained space for optimisers: log sizes, squareness through a
     logistic onto [0.1, 2], bend and taper through tanh onto [-1, 1]."""
@@ -425,6 +430,7 @@ def to_unconstrained(part: Part) -> Float[Array, "*batch 14"]:
     )
 
 
+@jax.jit
 def from_unconstrained(u: Float[ArrayLike, "*batch 14"]) -> Part:
     """Inverse of :func:`to_unconstrained` (always a valid part)."""
     u = jnp.asarray(u)

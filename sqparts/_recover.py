@@ -192,7 +192,7 @@ def recover(
     chosen, method = select_parts(problem, method=selection)
     if not chosen.any():
         chosen[int(np.argmax([f.sum() for f in explained]))] = True
-    initial = jax.tree_util.tree_map(lambda x: x[np.flatnonzero(chosen)], parts)
+    initial = parts[np.flatnonzero(chosen)]
     t2 = time.perf_counter()
     initial_cost = encoding_cost(initial, data, costs)
     if refine_rounds > 0 or split or fill or merge:
