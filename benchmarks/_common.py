@@ -54,10 +54,15 @@ def time_call(fn, *args, repeats: int = 5):
     return first, statistics.median(times), times
 
 
-def save(name: str, payload: dict) -> Path:
+def result_path(name: str, ext: str = "json") -> Path:
+    """``results/<name><$SQPARTS_BENCH_SUFFIX>.<ext>``: a partial or off-machine run given a
+    suffix leaves the committed results (JSON and figures alike) untouched."""
     RESULTS.mkdir(exist_ok=True)
-    suffix = os.environ.get("SQPARTS_BENCH_SUFFIX", "")
-    path = RESULTS / f"{name}{suffix}.json"
+    return RESULTS / f"{name}{os.environ.get('SQPARTS_BENCH_SUFFIX', '')}.{ext}"
+
+
+def save(name: str, payload: dict) -> Path:
+    path = result_path(name)
     payload = {"machine": machine(), "when": time.strftime("%Y-%m-%dT%H:%M:%SZ", time.gmtime()), **payload}
     path.write_text(json.dumps(payload, indent=2) + "\n")
     print(f"saved {path}")

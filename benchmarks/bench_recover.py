@@ -23,7 +23,7 @@ import numpy as np
 
 import sqparts
 
-from _common import save
+from _common import result_path, save
 
 SCENE_OPTIONS = {"human": {}, "chair": {}, "castings": {}, "gate": {}}
 WARM_RUNS = 3
@@ -110,7 +110,7 @@ def main() -> None:
         rows.append(row)
         from sqparts._plot import save_report
 
-        save_report(Path(__file__).resolve().parent / "results" / f"report_{name}.png", r, title=name)
+        save_report(result_path(f"report_{name}", "png"), r, title=name)
     sel = best_first_vs_exact([candidate_problem("human"), candidate_problem("castings")])
     print(f"best-first optimal in {sel['best_first_optimal_rate']:.0%} of {sel['trials']} problems, "
           f"mean excess {sel['mean_excess_bits']:.1f} bits", flush=True)

@@ -26,7 +26,7 @@ from scipy.ndimage import distance_transform_edt
 
 import sqparts
 
-from _common import RESULTS, save
+from _common import result_path, save
 
 VARIANTS = ("clean", "noise", "6-bit", "occluded")
 CUSTOM = {
@@ -183,9 +183,8 @@ def main() -> None:
     payload = {"cases": args.cases, "image": "64x64", "dtype": "float32", "densities": results}
     if not args.no_throughput:
         payload["throughput"] = throughput()
-    RESULTS.mkdir(exist_ok=True)
     if results:
-        plot(results, RESULTS / "sampling_densities.png")
+        plot(results, result_path("sampling_densities", "png"))
     save("search", payload)
 
 

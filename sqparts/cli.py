@@ -23,7 +23,8 @@ def _enable_compilation_cache() -> None:
     try:
         Path(cache).mkdir(parents=True, exist_ok=True)
         jax.config.update("jax_compilation_cache_dir", cache)
-        jax.config.update("jax_persistent_cache_min_compile_time_secs", 0.5)
+        # Every program, however small: a later run then compiles nothing.
+        jax.config.update("jax_persistent_cache_min_compile_time_secs", 0.0)
     except OSError:
         pass
 
