@@ -207,7 +207,7 @@ class Part(eqx.Module):
     def __getitem__(self, index) -> "Part":
         if isinstance(index, (int, np.integer)) and self.batch_shape and not -len(self) <= index < len(self):
             raise IndexError(f"index: {index} is out of range for a batch of {len(self)} parts")
-        return jax.tree_util.tree_map(lambda x: _host_op(lambda a: a[index], x), self)
+        return jax.tree_util.tree_map(lambda x: _host_op(lambda _, a: a[index], x), self)
 
     def rotation(self) -> Float[Array, "*batch 3 3"]:
         """Local-to-camera rotation matrix R (p_cam = R p_local + position)."""
@@ -367,16 +367,17 @@ def stack_parts(parts) -> Part:
     parts = list(parts)
     if not parts:
         raise ValueError("parts: expected at least one part, got an empty sequence")
-    return jax.tree_util.tree_map(lambda *xs: _host_op(lambda *a: np.stack(a), *xs, traced=jnp.stack), *parts)
+    return jax.tree_util.tree_map(lambda *xs: _host_op(lambda xp, *a: xp.stack(a), *xs), *parts)
 
 
-def _host_op(fn, *arrays, traced=None):
-    """``fn`` on host copies of concrete ``arrays``, returned as a JAX array: indexing and
+def _host_op(fn, *arrays):
+    """``fn(xp, *arrays)`` with ``xp = numpy`` on host copies of concrete ``arrays``
+    (returned as a JAX array), or ``xp = jax.numpy`` when any is traced: indexing and
     stacking parts outside ``jit`` would otherwise compile one small XLA program per
-    new shape. Traced ``arrays`` go to ``traced`` (default ``fn``) unchanged."""
+    new shape."""
     if any(isinstance(a, jax.core.Tracer) for a in arrays):
-        return (traced or fn)(*arrays)
-    return jnp.asarray(fn(*(np.asarray(a) for a in arrays)))
+        return fn(jnp, *arrays)
+    return jnp.asarray(fn(np, *(np.asarray(a) for a in arrays)))
 
 
 @jax.jit

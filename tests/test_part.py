@@ -58,6 +58,24 @@ def test_batch_iterates_and_indexes_within_range(rng):
         list(parts[0])
 
 
+def test_stacking_and_indexing_agree_inside_and_outside_jit(rng):
+    """Concrete parts are stacked and indexed on the host, traced ones in JAX: both give
+    numpy's stack and fancy indexing of the 14-vectors, as JAX arrays."""
+    vecs = np.stack([np.asarray(sqparts.Part(**random_part_kwargs(rng)).to_vector()) for _ in range(5)])
+    parts = [sqparts.Part.from_vector(v) for v in vecs]
+    index = np.array([4, 0, 2])
+
+    def pick(*ps):
+        return sqparts.stack_parts(ps)[index].to_vector()
+
+    host = pick(*parts)
+    assert isinstance(host, jax.Array) and isinstance(sqparts.stack_parts(parts).size, jax.Array)
+    np.testing.assert_array_equal(host, vecs[index])
+    np.testing.assert_array_equal(jax.jit(pick)(*parts), vecs[index])
+    batch = sqparts.Part.from_vector(jnp.asarray(vecs))
+    np.testing.assert_array_equal(jax.vmap(lambda p: p.to_vector())(batch), vecs)
+
+
 def test_rotation_matches_scipy(rng):
     for _ in range(10):
         rv = rng.normal(size=3) * 2
