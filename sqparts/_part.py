@@ -145,13 +145,16 @@ class Part(eqx.Module):
     ):
         size = _as_float_array(size)
         dtype = size.dtype
-        position = jnp.asarray(position, dtype)
-        squareness = jnp.asarray(squareness, dtype)
         batch = size.shape[:-1]
-        # Defaults from numpy: no compiled JAX operation per new batch shape.
-        orientation = jnp.asarray(np.zeros(batch + (3,), dtype) if orientation is None else orientation, dtype)
-        bend = jnp.asarray(np.zeros(batch + (2,), dtype) if bend is None else bend, dtype)
-        taper = jnp.asarray(np.zeros(batch, dtype) if taper is None else taper, dtype)
+
+        def field(x, default_shape):
+            return _host_op(lambda xp, a: xp.asarray(a, dtype), np.zeros(default_shape, dtype) if x is None else x)
+
+        position = field(position, None)
+        squareness = field(squareness, None)
+        orientation = field(orientation, batch + (3,))
+        bend = field(bend, batch + (2,))
+        taper = field(taper, batch)
         fields = dict(
             position=position,
             orientation=orientation,
@@ -160,7 +163,7 @@ class Part(eqx.Module):
             bend=bend,
             taper=taper,
         )
-        if not any(isinstance(v, jax.core.Tracer) for v in fields.values()):
+        if not _traced(*fields.values()):
             _validate(fields, batch)
         self.position = position
         self.orientation = orientation
@@ -172,13 +175,14 @@ class Part(eqx.Module):
     # --- the 14-vector -----------------------------------------------------------
     def to_vector(self) -> Float[Array, "*batch 14"]:
         """The 14 parameters (footnote 4) as one vector, in the module docstring's order."""
-        return _join(self.position, self.orientation, self.size, self.squareness, self.bend, self.taper)
+        return _host_op(lambda xp, *f: xp.concatenate([*f[:-1], f[-1][..., None]], axis=-1),
+                        self.position, self.orientation, self.size, self.squareness, self.bend, self.taper)
 
     @classmethod
     def from_vector(cls, vector: Float[ArrayLike, "*batch 14"]) -> "Part":
         """Inverse of :meth:`to_vector`; validated when concrete."""
         # Concrete vectors are sliced on the host (see _host_op).
-        v = vector if isinstance(vector, jax.core.Tracer) else np.asarray(vector)
+        v = vector if _traced(vector) else np.asarray(vector)
         if v.shape[-1:] != (14,):
             raise ValueError(f"vector: expected a trailing axis of 14, got shape {v.shape}")
         return cls(
@@ -216,16 +220,17 @@ class Part(eqx.Module):
         return mats.reshape(self.batch_shape + (3, 3))
 
 
-@jax.jit
-def _join(position, orientation, size, squareness, bend, taper):
-    return jnp.concatenate([position, orientation, size, squareness, bend, taper[..., None]], axis=-1)
-
-
 def _as_float_array(x) -> Array:
-    arr = jnp.asarray(x)
-    if not jnp.issubdtype(arr.dtype, jnp.floating):
-        arr = arr.astype(jnp.result_type(float))
-    return arr
+    def convert(xp, a):
+        a = xp.asarray(a)
+        return a if xp.issubdtype(a.dtype, xp.floating) else a.astype(jnp.result_type(float))
+
+    return _host_op(convert, x)
+
+
+def _traced(*arrays) -> bool:
+    """Whether any of ``arrays`` is a JAX tracer (inside ``jit``, ``vmap``, ``grad``)."""
+    return any(isinstance(a, jax.core.Tracer) for a in arrays)
 
 
 def _validate(fields: dict, batch: tuple[int, ...]) -> None:
@@ -372,12 +377,13 @@ def stack_parts(parts) -> Part:
 
 def _host_op(fn, *arrays):
     """``fn(xp, *arrays)`` with ``xp = numpy`` on host copies of concrete ``arrays``
-    (returned as a JAX array), or ``xp = jax.numpy`` when any is traced: indexing and
-    stacking parts outside ``jit`` would otherwise compile one small XLA program per
-    new shape."""
-    if any(isinstance(a, jax.core.Tracer) for a in arrays):
+    (placed on the device with ``jax.device_put``), or ``xp = jax.numpy`` when any is
+    traced. Building, indexing and stacking parts outside ``jit`` with ``jax.numpy`` would
+    compile one small XLA program per operation and new shape (``jnp.asarray`` of a
+    numpy array included)."""
+    if _traced(*arrays):
         return fn(jnp, *arrays)
-    return jnp.asarray(fn(np, *(np.asarray(a) for a in arrays)))
+    return jax.device_put(fn(np, *(np.asarray(a) for a in arrays)))
 
 
 @jax.jit

@@ -50,10 +50,8 @@ def _host_parts(vectors) -> Part:
 
 
 def _vectors(parts: Part) -> np.ndarray:
-    """(n, 14) host copy of ``parts.to_vector()`` (plain numpy, the inverse of
-    :func:`_host_parts`)."""
-    *rest, taper = (np.asarray(x, np.float32) for x in jax.tree_util.tree_leaves(parts))
-    return np.concatenate([*rest, taper[..., None]], axis=-1).reshape(-1, 14)
+    """(n, 14) host copy of ``parts.to_vector()``."""
+    return np.asarray(parts.to_vector(), np.float32).reshape(-1, 14)
 
 
 def _pad_parts(parts: Part) -> tuple[Part, int]:
