@@ -23,7 +23,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from ._camera import Camera, _Camera
-from ._part import Part, bounding_half_extent, gauge, rotation_matrix
+from ._part import Part, bounding_half_extent, gauge, matmul, rotation_matrix
 from ._typing import Array, Bool, Float
 
 DEFAULT_NEWTON_STEPS = 8
@@ -46,8 +46,8 @@ def cast_ray(
     ``t`` is differentiable in all 14 part parameters and in the ray.
     """
     rot = rotation_matrix(part.orientation)
-    o = rot.T @ (origin - part.position)
-    d = rot.T @ direction
+    o = matmul(rot.T, origin - part.position)
+    d = matmul(rot.T, direction)
     half = bounding_half_extent(part)
     d_safe = jnp.where(jnp.abs(d) < 1e-12, 1e-12, d)
     t1 = (-half - o) / d_safe

@@ -38,6 +38,7 @@ from ._grid import Grid, grid_preset
 from ._part import (
     Part,
     from_unconstrained,
+    matmul,
     matrix_to_rotation_vector,
     rotation_matrix,
     surface_distance,
@@ -226,9 +227,9 @@ def _frame_from_z(direction):
     d = direction / jnp.linalg.norm(direction)
     z = jnp.array([0.0, 0.0, 1.0], d.dtype)
     c = jnp.cross(z, d)
-    cos = jnp.dot(z, d)
+    cos = matmul(z, d)
     k = jnp.array([[0.0, -c[2], c[1]], [c[2], 0.0, -c[0]], [-c[1], c[0], 0.0]], d.dtype)
-    return jnp.eye(3, dtype=d.dtype) + k + (k @ k) / (1.0 + cos)
+    return jnp.eye(3, dtype=d.dtype) + k + matmul(k, k) / (1.0 + cos)
 
 
 def pose_hypothesis(orientation_rel, shape, max_size, ray_origin, ray_direction, surface_t) -> Part:
@@ -236,9 +237,9 @@ def pose_hypothesis(orientation_rel, shape, max_size, ray_origin, ray_direction,
     centre on the ray behind the measured surface (at ``surface_t``) by the part's own
     half-depth along the ray."""
     view = _frame_from_z(ray_direction)
-    rot = view @ rotation_matrix(orientation_rel)
+    rot = matmul(view, rotation_matrix(orientation_rel))
     size = shape[:3] * max_size
-    u = rot.T @ (ray_direction / jnp.linalg.norm(ray_direction))
+    u = matmul(rot.T, ray_direction / jnp.linalg.norm(ray_direction))
     half_depth = 1.0 / jnp.sqrt(jnp.sum((u / size) ** 2))
     t_centre = surface_t + half_depth / jnp.linalg.norm(ray_direction)
     return Part.from_vector(
@@ -457,8 +458,8 @@ def ray_penetration(part: Part, origin, direction):
     deepest inside the part's ellipsoid of semi-axes ``size``: negative when the ray
     enters the part (exact for ellipsoids, a smooth proxy for the rest)."""
     o = to_local(part, origin) / part.size
-    d = (rotation_matrix(part.orientation).T @ direction) / part.size
-    t = -jnp.dot(o, d) / jnp.dot(d, d)
+    d = matmul(rotation_matrix(part.orientation).T, direction) / part.size
+    t = -matmul(o, d) / matmul(d, d)
     return surface_distance(part, origin + t * direction)
 
 

@@ -1,6 +1,7 @@
 import dataclasses
 import json
 import os
+import re
 import subprocess
 import sys
 
@@ -244,3 +245,29 @@ def test_pruning_scores_short_hypotheses_on_smaller_windows(data):
                                     hypotheses={k: v[short] for k, v in hyp.items()})
     assert np.asarray(small).max() > 0.1 * data.figure_mask.sum()  # they do explain pixels
     np.testing.assert_allclose(np.asarray(small), np.asarray(full)[short], rtol=1e-5, atol=1e-3)
+
+
+def test_every_matrix_product_runs_at_full_precision():
+    # JAX's default float32 product on NVIDIA GPUs is TF32 (10-bit mantissa): it moved the
+    # human's rendered depth by 6 mm and changed its recovered model. Every product the
+    # renderer, the search and polishing trace must ask for full precision.
+    from sqparts._render import cast_part
+    from sqparts._search import polish_part, pose_hypothesis, ray_penetration
+
+    part = sqparts.Part(size=[0.1, 0.2, 0.3], squareness=[0.5, 1.2], position=[0.0, 0.0, 2.0],
+                        orientation=[0.3, -0.2, 0.1], bend=[0.1, 0.0], taper=0.2)
+    o, d = jnp.zeros(3), jnp.array([0.05, 0.02, 1.0])
+    points = jnp.asarray(np.random.default_rng(0).normal([0, 0, 1.8], 0.1, (16, 3)), jnp.float32)
+    traced = {
+        "cast_part": (lambda p: cast_part(p, o, d), part),
+        "surface_point": (lambda p: sqparts.surface_point(p, 0.1, 0.2), part),
+        "pose_hypothesis": (lambda v: pose_hypothesis(v, jnp.array([0.5, 0.6, 1.0, 1.0, 1.0, 0.0, 0.0, 0.0]), 0.3, o, d, 2.0),
+                            jnp.array([0.1, 0.2, 0.3])),
+        "ray_penetration": (lambda p: ray_penetration(p, o, d), part),
+        "polish_part": (lambda p: polish_part(p, points, jnp.ones(16), rays=(points, points, jnp.ones(16)), steps=2), part),
+    }
+    for name, (fn, arg) in traced.items():
+        products = re.findall(r"dot_general\[(.*?)\n\s*\]", str(jax.make_jaxpr(fn)(arg)), re.S)
+        assert products, f"{name}: no matrix products traced"
+        for params in products:
+            assert "precision=(Precision.HIGHEST, Precision.HIGHEST)" in params, f"{name}: {params}"
