@@ -85,7 +85,7 @@ class SearchSettings:
     newton_steps: int = SEARCH_NEWTON_STEPS
     polish_steps: int = 15
     polish_rounds: int = 6
-    polish_candidates: int = 12
+    polish_candidates: int = 24
     restarts: int = 3
 
     def __post_init__(self):
