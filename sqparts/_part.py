@@ -73,7 +73,6 @@ def signed_pow(x: ArrayLike, p: ArrayLike) -> Array:
     return jnp.sign(x) * abs_pow(x, p)
 
 
-@jax.jit
 def matmul(a: ArrayLike, b: ArrayLike) -> Array:
     """``a @ b`` at full float32 precision. On NVIDIA GPUs JAX's default float32 product is
     TF32 (a 10-bit mantissa), which moves rotated points by about 1e-3 of their depth:
@@ -82,6 +81,7 @@ def matmul(a: ArrayLike, b: ArrayLike) -> Array:
     return jnp.matmul(a, b, precision=jax.lax.Precision.HIGHEST)
 
 
+@jax.jit
 def rotation_matrix(rotation_vector: Float[ArrayLike, "3"]) -> Float[Array, "3 3"]:
     """Rodrigues' formula: rotation vector (axis * angle) to a 3x3 matrix.
 

@@ -225,9 +225,8 @@ def region_centers(figure, *, spacing: float, method: str = "skeleton", grid_sha
 def _frame_from_z(direction):
     """Rotation matrix taking +z onto the unit ``direction`` (JAX, smooth except at -z)."""
     d = direction / jnp.linalg.norm(direction)
-    z = jnp.array([0.0, 0.0, 1.0], d.dtype)
-    c = jnp.cross(z, d)
-    cos = matmul(z, d)
+    c = jnp.cross(jnp.array([0.0, 0.0, 1.0], d.dtype), d)
+    cos = d[2]  # z · d
     k = jnp.array([[0.0, -c[2], c[1]], [c[2], 0.0, -c[0]], [-c[1], c[0], 0.0]], d.dtype)
     return jnp.eye(3, dtype=d.dtype) + k + matmul(k, k) / (1.0 + cos)
 
