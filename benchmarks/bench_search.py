@@ -5,7 +5,9 @@ half with taper and bend; pinhole and orthographic; each variant clean, with Gau
 noise (σ_n = 2 mm), quantised to 6 bits, or half occluded by a box in front. A case
 succeeds when the symmetric surface Chamfer distance between the best candidate and the
 truth (both tessellated, 2000 points each) is at most 2% of the part's size (its
-largest dimension, 2·max a_i).
+largest dimension, 2·max a_i). The region's figure is its piece of the rubber sheet
+(:func:`sqparts.torn_components`: the image torn at depth jumps), as figure/ground gives
+it in recovery, so an occluder in front is another figure that hides the part.
 
     python benchmarks/bench_search.py [--cases 16] [--grids coarse default ...]
 """
@@ -66,7 +68,10 @@ def make_case(i: int):
     # (the maximum of its distance transform, i.e. on its skeleton, as region_centers picks).
     inside = distance_transform_edt(visible)
     centre = np.array(np.unravel_index(np.argmax(inside), inside.shape))
-    return dict(truth=truth, camera=cam, depth=depth, centre=centre, variant=variant, pinhole=pinhole,
+    # The figure: the piece of the rubber sheet (torn at depth jumps) holding the centre.
+    pieces = sqparts.torn_components(depth, cam)
+    figure = pieces == pieces[tuple(centre)]
+    return dict(truth=truth, camera=cam, depth=depth, figure=figure, centre=centre, variant=variant, pinhole=pinhole,
                 deformed=deformed, visible=int(visible.sum()), occluded_fraction=None)
 
 
@@ -86,7 +91,7 @@ def run_grid(name, grid, cases):
     rows = []
     t_compile = None
     for k, c in enumerate(cases):
-        data = sqparts.prepare(c["depth"], c["camera"])
+        data = sqparts.prepare(c["depth"], c["camera"], figure=c["figure"])
         st = sqparts.make_settings(data, grid=grid, max_size=0.3)
         t0 = time.perf_counter()
         fit = sqparts.fit_region(data, st, c["centre"])

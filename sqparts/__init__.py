@@ -29,7 +29,7 @@ from ._preprocess import (
     torn_components,
 )
 from ._render import cast_batch, cast_part, cast_ray, cast_scene, render_each, render_range_image
-from ._fit import Encoding, encoding_for, gamma, gamma_terms, smooth_gamma
+from ._fit import Encoding, commission_mask, encoding_for, gamma, gamma_terms, smooth_gamma
 from ._grid import PRESETS, Grid, grid_preset
 from ._search import (
     RangeData,
@@ -118,6 +118,7 @@ __all__ = [
     "encoding_for",
     "gamma",
     "gamma_terms",
+    "commission_mask",
     "smooth_gamma",
     "PRESETS",
     "Grid",

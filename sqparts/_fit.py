@@ -6,7 +6,11 @@ R(x, y):
 1. histogram R* - R over pixels where both exist (and the pixel is on the figure);
 2. the peak p is the depth offset that aligns the part with the data, so depth need not
    be sampled; μ = number of pixels within ±σ/2 of p;
-3. ε = rendered pixels that fall off the figure (errors of commission);
+3. ε = rendered pixels that fall off the figure (errors of commission), except where
+   the data shows a surface in front of the part (nearer than the window of width σ at
+   p): there the part is hidden, not contradicted, so a part occluded by another figure
+   (an object in front, the supporting table) pays nothing for its hidden pixels, just
+   as it pays nothing where its own figure hides it (:func:`commission_mask`);
 4. Γ = μ - λ ε.
 
 **Exact peak.** Fixed bins of width σ split a peak that straddles a bin edge. We use
@@ -140,6 +144,16 @@ def encoding_for(
     return Encoding(float(sigma), float(quantum), depth_range, float(commission_weight), float(bits_per_parameter))
 
 
+def commission_mask(hit, rendered, measured, figure, behind):
+    """Errors of commission: rendered pixels ``hit`` off the ``figure``, except where the
+    data lies in front of the part, hiding it (``rendered - measured > behind``); a pixel
+    with no return (NaN) hides nothing. numpy or jnp arrays."""
+    xp = np if all(isinstance(a, np.ndarray) for a in (hit, rendered, measured, figure)) else jnp
+    finite = xp.isfinite(measured)
+    hidden = finite & (rendered - xp.where(finite, measured, 0.0) > behind)
+    return hit & ~figure & ~hidden
+
+
 def gamma_terms(
     rendered: Float[Array, "*pixels"],
     hit: Bool[Array, "*pixels"],
@@ -175,7 +189,7 @@ def gamma_terms(
     lo = anchor + (best - centre) * half
     offset = lo + half  # centre of the width-σ window [lo, lo + σ)
     explained = both & (diff >= lo) & (diff < lo + sigma)
-    commission = jnp.sum(jnp.where(hit & ~figure, w, 0.0))
+    commission = jnp.sum(jnp.where(commission_mask(hit, rendered, measured, figure, lo + sigma), w, 0.0))
     return mu, commission, offset, explained
 
 
@@ -198,8 +212,8 @@ def gamma(
 def smooth_gamma(rendered, hit, measured, figure, offset, *, sigma: float, commission_weight: float):
     """A differentiable Γ for polishing: each pixel counts k((R* - R - p) / σ) with the
     smooth window k(x) = 1 / (1 + (2x)^8) (≈1 within ±σ/2, ≈0 beyond), at a given peak
-    offset p; commission as in Eq. (4). Differentiable in the rendered depths and p."""
+    offset p; commission as in :func:`gamma_terms`. Differentiable in the rendered depths and p."""
     both = hit & figure & jnp.isfinite(measured)
     x = jnp.where(both, rendered - jnp.where(both, measured, 0.0) - offset, 0.0) / sigma
     k = jnp.where(both, 1.0 / (1.0 + (2.0 * x) ** 8), 0.0)
-    return jnp.sum(k) - commission_weight * jnp.sum(hit & ~figure)
+    return jnp.sum(k) - commission_weight * jnp.sum(commission_mask(hit, rendered, measured, figure, offset + sigma / 2))

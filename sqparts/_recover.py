@@ -242,14 +242,13 @@ def recover(
 def _candidates(fits, data: RangeData):
     """All regions' candidates with Γ > 0 as one batch, their explained and commission masks."""
     parts, explained, commission = [], [], []
-    figure = data.figure_region
     for f in fits:
         for i in range(len(f.gamma)):
             if float(f.gamma[i]) <= 0:
                 continue
             parts.append(f.parts[i])
             explained.append(np.asarray(f.explained[i]))
-            commission.append(np.asarray(f.rendered[i]) & ~figure)
+            commission.append(np.asarray(f.commission[i]))
     if not parts:
         return None, None, None
     return stack_parts(parts), np.stack(explained), np.stack(commission)

@@ -30,6 +30,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+from ._fit import commission_mask
 from ._part import Part, from_unconstrained, surface_distance, to_unconstrained
 from ._render import DEFAULT_NEWTON_STEPS, cast_part
 from ._search import RangeData, polish_part
@@ -140,8 +141,9 @@ def _least_pixels(costs: Costs) -> float:
 
 def _pixel_errors(hit, rendered, measured, figure, sigma):
     """Explained (on the figure, within ±σ/2 of the measured depth) and commission
-    (rendered off the figure) masks of rendered pixels ``hit``; numpy or jnp arrays."""
-    return hit & figure & (abs(rendered - measured) <= sigma / 2), hit & ~figure
+    (rendered off the figure and not hidden by data in front: :func:`~sqparts.commission_mask`)
+    masks of rendered pixels ``hit``; numpy or jnp arrays."""
+    return hit & figure & (abs(rendered - measured) <= sigma / 2), commission_mask(hit, rendered, measured, figure, sigma / 2)
 
 
 def _count(n: int, rendered, labels, data: RangeData, costs: Costs, layers=None) -> EncodingCost:

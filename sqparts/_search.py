@@ -33,7 +33,7 @@ import optimistix as optx
 from jax.sharding import Mesh, PartitionSpec as P
 
 from ._camera import Camera, check_range_image
-from ._fit import Encoding, encoding_for, gamma_terms
+from ._fit import Encoding, commission_mask, encoding_for, gamma_terms
 from ._grid import Grid, grid_preset
 from ._part import (
     Part,
@@ -311,7 +311,8 @@ class RegionFit(eqx.Module):
 
     ``parts`` (batched, k), ``gamma`` (k) Γ of Eq. (4), ``bits_saved`` (k) Eq. (5),
     ``explained`` (k, H, W) pixels each explains within ±σ/2 (full image), ``rendered``
-    (k, H, W) bool: pixels each covers; ``ratio`` best Γ / runner-up Γ (the paper's
+    (k, H, W) bool: pixels each covers, ``commission`` (k, H, W) its errors of commission
+    (:func:`~sqparts.commission_mask`); ``ratio`` best Γ / runner-up Γ (the paper's
     factor-of-two test); ``centre`` (row, col); ``corner`` of the window.
     """
 
@@ -320,6 +321,7 @@ class RegionFit(eqx.Module):
     bits_saved: jax.Array
     explained: jax.Array
     rendered: jax.Array
+    commission: jax.Array
     ratio: float = eqx.field(static=True)
     centre: tuple = eqx.field(static=True)
     corner: tuple = eqx.field(static=True)
@@ -419,7 +421,8 @@ def _finish(arrays, orientation_rel, shape, offsets, corner, centre, max_size, *
         t, hit = cast_part(part, origins, directions, newton_steps)
         mu, eps, off, explained = gamma_terms(t, hit, measured, figure, sigma=sigma, num_bins=NUM_BINS)
         explained = explained.reshape(hit.shape)
-        return mu - lam * eps, off, explained, hit, jnp.any(explained[c - 1 : c + 2, c - 1 : c + 2])
+        commission = commission_mask(hit, t, measured, figure, off + sigma / 2)
+        return mu - lam * eps, off, explained, hit, commission, jnp.any(explained[c - 1 : c + 2, c - 1 : c + 2])
 
     parts = jax.vmap(posed)(orientation_rel, shape, offsets)
     scored = jax.vmap(score)(parts)
@@ -432,7 +435,7 @@ def _finish(arrays, orientation_rel, shape, offsets, corner, centre, max_size, *
             return grow_polish(shifted(part, p), origins[s, s], directions[s, s], measured[s, s], figure[s, s],
                                seed[s, s], scale=scale, rounds=polish_rounds, steps=polish_steps)
 
-        gam, off, explained, _, anchored = scored
+        gam, off, explained, _, _, anchored = scored
         # lax.map, not vmap: see _refine._polish_bucket (a vmapped LM compiles twice as long).
         polished = jax.lax.map(lambda args: polish(*args), (parts, off, explained))
         new = jax.vmap(score)(polished)
@@ -442,23 +445,25 @@ def _finish(arrays, orientation_rel, shape, offsets, corner, centre, max_size, *
         pick = lambda a, b: jnp.where(better.reshape((-1,) + (1,) * (a.ndim - 1)), a, b)  # noqa: E731
         parts, scored = jax.tree_util.tree_map(pick, (polished, new), (parts, scored))
         if restarts > 0:
-            gam, off, explained, _, anchored = scored
+            gam, off, explained, _, _, anchored = scored
             b = jnp.argmax(jnp.where(anchored, gam, -jnp.inf))
             starts = _restart_starts(jax.tree_util.tree_map(lambda x: x[b], parts), restarts)
             polished = jax.vmap(lambda q: polish(q, off[b], explained[b]))(starts)
             cat = lambda a, b: jnp.concatenate([a, b])  # noqa: E731
             parts, scored = jax.tree_util.tree_map(cat, (parts, scored), (polished, jax.vmap(score)(polished)))
-    gam, _, explained, hit, anchored = scored
-    return parts, gam, explained, hit, anchored
+    gam, _, explained, hit, commission, anchored = scored
+    return parts, gam, explained, hit, commission, anchored
 
 
-def ray_penetration(part: Part, origin, direction):
+def ray_penetration(part: Part, origin, direction, far=jnp.inf):
     """Signed radial distance (:func:`~sqparts.surface_distance`) of the ray's point
-    deepest inside the part's ellipsoid of semi-axes ``size``: negative when the ray
-    enters the part (exact for ellipsoids, a smooth proxy for the rest)."""
+    deepest inside the part's ellipsoid of semi-axes ``size``, among the points
+    ``origin + t direction`` with t <= ``far`` (the free segment in front of a return):
+    negative when the ray enters the part there (exact for ellipsoids, a smooth proxy
+    for the rest)."""
     o = to_local(part, origin) / part.size
     d = matmul(rotation_matrix(part.orientation).T, direction) / part.size
-    t = -matmul(o, d) / matmul(d, d)
+    t = jnp.minimum(-matmul(o, d) / matmul(d, d), far)
     return surface_distance(part, origin + t * direction)
 
 
@@ -474,9 +479,10 @@ def polish_part(part: Part, points, weights, *, rays=None, steps: int = 20) -> P
     """Levenberg-Marquardt (optimistix) on the weighted radial distances
     (:func:`~sqparts.surface_distance`) of ``points`` from the part's surface.
 
-    ``rays`` = (origins, directions, weights), optional: rays off the figure, which the
-    part must miss; each adds its weighted penetration (:func:`ray_penetration`) so the
-    part cannot swell past the silhouette while hugging the visible points.
+    ``rays`` = (origins, directions, weights[, far]), optional: rays off the figure,
+    which the part must miss (up to ``far``, default: the whole ray); each adds its
+    weighted penetration (:func:`ray_penetration`) so the part cannot swell past the
+    silhouette while hugging the visible points.
     Runs a fixed number of steps and never raises; returns the input if the solve produced
     non-finite values or the weights cover fewer than 8 points.
     """
@@ -487,8 +493,10 @@ def polish_part(part: Part, points, weights, *, rays=None, steps: int = 20) -> P
         p = from_unconstrained(u)
         r = w * jax.vmap(lambda x: surface_distance(p, x))(points)
         if rays is not None:
-            o, d, wr = rays
-            r = jnp.concatenate([r, wr * jnp.minimum(jax.vmap(lambda a, b: ray_penetration(p, a, b))(o, d), 0.0)])
+            o, d, wr, *far = rays
+            far = far[0] if far else jnp.full(wr.shape, jnp.inf, wr.dtype)
+            pen = jax.vmap(ray_penetration, in_axes=(None, 0, 0, 0))(p, o, d, far)
+            r = jnp.concatenate([r, wr * jnp.minimum(pen, 0.0)])
         # A weak prior on the 14 numbers keeps unobserved ones near their start.
         return r, 1e-3 * (u - u0)
 
@@ -505,14 +513,16 @@ def grow_polish(part: Part, origins, directions, depth, figure, seed, *, scale, 
     the pixels the hypothesis explains. Each round grows the support by ``grow`` pixels
     into neighbours within ``3 scale`` of the surface and fits the support with Cauchy
     weights of width ``scale`` (:func:`polish_part`), while rays off the figure must miss
-    the part. So a coarse hypothesis walks onto its whole visible surface without jumping
+    the part in front of their return (all along when there is none: a part may hide
+    behind an occluding figure). So a coarse hypothesis walks onto its whole visible surface without jumping
     to an occluder or a neighbouring part, or swelling past its silhouette.
     """
     valid = figure & jnp.isfinite(depth)
     flat = (origins + jnp.where(valid, depth, 0.0)[..., None] * directions).reshape(-1, 3)
     # Every other off-figure ray is enough to keep the part inside its silhouette.
     r = slice(0, None, 2)
-    rays = (origins[r, r].reshape(-1, 3), directions[r, r].reshape(-1, 3), (~figure[r, r]).reshape(-1).astype(flat.dtype))
+    far = jnp.where(jnp.isfinite(depth[r, r]), depth[r, r] - scale, jnp.inf).reshape(-1)
+    rays = (origins[r, r].reshape(-1, 3), directions[r, r].reshape(-1, 3), (~figure[r, r]).reshape(-1).astype(flat.dtype), far)
     size = 2 * grow + 1
 
     def one_round(carry, first):
@@ -555,7 +565,7 @@ def fit_region(data: RangeData, settings: SearchSettings, centre, *, prune: bool
     best_i = _distinct(hyp["orientation"][index[ranked]], hyp["shape"][index[ranked]], max(k, settings.polish_candidates))
     best_i = ranked[best_i]
     chosen = index[best_i]
-    parts, gam, explained, hit, anchored = _finish(
+    parts, gam, explained, hit, commission, anchored = _finish(
         data.arrays,
         jnp.asarray(hyp["orientation"][chosen]),
         jnp.asarray(hyp["shape"][chosen]),
@@ -568,6 +578,7 @@ def fit_region(data: RangeData, settings: SearchSettings, centre, *, prune: bool
     h, w = data.camera.height, data.camera.width
     full_e = _to_image(np.asarray(explained)[order], corner, (h, w))
     full_h = _to_image(np.asarray(hit)[order], corner, (h, w))
+    full_c = _to_image(np.asarray(commission)[order], corner, (h, w))
     gam = np.asarray(gam)[order]
     return RegionFit(
         parts=parts[order],
@@ -575,6 +586,7 @@ def fit_region(data: RangeData, settings: SearchSettings, centre, *, prune: bool
         bits_saved=jnp.asarray(data.encoding.bits_saved(gam)),
         explained=jnp.asarray(full_e),
         rendered=jnp.asarray(full_h),
+        commission=jnp.asarray(full_c),
         ratio=ratio,
         centre=tuple(int(x) for x in np.asarray(centre)),
         corner=tuple(int(x) for x in np.asarray(corner)),

@@ -11,15 +11,16 @@ def _numpy_gamma(rendered, hit, measured, figure, sigma, lam, num_bins):
     difference, best adjacent pair."""
     both = hit & figure & np.isfinite(measured)
     diff = (rendered - measured)[both]
-    if diff.size == 0:
-        mu = 0.0
-    else:
-        half = sigma / 2
-        anchor = diff[0]
-        edges = anchor + (np.arange(num_bins + 1) - num_bins // 2) * half
-        counts, _ = np.histogram(diff, bins=edges)
-        mu = float((counts[:-1] + counts[1:]).max())
-    eps = float((hit & ~figure).sum())
+    half = sigma / 2
+    anchor = diff[0] if diff.size else 0.0
+    edges = anchor + (np.arange(num_bins + 1) - num_bins // 2) * half
+    counts, _ = np.histogram(diff, bins=edges)
+    pairs = counts[:-1] + counts[1:]
+    mu = float(pairs.max())
+    # Commission: hit off the figure, unless a return lies in front of the window [lo, lo + σ).
+    with np.errstate(invalid="ignore"):
+        hidden = np.isfinite(measured) & (rendered - measured > edges[np.argmax(pairs)] + sigma)
+    eps = float((hit & ~figure & ~hidden).sum())
     return mu - lam * eps
 
 
@@ -109,6 +110,27 @@ def test_half_hidden_part_still_scores_its_visible_pixels():
     enc = sqparts.encoding_for(depth)
     g = _gamma_of(hidden, depth, CAM, enc)
     assert visible - 3 <= g <= visible  # occluded pixels are neither explained nor commission
+
+
+def test_commission_spares_pixels_another_figure_hides_but_not_a_surface_behind():
+    part = sqparts.Part(size=[0.12, 0.12, 0.12], position=[0.0, 0.0, 1.0])
+    occluder = sqparts.Part(size=[0.08, 0.2, 0.05], squareness=[0.2, 0.2], position=[0.06, 0.0, 0.8])
+    wall = sqparts.Part(size=[0.5, 0.5, 0.02], squareness=[0.2, 0.2], position=[0.0, 0.0, 1.4])
+    depth, labels = (np.asarray(x) for x in sqparts.render_range_image(sqparts.stack_parts([part, occluder, wall]), CAM, return_labels=True))
+    figure = labels == 0  # the part's own figure: the occluder and the wall are other figures
+    enc = sqparts.encoding_for(depth[figure])
+    visible = int(figure.sum())
+    alone = np.isfinite(np.asarray(sqparts.render_range_image(part, CAM)))
+    assert (alone & (labels == 1)).sum() > 0.25 * alone.sum()  # a quarter hidden by the occluder
+    # Hidden by a figure in front: neither explained nor commission.
+    assert visible - 3 <= _gamma_of(part, depth, CAM, enc, figure) <= visible
+    # A swollen part covers wall pixels behind it: every one of those is commission.
+    big = sqparts.Part(size=[0.15, 0.15, 0.12], position=[0.0, 0.0, 1.0])
+    big_hit = np.isfinite(np.asarray(sqparts.render_range_image(big, CAM)))
+    ring = int((big_hit & (labels == 2)).sum())
+    assert ring > 50
+    g = _gamma_of(big, depth, CAM, enc, figure)
+    assert g <= visible - enc.commission_weight * ring + 3
 
 
 def test_smooth_gamma_approximates_gamma_and_has_gradients():

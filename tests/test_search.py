@@ -90,7 +90,9 @@ def test_fit_region_recovers_the_part(data):
     n = data.figure_mask.sum()
     assert float(fit.gamma[0]) >= 0.9 * n
     assert fit.explained.shape == (4,) + data.figure_mask.shape
-    assert int(fit.explained[0].sum()) == pytest.approx(float(fit.gamma[0]) + 4 * float((fit.rendered[0] & ~data.figure_mask).sum()), abs=1)
+    # Every pixel off the figure has no return here, so nothing hides the part: ε = rendered off the figure.
+    np.testing.assert_array_equal(fit.commission, fit.rendered & ~data.figure_mask)
+    assert int(fit.explained[0].sum()) == pytest.approx(float(fit.gamma[0]) + 4 * float(fit.commission[0].sum()), abs=1)
     got = np.sort(np.asarray(fit.parts[0].size))
     np.testing.assert_allclose(got, np.sort(np.asarray(TRUTH.size)), rtol=0.15)
     assert float(fit.bits_saved[0]) == pytest.approx(data.encoding.bits_saved(float(fit.gamma[0])))
@@ -184,6 +186,23 @@ def test_grow_polish_ignores_an_occluder():
     assert not close[labels == 1].any()  # and none of the plate's
     assert (np.isfinite(rendered) & ~np.isfinite(depth)).sum() <= 0.03 * visible.sum()  # no swelling past the silhouette
     np.testing.assert_allclose(np.asarray(polished.position), np.asarray(TRUTH.position), atol=0.01)
+
+
+def test_grow_polish_lets_a_part_hide_behind_another_figure():
+    # The plate in front is another figure (as figure/ground gives it): its rays must not
+    # push the part out of the plate's outline, only rays with no return may.
+    plate = sqparts.Part(size=[0.3, 0.3, 0.01], squareness=[0.2, 0.2], position=[-0.3, 0.0, 1.7])
+    depth, labels = (np.asarray(x) for x in sqparts.render_range_image(sqparts.stack_parts([TRUTH, plate]), CAM, return_labels=True))
+    whole = np.isfinite(np.asarray(sqparts.render_range_image(TRUTH, CAM)))
+    seed = labels == 0
+    o, d = CAM.rays()
+    polished = sqparts.grow_polish(TRUTH, o, d, jnp.asarray(depth), jnp.asarray(seed), jnp.asarray(seed),
+                                   scale=0.01, rounds=3, steps=15)
+    kept = np.isfinite(np.asarray(sqparts.render_range_image(polished, CAM)))
+    hidden = whole & (labels == 1)
+    assert hidden.sum() > 0.3 * whole.sum()
+    assert (kept & hidden).sum() > 0.95 * hidden.sum()  # the hidden half stays
+    assert (kept & ~whole).sum() <= 0.03 * whole.sum()
 
 
 def test_restart_starts_relabel_the_same_ellipsoid():
