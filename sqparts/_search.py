@@ -514,8 +514,9 @@ def grow_polish(part: Part, origins, directions, depth, figure, seed, *, scale, 
     into neighbours within ``3 scale`` of the surface and fits the support with Cauchy
     weights of width ``scale`` (:func:`polish_part`), while rays off the figure must miss
     the part in front of their return (all along when there is none: a part may hide
-    behind an occluding figure). So a coarse hypothesis walks onto its whole visible surface without jumping
-    to an occluder or a neighbouring part, or swelling past its silhouette.
+    behind an occluding figure). So a coarse hypothesis walks onto its whole visible
+    surface without jumping to an occluder or a neighbouring part, or swelling past its
+    silhouette.
     """
     valid = figure & jnp.isfinite(depth)
     flat = (origins + jnp.where(valid, depth, 0.0)[..., None] * directions).reshape(-1, 3)
