@@ -10,6 +10,9 @@ largest dimension, 2·max a_i). The region's figure is its piece of the rubber s
 it in recovery, so an occluder in front is another figure that hides the part.
 
     python benchmarks/bench_search.py [--cases 16] [--grids coarse default ...]
+
+Case i cycles through the 16 combinations (pinhole or not, variant, deformed or not), so
+``--cases 48`` runs each three times with different random parts.
 """
 
 from __future__ import annotations
