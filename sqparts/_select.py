@@ -173,35 +173,49 @@ def select_exact(problem: SelectionProblem, *, time_limit: float = 30.0) -> tupl
         return np.zeros(0, bool), True
     q = problem.pairwise
     pairs = [(i, j) for i, j in zip(*np.triu_indices(n, 1)) if abs(q[i, j]) > 1e-12]
-    h = highspy.Highs()
-    h.setOptionValue("output_flag", False)
-    h.setOptionValue("time_limit", float(time_limit))
-    m = n + len(pairs)
-    inf = highspy.kHighsInf
-    h.addVars(m, np.zeros(m), np.ones(m))
-    cost = np.concatenate([problem.linear, [2.0 * q[i, j] for i, j in pairs]])
-    h.changeColsCost(m, np.arange(m, dtype=np.int32), cost)
-    h.changeColsIntegrality(n, np.arange(n, dtype=np.int32), np.array([highspy.HighsVarType.kInteger] * n))
-    for k, (i, j) in enumerate(pairs):
-        y = n + k
-        if q[i, j] > 0:  # y >= x_i + x_j - 1
-            h.addRow(-1.0, inf, 3, np.array([y, i, j], np.int32), np.array([1.0, -1.0, -1.0]))
-        else:  # y <= x_i, y <= x_j
-            h.addRow(-inf, 0.0, 2, np.array([y, i], np.int32), np.array([1.0, -1.0]))
-            h.addRow(-inf, 0.0, 2, np.array([y, j], np.int32), np.array([1.0, -1.0]))
+
+    def solve(start):
+        h = highspy.Highs()
+        h.setOptionValue("output_flag", False)
+        h.setOptionValue("time_limit", float(time_limit))
+        m = n + len(pairs)
+        inf = highspy.kHighsInf
+        h.addVars(m, np.zeros(m), np.ones(m))
+        cost = np.concatenate([problem.linear, [2.0 * q[i, j] for i, j in pairs]])
+        h.changeColsCost(m, np.arange(m, dtype=np.int32), cost)
+        h.changeColsIntegrality(n, np.arange(n, dtype=np.int32), np.array([highspy.HighsVarType.kInteger] * n))
+        for k, (i, j) in enumerate(pairs):
+            y = n + k
+            if q[i, j] > 0:  # y >= x_i + x_j - 1
+                h.addRow(-1.0, inf, 3, np.array([y, i, j], np.int32), np.array([1.0, -1.0, -1.0]))
+            else:  # y <= x_i, y <= x_j
+                h.addRow(-inf, 0.0, 2, np.array([y, i], np.int32), np.array([1.0, -1.0]))
+                h.addRow(-inf, 0.0, 2, np.array([y, j], np.int32), np.array([1.0, -1.0]))
+        if start is not None:
+            sol = highspy.HighsSolution()
+            sol.col_value = list(np.concatenate([start, [start[i] * start[j] for i, j in pairs]]))
+            h.setSolution(sol)
+        h.run()
+        values = np.asarray(h.getSolution().col_value[:n])
+        if values.size != n:
+            return None, False, False
+        x = values > 0.5
+        optimal = h.getModelStatus() == highspy.HighsModelStatus.kOptimal
+        # The returned columns must have the objective HiGHS reports: highspy 1.16
+        # returns the start instead of its optimum after presolve.
+        consistent = abs(problem.energy(x) - problem.constant - h.getInfo().objective_function_value) <= 1e-6 * (
+            1.0 + abs(h.getInfo().objective_function_value)
+        )
+        return x, optimal, consistent
+
     # Start from the best-first selection: its E bounds the branch and bound at once.
-    start = select_best_first(problem).astype(np.float64)
-    y0 = [start[i] * start[j] for i, j in pairs]
-    sol = highspy.HighsSolution()
-    sol.col_value = list(np.concatenate([start, y0]))
-    h.setSolution(sol)
-    h.run()
-    status = h.getModelStatus()
-    values = np.asarray(h.getSolution().col_value[:n])
-    if values.size != n:
-        return select_best_first(problem), False
-    x = values > 0.5
-    return x, status == highspy.HighsModelStatus.kOptimal
+    greedy = select_best_first(problem)
+    x, optimal, consistent = solve(greedy.astype(np.float64))
+    if x is not None and not consistent:
+        x, optimal, consistent = solve(None)
+    if x is None or not consistent:
+        return greedy, False
+    return x, optimal
 
 
 def select_brute_force(problem: SelectionProblem) -> np.ndarray:
