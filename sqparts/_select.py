@@ -203,9 +203,8 @@ def select_exact(problem: SelectionProblem, *, time_limit: float = 30.0) -> tupl
         optimal = h.getModelStatus() == highspy.HighsModelStatus.kOptimal
         # The returned columns must have the objective HiGHS reports: highspy 1.16
         # returns the start instead of its optimum after presolve.
-        consistent = abs(problem.energy(x) - problem.constant - h.getInfo().objective_function_value) <= 1e-6 * (
-            1.0 + abs(h.getInfo().objective_function_value)
-        )
+        objective = h.getInfo().objective_function_value
+        consistent = abs(problem.energy(x) - problem.constant - objective) <= 1e-6 * (1.0 + abs(objective))
         return x, optimal, consistent
 
     # Start from the best-first selection: its E bounds the branch and bound at once.
