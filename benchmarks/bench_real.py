@@ -104,6 +104,8 @@ def main():
             "ground_normal": None if not fg or fg.ground is None else fg.ground.normal.tolist(),
             "figures": len(rec.figures),
             "parts_per_figure": [len(r.parts) for r in rec.figures],
+            "pixels_per_figure": [int(r.figure.sum()) for r in rec.figures],
+            "explained_per_figure": [r.fraction_explained for r in rec.figures],
             "parts": len(rec.parts),
             "fraction_explained": rec.fraction_explained,
             "commission": rec.commission_fraction,

@@ -255,16 +255,20 @@ class Plane:
         return {"normal": [float(x) for x in self.normal], "offset": float(self.offset)}
 
 
-def fit_plane(points, *, threshold: float, iterations: int = 256, sample: int = 4096, seed: int = 0) -> tuple[Plane, np.ndarray]:
+def fit_plane(
+    points, *, threshold: float, iterations: int = 256, sample: int = 4096, seed: int = 0, triples=None
+) -> tuple[Plane, np.ndarray]:
     """RANSAC plane through points (N, 3), refitted by least squares to its inliers
-    (distance ≤ ``threshold``); returns (plane, inlier mask). Deterministic for a seed."""
+    (distance ≤ ``threshold``); returns (plane, inlier mask). Deterministic for a seed.
+    The candidate planes pass through ``iterations`` random triples of the points, or
+    through the given ``triples`` (k, 3) of indices into them."""
     _check_positive("threshold", threshold)
     p = np.asarray(points, np.float64)
     if p.ndim != 2 or p.shape[1] != 3 or len(p) < 3:
         raise ValueError(f"points: expected at least 3 points of shape (N, 3), got {p.shape}")
     rng = np.random.default_rng(seed)
     test = p if len(p) <= sample else p[rng.choice(len(p), sample, replace=False)]
-    tri = p[rng.integers(0, len(p), (iterations, 3))]
+    tri = p[rng.integers(0, len(p), (iterations, 3)) if triples is None else np.asarray(triples)]
     n = np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0])
     norm = np.linalg.norm(n, axis=1)
     ok = norm > 1e-12
@@ -287,6 +291,31 @@ def fit_plane(points, *, threshold: float, iterations: int = 256, sample: int = 
         normal, offset = -normal, -offset
     plane = Plane(normal / np.linalg.norm(normal), float(offset))
     return plane, np.abs(plane.distance(p)) <= threshold
+
+
+def _frame_triples(rest: np.ndarray, frame: np.ndarray, *, iterations: int = 256, seed: int = 0) -> np.ndarray | None:
+    """(k, 3) indices into the returns ``rest`` (in ``np.nonzero`` order) of local
+    triples, each a pixel on the ``frame`` and two more within a sixth of the image of it:
+    a background plane's candidates run off the image, and local triples lie on one
+    surface far more often than random ones (a frame alone, nearly a line along one
+    edge, would leave the plane's tilt to chance)."""
+    index = np.full(rest.shape, -1, np.int64)
+    index[rest] = np.arange(int(rest.sum()))
+    seeds = np.argwhere(rest & frame)
+    if len(seeds) == 0:
+        return None
+    h, w = rest.shape
+    radius = max(3, min(h, w) // 6)
+    rng = np.random.default_rng(seed)
+    out = []
+    for r, c in seeds[rng.integers(0, len(seeds), iterations)]:
+        rr = np.clip(r + rng.integers(-radius, radius + 1, 32), 0, h - 1)
+        cc = np.clip(c + rng.integers(-radius, radius + 1, 32), 0, w - 1)
+        near = np.unique(index[rr, cc])
+        near = near[(near >= 0) & (near != index[r, c])]
+        if len(near) >= 2:
+            out.append([index[r, c], *rng.choice(near, 2, replace=False)])
+    return np.asarray(out, np.int64) if out else None
 
 
 def _outer_frame(valid: np.ndarray, width: int = 3) -> np.ndarray:
@@ -338,7 +367,7 @@ def figure_ground(
     depth,
     camera: Camera,
     *,
-    planes: int = 2,
+    planes: int = 3,
     plane_threshold: float | None = None,
     min_plane_fraction: float = 0.1,
     tear: float = DEFAULT_TEAR,
@@ -349,10 +378,11 @@ def figure_ground(
 ) -> FigureGround:
     """Separate figures from ground.
 
-    Up to ``planes`` background planes are removed: each is the RANSAC plane of the
-    returns on the outer frame of the measured area (a table, floor or wall runs off the
-    image; an object's face does not), kept if it holds at least ``min_plane_fraction``
-    of the remaining returns and 5% of the frame. Returns within
+    Up to ``planes`` background planes are removed (a table or floor and the two walls
+    of a corner): each is the RANSAC plane of the remaining returns through local triples
+    that start on the outer frame of the measured area (a table, floor or wall runs off
+    the image; an object's face does not), kept if it holds at least
+    ``min_plane_fraction`` of the remaining returns and 5% of the frame. Returns within
     ``plane_threshold`` (default: 1% of the median depth, at least 3 depth quanta) of a
     plane, or below the ground plane, are background; with ``max_height`` so is everything farther than that above the ground
     (the paper's "cube of data"). The rest is torn into pieces at depth discontinuities
@@ -384,7 +414,10 @@ def figure_ground(
             break
         if (rest & frame).sum() < 3:
             break
-        plane, _ = fit_plane(pts[rest & frame], threshold=plane_threshold, seed=seed + len(found))
+        triples = _frame_triples(rest, frame, seed=seed + len(found))
+        if triples is None:
+            break
+        plane, _ = fit_plane(pts[rest], threshold=plane_threshold, seed=seed + len(found), triples=triples)
         with np.errstate(invalid="ignore"):
             inl = rest & (np.abs(plane.distance(pts)) <= plane_threshold)
         if inl.sum() < min_plane_fraction * rest.sum() or (inl & frame).sum() < 0.05 * frame.sum():

@@ -392,7 +392,7 @@ def recover_scene(
     clean: bool = True,
     figure_ground: bool = True,
     tear: float | None = None,
-    planes: int = 2,
+    planes: int = 3,
     plane_threshold: float | None = None,
     min_figure_pixels: int | None = None,
     max_figures: int | None = None,

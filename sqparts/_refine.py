@@ -14,8 +14,9 @@ the paper's accept-if-improved descent. Then a part that spans two (a torso with
 pelvis) is split in two along its axis, blobs of unexplained pixels are searched again
 at their own scale for the parts the first search missed (each new small part settled
 by a pattern search on E itself), a part that no longer pays for its bits is dropped,
-and two adjacent parts are merged when one bent part encodes them more cheaply
-(section 4.1); each only when E falls. Every stage takes and returns the
+and adjacent parts are merged when one part encodes them more cheaply: two into one bent
+part (section 4.1), or a group into one part started from its pixels' moments (a flat
+box for a laptop seen as patches); each only when E falls. Every stage takes and returns the
 joint rendering's :class:`EncodingCost`, whose per-part depth layers let a trial
 re-render only the parts it changes.
 """
@@ -570,6 +571,61 @@ def _merge_candidates(a: np.ndarray, b: np.ndarray) -> np.ndarray:
                        for bend in (-0.3, 0.0, 0.3)], np.float32)
 
 
+def _moment_candidates(points: np.ndarray, sigma: float) -> np.ndarray:
+    """(6, 14) vectors of single parts summarising the 3-D surface ``points`` (n, 3) from
+    their moments: centred on them, axes along their principal directions (longest = z,
+    least = y, nearly the viewing direction of a visible surface), semi-axes half their
+    2-98% extents. The depth (y) semi-axis is either thin (a plate: a laptop lid, a
+    table top) or as deep as the part is wide (a solid seen from one side), its centre
+    then pushed back from the camera; box-like, round or a cylinder, not deformed."""
+    from scipy.spatial.transform import Rotation
+
+    p = np.asarray(points, np.float64)
+    c = p.mean(axis=0)
+    _, vecs = np.linalg.eigh(np.cov((p - c).T))
+    axes = vecs[:, ::-1]  # columns: longest, middle, least
+    lo, hi = np.percentile((p - c) @ axes, [1, 99], axis=0)
+    mid = c + axes @ ((lo + hi) / 2)
+    half = np.maximum((hi - lo) / 2 / 0.98, sigma / 2)  # exact for a uniformly covered face
+    z, x, y = axes[:, 0], axes[:, 1], axes[:, 2]
+    if y @ mid < 0:  # y away from the camera
+        y = -y
+    def rotvec(x, y, z):
+        frame = np.stack([x, y, z], 1)
+        if np.linalg.det(frame) < 0:
+            frame[:, 0] = -frame[:, 0]
+        return Rotation.from_matrix(frame).as_rotvec()
+
+    along, across = rotvec(x, y, z), rotvec(z, y, x)  # the local z axis along the longest or the middle axis
+    thin, deep = sigma / 2, half[1]
+    out = []
+    # A plate's face on the points' mid-plane (rectangular or elliptical outline: ε1);
+    # a solid's front on their nearest points: a box, an ellipsoid, a cylinder (a mug's
+    # body) standing along either axis.
+    for depth, front, e1, e2, rv, a1, a3 in (
+        (thin, 0.0, 0.1, 0.1, along, half[1], half[0]),
+        (thin, 0.0, 1.0, 0.1, along, half[1], half[0]),
+        (deep, half[2], 0.1, 0.1, along, half[1], half[0]),
+        (deep, half[2], 1.0, 1.0, along, half[1], half[0]),
+        (deep, half[2], 0.1, 1.0, along, half[1], half[0]),
+        (half[0], half[2], 0.1, 1.0, across, half[0], half[1]),
+    ):
+        centre = mid + y * (depth - front)
+        out.append([*centre, *rv, a1, depth, a3, e1, e2, 0.0, 0.0, 0.0])
+    return np.asarray(out, np.float32)
+
+
+def _part_groups(adjacent: np.ndarray) -> list[tuple]:
+    """Groups of two or more parts that one part might summarise: each part with its
+    neighbours, and each connected set of adjacent parts (``adjacent``: (n, n) bool)."""
+    from scipy.sparse.csgraph import connected_components
+
+    _, comp = connected_components(adjacent, directed=False)
+    groups = {tuple(np.flatnonzero(adjacent[i] | (np.arange(len(adjacent)) == i))) for i in range(len(adjacent))}
+    groups |= {tuple(np.flatnonzero(comp == k)) for k in np.unique(comp)}
+    return sorted(g for g in groups if len(g) >= 2)
+
+
 @jax.jit
 def _surface_distance(parts, points):
     return jax.vmap(lambda p: jax.vmap(lambda x: surface_distance(p, x))(points))(parts)
@@ -587,55 +643,67 @@ def _distances(parts: Part, points) -> np.ndarray:
 def merge_adjacent(
     parts: Part, data: RangeData, costs: Costs, *, steps: int = 20, tries: int = 3, cost: EncodingCost | None = None
 ):
-    """Replace two adjacent parts by one bent part when that lowers E (section 4.1).
+    """Replace adjacent parts by one part when that lowers E (section 4.1).
 
-    Every adjacent pair gets bent single-part starts, all fitted by batched LM calls
-    to the pair's explained pixels; the ``tries`` best fits (by the share of the pair's
-    points within σ/2 of their surface) are tried in the joint rendering."""
+    Every adjacent pair gets bent single-part starts (:func:`_merge_candidates`), and
+    every group of adjacent parts (:func:`_part_groups`: a part with its neighbours, a
+    connected set) gets starts from the moments of its pixels (:func:`_moment_candidates`:
+    a laptop seen as five rounded patches is one flat box). All are fitted by batched LM
+    calls to their parts' explained pixels; the ``tries`` best pair fits (by the share of
+    the pair's points within σ/2 of their surface) and every group start, as it is and
+    fitted, are tried in the joint rendering (the radial distances that the fits minimise
+    thicken a thin plate, and rank it poorly), and the lowest E is kept if it is below
+    the current one."""
     from scipy.ndimage import binary_dilation
 
     cost = encoding_cost(parts, data, costs) if cost is None else cost
     pts, idx = _figure_points(data)
     rays, ray_index = _background_rays(data)
+    at = np.maximum(idx, 0)
     merged = True
     while merged and len(parts) > 1:
         merged = False
         n = len(parts)
         grown = [binary_dilation(cost.labels == i, iterations=2) for i in range(n)]
+        adjacent = np.array([[i != j and (grown[i] & (cost.labels == j)).any() for j in range(n)] for i in range(n)])
+        adjacent |= adjacent.T
         vec = _vectors(parts)
-        inits, weights, ray_weights, pairs = [], [], [], []
-        for i in range(n):
-            for j in range(i + 1, n):
-                if not (grown[i] & (cost.labels == j)).any():
-                    continue
-                union = ((cost.labels == i) | (cost.labels == j)) & cost.explained_mask
-                w = np.where(idx >= 0, union.reshape(-1)[np.maximum(idx, 0)], False).astype(np.float32)
-                if w.sum() < 8:
-                    continue
-                wr = _rays_near((cost.labels == i) | (cost.labels == j), ray_index, 5)
-                for init in _merge_candidates(vec[i], vec[j]):
-                    inits.append(init)
-                    weights.append(w)
-                    ray_weights.append(wr)
-                    pairs.append((i, j))
+        inits, weights, ray_weights, members = [], [], [], []
+
+        def add(group, starts):
+            union = np.isin(cost.labels, group) & cost.explained_mask
+            w = np.where(idx >= 0, union.reshape(-1)[at], False).astype(np.float32)
+            if w.sum() < 8:
+                return
+            wr = _rays_near(np.isin(cost.labels, group), ray_index, 5)
+            for init in starts(w):
+                inits.append(init)
+                weights.append(w)
+                ray_weights.append(wr)
+                members.append(tuple(group))
+
+        for i, j in zip(*np.nonzero(np.triu(adjacent))):
+            add((i, j), lambda w: _merge_candidates(vec[i], vec[j]))
+        n_pairs = len(inits)
+        for group in _part_groups(adjacent):
+            add(group, lambda w: _moment_candidates(pts[w > 0], data.encoding.sigma))
         if not inits:
             break
         w_all = np.stack(weights)
         fitted = _polish_all(_host_parts(np.stack(inits)), pts, w_all, steps, rays, np.stack(ray_weights))
         fitted_vec = _vectors(fitted)
         # Share of each pair's points within σ/2 of the fitted surface (no rendering).
-        dist = _distances(fitted, pts)
-        close = (np.abs(np.asarray(dist)) <= data.encoding.sigma / 2) * w_all
-        share = close.sum(1) / np.maximum(w_all.sum(1), 1)
+        dist = _distances(_host_parts(fitted_vec[:n_pairs]), pts) if n_pairs else np.zeros((0, len(pts)))
+        share = ((np.abs(dist) <= data.encoding.sigma / 2) * w_all[:n_pairs]).sum(1) / np.maximum(w_all[:n_pairs].sum(1), 1)
         best = np.argsort(-share)[:tries]
-        for k, layer in zip(best, render_each(fitted_vec[best], data.camera)):
-            i, j = pairs[k]
-            keep = [q for q in range(n) if q not in (i, j)]
-            trial = _host_parts(np.concatenate([vec[keep], fitted_vec[k : k + 1]]))
-            c = layers_cost(np.concatenate([cost.layers[keep], layer[None]]), data, costs)
+        trials = np.concatenate([fitted_vec[best], fitted_vec[n_pairs:], np.stack(inits)[n_pairs:]])
+        groups = [members[k] for k in best] + members[n_pairs:] * 2
+        base = cost
+        for vector, group, layer in zip(trials, groups, render_each(trials, data.camera)):
+            keep = [q for q in range(n) if q not in group]
+            c = layers_cost(np.concatenate([base.layers[keep], layer[None]]), data, costs)
             if c.total < cost.total - 1e-9:
-                parts, cost, merged = trial, c, True
-                break
+                parts, cost, merged = _host_parts(np.concatenate([vec[keep], vector[None]])), c, True
     return parts, cost
 
 

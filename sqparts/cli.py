@@ -251,7 +251,7 @@ def build_parser() -> argparse.ArgumentParser:
                    help="keep flying pixels and isolated outliers")
     g.add_argument("--no-figure-ground", dest="figure_ground", action="store_false",
                    help="no plane removal or splitting: the whole image is one figure")
-    g.add_argument("--planes", type=int, default=2, help="background planes (table, floor, wall) to remove")
+    g.add_argument("--planes", type=int, default=3, help="background planes (table or floor and the walls of a corner) to remove")
     g.add_argument("--tear", type=float, default=None,
                    help="depth jump, in pixel footprints, that separates figures (default 8)")
     g.add_argument("--min-figure-pixels", type=int, default=None, help="smallest figure kept")

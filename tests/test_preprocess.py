@@ -123,6 +123,33 @@ def test_figure_ground_plane_plus_parts(table_scene):
     assert (fg.labels[table_only] >= 0).mean() < 0.005
 
 
+def test_figure_ground_room_corner():
+    # Two parts on a table in the corner of two walls: each background plane meets the
+    # image frame along one edge only (nearly a line), and all three are removed.
+    e1 = np.array([1.0, 0.0, 0.0])
+    e2 = np.cross(TABLE_N, e1)
+    middle = np.array([0.0, 0.0, TABLE_D / np.sin(np.radians(40))])
+    walls = []
+    for normal, point in ((e2, middle + 0.3 * e2), (e1, middle + 0.38 * e1)):
+        offset = -normal @ point  # the camera inside the room: on every plane's + side
+        walls.append((normal, offset) if offset > 0 else (-normal, -offset))
+    parts = sqparts.stack_parts([on_table((-0.2, 0.0), 0.12, 0.07), on_table((0.15, -0.1), 0.09, 0.1)])
+    depth_parts, labels = (np.asarray(a) for a in sqparts.render_range_image(parts, CAM, return_labels=True))
+    room = np.fmin.reduce([plane_depth(CAM, TABLE_N, TABLE_D)] + [plane_depth(CAM, n, d) for n, d in walls])
+    depth = np.fmin(depth_parts, room).astype(np.float32)
+    truth = [(labels == i) & (depth_parts <= room) for i in range(2)]
+    fg = sqparts.figure_ground(depth, CAM)
+    assert len(fg.planes) == 3
+    for normal, offset in [(TABLE_N, TABLE_D)] + walls:
+        found = [p for p in fg.planes if p.normal @ normal > np.cos(np.radians(1.0))]
+        assert len(found) == 1 and abs(found[0].offset - offset) < 0.01, ([p.to_json() for p in fg.planes], normal)
+    np.testing.assert_allclose(fg.up, TABLE_N, atol=1e-2)
+    assert len(fg.figures) == 2
+    for mask in fg.figures:
+        ious = [(mask & t).sum() / (mask | t).sum() for t in truth]
+        assert max(ious) > 0.9, ious
+
+
 def test_figure_ground_without_ground_keeps_everything(table_scene):
     depth, truth = table_scene
     parts_only = np.where(truth[0] | truth[1], depth, np.nan)

@@ -254,3 +254,33 @@ def test_refinement_merges_two_halves_of_a_bent_part():
     assert (one_cost.explained_mask & (truth == 0)).sum() >= 0.9 * (truth == 0).sum()
     assert one_cost.commission <= 0.02 * data.figure_mask.sum()
     assert abs(float(one.bend[0, 0])) >= 0.1
+
+
+def test_refinement_summarises_a_plate_seen_as_patches():
+    # A thin tilted plate (a laptop lid), started as four rounded patches, one per
+    # quadrant: merging by moments replaces all four by one flat box-like part at a
+    # lower E. References: the truth's own pixels, its normal and semi-axes.
+    from scipy.spatial.transform import Rotation
+
+    cam = sqparts.PinholeCamera(64, 64, 280.0, 280.0, 31.5, 31.5)
+    rot = Rotation.from_euler("xy", [30, -20], degrees=True)
+    centre = np.array([0.0, 0.0, 2.0])
+    truth_part = sqparts.Part(size=[0.1, 0.004, 0.14], squareness=[0.1, 0.1], position=centre, orientation=rot.as_rotvec())
+    depth, truth = (np.asarray(a) for a in sqparts.render_range_image(sqparts.stack_parts([truth_part]), cam, return_labels=True))
+    data = sqparts.prepare(depth, cam)
+    costs = sqparts.Costs.from_encoding(data.encoding, int(data.figure_mask.sum()))
+    m = rot.as_matrix()
+    patches = sqparts.stack_parts([
+        sqparts.Part(size=[0.05, 0.02, 0.07], position=centre + m @ [sx * 0.05, 0.02, sz * 0.07], orientation=rot.as_rotvec())
+        for sx in (-1, 1) for sz in (-1, 1)
+    ])
+    kw = dict(rounds=1, split=False)
+    four, four_cost, _ = sqparts.refine_parts(patches, data, costs, merge=False, **kw)
+    one, one_cost, _ = sqparts.refine_parts(patches, data, costs, merge=True, **kw)
+    assert len(four) == 4 and len(one) == 1 and one_cost.total < four_cost.total
+    assert (one_cost.explained_mask & (truth == 0)).sum() >= 0.95 * (truth == 0).sum()
+    assert one_cost.commission <= 0.05 * data.figure_mask.sum()
+    size = np.sort(np.asarray(one.size[0]))
+    np.testing.assert_allclose(size[1:], [0.1, 0.14], rtol=0.1)
+    thin = Rotation.from_rotvec(np.asarray(one.orientation[0])).as_matrix()[:, int(np.argmin(np.asarray(one.size[0])))]
+    assert np.degrees(np.arccos(min(1.0, abs(thin @ m[:, 1])))) < 3.0
