@@ -574,8 +574,8 @@ def _merge_candidates(a: np.ndarray, b: np.ndarray) -> np.ndarray:
 def _moment_candidates(points: np.ndarray, sigma: float) -> np.ndarray:
     """(6, 14) vectors of single parts summarising the 3-D surface ``points`` (n, 3) from
     their moments: centred on them, axes along their principal directions (longest = z,
-    least = y, nearly the viewing direction of a visible surface), semi-axes half their
-    2-98% extents. The depth (y) semi-axis is either thin (a plate: a laptop lid, a
+    least = y, nearly the viewing direction of a visible surface), semi-axes from their
+    1-99% extents. The depth (y) semi-axis is either thin (a plate: a laptop lid, a
     table top) or as deep as the part is wide (a solid seen from one side), its centre
     then pushed back from the camera; box-like, round or a cylinder, not deformed."""
     from scipy.spatial.transform import Rotation
@@ -590,6 +590,7 @@ def _moment_candidates(points: np.ndarray, sigma: float) -> np.ndarray:
     z, x, y = axes[:, 0], axes[:, 1], axes[:, 2]
     if y @ mid < 0:  # y away from the camera
         y = -y
+
     def rotvec(x, y, z):
         frame = np.stack([x, y, z], 1)
         if np.linalg.det(frame) < 0:
