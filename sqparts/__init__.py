@@ -58,7 +58,7 @@ from ._select import (
     select_exact,
     select_parts,
 )
-from ._refine import EncodingCost, encoding_cost, refine_parts
+from ._refine import EncodingCost, encoding_cost, refine_parts, select_rendered
 from ._recover import MultiscaleRecovery, Recovery, SceneRecovery, recover, recover_multiscale, recover_scene
 from ._postprocess import (
     FractalSurface,
@@ -149,6 +149,7 @@ __all__ = [
     "EncodingCost",
     "encoding_cost",
     "refine_parts",
+    "select_rendered",
     "Recovery",
     "recover",
     "SceneRecovery",

@@ -24,7 +24,7 @@ import numpy as np
 from ._camera import Camera
 from ._fit import Encoding
 from ._part import Part, stack_parts
-from ._refine import EncodingCost, encoding_cost, part_statistics, refine_parts
+from ._refine import EncodingCost, _pixel_errors, encoding_cost, part_statistics, refine_parts, render_each, select_rendered
 from ._render import render_range_image
 from ._search import RangeData, fit_image
 from ._select import Costs, SelectionProblem, select_parts
@@ -158,7 +158,9 @@ def recover(
     figure : optional (H, W) bool mask of the figure (default: every return).
     grid : a :class:`~sqparts.Grid` or preset name (``"coarse"``, ``"default"``, ``"fine"``).
     max_size : largest semi-axis searched (default: a quarter of the figure's largest extent).
-    selection : ``"auto"``, ``"exact"`` or ``"best-first"``.
+    selection : ``"auto"``, ``"exact"`` or ``"best-first"``: how Eq. (7)'s quadratic is
+        minimised; its choice is then corrected on E counted in the candidates' joint
+        rendering (:func:`~sqparts.select_rendered`).
     refine_rounds : rounds of joint polishing (0 = none); then ``split`` allows a part to
         be split in two along its axis, ``fill`` searches the blobs of pixels still
         unexplained again at their own scale (for small parts: hands, feet), ``merge``
@@ -185,11 +187,12 @@ def recover(
     jax.block_until_ready([f.gamma for f in fits])
     t1 = time.perf_counter()
     costs = Costs.from_encoding(data.encoding, int(data.figure_mask.sum()))
-    parts, explained, commission = _candidates(fits, data)
+    parts, layers, explained, commission = _candidates(fits, data)
     if parts is None:
         raise ValueError("depth: the search found no part that explains any pixel")
     problem = SelectionProblem.from_masks(explained, commission, costs)
     chosen, method = select_parts(problem, method=selection)
+    chosen = select_rendered(layers, data, costs, start=chosen)
     if not chosen.any():
         chosen[int(np.argmax([f.sum() for f in explained]))] = True
     initial = parts[np.flatnonzero(chosen)]
@@ -240,18 +243,20 @@ def recover(
 
 
 def _candidates(fits, data: RangeData):
-    """All regions' candidates with Γ > 0 as one batch, their explained and commission masks."""
-    parts, explained, commission = [], [], []
-    for f in fits:
-        for i in range(len(f.gamma)):
-            if float(f.gamma[i]) <= 0:
-                continue
-            parts.append(f.parts[i])
-            explained.append(np.asarray(f.explained[i]))
-            commission.append(np.asarray(f.commission[i]))
+    """All regions' candidates with Γ > 0 as one batch: the parts, their depth layers
+    over the whole image (:func:`~sqparts._refine.render_each`) and their explained and
+    commission masks by the joint encoding's rule (:func:`~sqparts._refine._pixel_errors`):
+    a polished part may outgrow the window it was searched in, and its commission
+    outside the window counts in E all the same."""
+    parts = [f.parts[i] for f in fits for i in range(len(f.gamma)) if float(f.gamma[i]) > 0]
     if not parts:
-        return None, None, None
-    return stack_parts(parts), np.stack(explained), np.stack(commission)
+        return None, None, None, None
+    parts = stack_parts(parts)
+    layers = render_each(parts.to_vector(), data.camera)
+    with np.errstate(invalid="ignore"):
+        explained, commission = _pixel_errors(np.isfinite(layers), layers, data.image[None], data.figure_region[None],
+                                              data.encoding.sigma)
+    return parts, layers, explained, commission
 
 
 # --- real scenes: clean-up, figure/ground, one recovery per figure ----------------------

@@ -154,6 +154,50 @@ def _count(n: int, rendered, labels, data: RangeData, costs: Costs, layers=None)
     return EncodingCost(float(costs.total(n, e, c)), n, e, c, costs.figure_pixels - e, rendered.astype(np.float32), labels, explained, commission, layers)
 
 
+def _layer_counts(depth: np.ndarray, data: RangeData) -> tuple[np.ndarray, np.ndarray]:
+    """Explained and commission pixel counts of rendered depth (..., H, W) (inf = miss)."""
+    with np.errstate(invalid="ignore"):
+        e, c = _pixel_errors(np.isfinite(depth), depth, data.image, data.figure_region, data.encoding.sigma)
+    return e.sum((-2, -1)), c.sum((-2, -1))
+
+
+def select_rendered(layers: np.ndarray, data: RangeData, costs: Costs, *, start=None, chunk: int = 32) -> np.ndarray:
+    """Best-first selection on E counted in the joint rendering of the candidates' depth
+    ``layers`` (n, H, W; :func:`render_each`): a pixel explained by several parts counts
+    once, a part hidden behind another explains nothing there. Eq. (7)'s area matrices
+    count only pairwise overlaps: where many swollen candidates overlap they credit
+    commission shared by k parts k(k-1)/2 times, and the quadratic optimum can be far
+    from the true E. From ``start`` (a bool selection, e.g. the quadratic's) and from
+    nothing, the single addition or removal that lowers E most is made until none does;
+    the better end is returned (bool (n,))."""
+    n = len(layers)
+    empty = np.full(layers.shape[1:], np.inf, np.float32)
+    best, best_e = None, np.inf
+    seeds = [np.zeros(n, bool)] + ([np.asarray(start, bool).copy()] if start is not None else [])
+    for x in seeds:
+        while True:
+            cur = layers[x].min(0) if x.any() else empty
+            k = int(x.sum())
+            e_now = costs.total(k, *_layer_counts(cur, data))
+            add = np.concatenate([costs.total(k + 1, *_layer_counts(np.minimum(cur, layers[j : j + chunk]), data))
+                                  for j in range(0, n, chunk)])
+            add[x] = np.inf
+            on = np.flatnonzero(x)
+            drop = np.array([costs.total(k - 1, *_layer_counts(layers[np.delete(on, i)].min(0) if k > 1 else empty, data))
+                             for i in range(k)])
+            a = int(np.argmin(add))
+            d = int(np.argmin(drop)) if k else -1
+            if k and drop[d] <= add[a] and drop[d] < e_now - 1e-9:
+                x[on[d]] = False
+            elif add[a] < e_now - 1e-9:
+                x[a] = True
+            else:
+                break
+        if e_now < best_e:
+            best, best_e = x, e_now
+    return best
+
+
 def part_statistics(parts: Part, data: RangeData, cost: EncodingCost) -> list[dict]:
     """Per part, in the joint rendering: visible pixels, μ (explained), ε (commission),
     Γ = μ - λε and bits saved (Eq. 5)."""
@@ -386,14 +430,27 @@ def split_parts(
     return parts, cost
 
 
+def omitted_blobs(omitted: np.ndarray) -> tuple[np.ndarray, int]:
+    """Label the blobs of a mask of unexplained pixels: the 8-connected sets of its
+    pixels whose 3x3 neighbourhoods lie in the mask (at least 3 pixels thick), each with
+    its one-pixel rim. Slivers along the parts' outlines belong to no blob and do not
+    join two blobs (a teapot's lid to its handle). Returns (labels (H, W), 0 = none;
+    count)."""
+    from scipy.ndimage import binary_erosion, grey_dilation, label
+
+    omitted = np.asarray(omitted, bool)
+    square = np.ones((3, 3), bool)
+    cores, count = label(binary_erosion(omitted, structure=square), structure=square)
+    return np.where(omitted, grey_dilation(cores, footprint=square), 0), count
+
+
 def fill_gaps(
     parts: Part, data: RangeData, costs: Costs, settings, *, steps: int = 20, rounds: int = 3, blobs: int = 4,
     cost: EncodingCost | None = None,
 ):
     """Search the figure's unexplained blobs for parts the first search missed (a hand, a
-    foot: too small for the scales searched around the skeleton): the ``blobs`` largest
-    connected sets of unexplained figure pixels that could pay for a part (and are at
-    least 3 pixels thick: not slivers along a part's edge) are searched again with
+    foot, a teapot's lid: too small for the scales searched around the skeleton): the
+    ``blobs`` largest :func:`omitted_blobs` that could pay for a part are searched again with
     :func:`~sqparts._search.fit_region` at their innermost pixel, ``max_size`` 3/4 of
     the blob's extent across the image (same window and grid: nothing is recompiled);
     each candidate is grown by ``rounds`` of region growing beside the current parts,
@@ -401,14 +458,14 @@ def fill_gaps(
     commission outweighs the few a hand explains), and they are added, largest gain
     first, when E falls. ``settings`` are the first search's
     :class:`~sqparts.SearchSettings`."""
-    from scipy.ndimage import distance_transform_edt, label
+    from scipy.ndimage import distance_transform_edt
 
     from ._search import fit_region
 
     cost = encoding_cost(parts, data, costs) if cost is None else cost
     least = _least_pixels(costs)
     omitted = data.figure_mask & ~cost.explained_mask
-    blob_labels, count = label(omitted, structure=np.ones((3, 3)))
+    blob_labels, count = omitted_blobs(omitted)
     if count == 0:
         return parts, cost
     sizes = np.bincount(blob_labels.ravel(), minlength=count + 1)[1:]
@@ -417,7 +474,7 @@ def fill_gaps(
     found, owner = [], []
     for b in np.argsort(-sizes, kind="stable")[:blobs]:
         blob = blob_labels == b + 1
-        if sizes[b] < least or inner[blob].max() < 1.5:
+        if sizes[b] < least:
             continue
         centre = np.unravel_index(int(np.argmax(np.where(blob, inner, -1.0))), blob.shape)
         rows, cols = np.nonzero(blob)

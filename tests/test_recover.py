@@ -112,6 +112,57 @@ def test_adding_a_part_by_merging_renderings_matches_rendering_the_scene(depth):
         assert np.array_equal(merged.labels, full.labels)
 
 
+def test_selection_on_the_joint_rendering_against_brute_force(depth):
+    # Candidates: the two true parts and five swollen copies of one. The swollen copies
+    # share most of their commission ring, which Eq. (7)'s pairwise area matrices credit
+    # k(k-1)/2 times over, so the quadratic's optimum takes them all; the best-first
+    # correction on the joint rendering must reach the brute-force optimum of E counted
+    # pixel by pixel (numpy, every subset).
+    from sqparts._refine import render_each
+
+    data = sqparts.prepare(depth, CAM)
+    costs = sqparts.Costs.from_encoding(data.encoding, int(data.figure_mask.sum()))
+    truth = np.asarray(SCENE.to_vector())
+    swollen = [truth[0] * np.r_[1, 1, 1, 1, 1, 1, s, s, s, 1, 1, 1, 1, 1] for s in (1.3, 1.35, 1.4, 1.45, 1.5)]
+    vectors = np.concatenate([truth, swollen]).astype(np.float32)
+    layers = render_each(vectors, CAM)
+    fig = np.isfinite(depth)
+    with np.errstate(invalid="ignore"):
+        explained = np.isfinite(layers) & fig & (np.abs(layers - depth) <= data.encoding.sigma / 2)
+    commission = np.isfinite(layers) & ~fig  # nothing off the figure: every pixel rendered there counts
+
+    def joint(x):  # E of the chosen candidates rendered together, counted in numpy
+        z = layers[x].min(0) if x.any() else np.full(depth.shape, np.inf)
+        with np.errstate(invalid="ignore"):
+            e = (np.isfinite(z) & fig & (np.abs(z - depth) <= data.encoding.sigma / 2)).sum()
+        return costs.total(x.sum(), e, (np.isfinite(z) & ~fig).sum())
+
+    subsets = [np.array([(k >> i) & 1 for i in range(len(vectors))], bool) for k in range(2 ** len(vectors))]
+    brute = min(joint(x) for x in subsets)
+    quadratic, _ = sqparts.select_exact(sqparts.SelectionProblem.from_masks(explained, commission, costs))
+    assert joint(quadratic) > brute + costs.part  # the pairwise model is fooled here
+    for start in (None, quadratic):
+        chosen = sqparts.select_rendered(layers, data, costs, start=start)
+        assert joint(chosen) == pytest.approx(brute)
+    assert np.array_equal(sqparts.select_rendered(layers, data, costs, start=quadratic)[:2], [True, True])
+
+
+def test_omitted_blobs_are_not_joined_by_slivers():
+    from sqparts._refine import omitted_blobs
+
+    mask = np.zeros((20, 30), bool)
+    mask[2:8, 2:10] = True  # a lid
+    mask[10:17, 18:27] = True  # a handle
+    mask[7, 9:20] = True  # a one-pixel sliver along an outline joins them...
+    mask[8:11, 19] = True
+    mask[15, 0:3] = True  # ...and a sliver on its own
+    labels, count = omitted_blobs(mask)
+    assert count == 2
+    assert set(np.unique(labels[2:8, 2:10])) == {labels[4, 4]} and set(np.unique(labels[10:17, 18:27])) == {labels[13, 22]}
+    assert labels[4, 4] != labels[13, 22] and labels[4, 4] > 0 and labels[13, 22] > 0
+    assert (labels[mask] > 0).sum() < mask.sum() and not labels[15, 0:3].any() and not labels[~mask].any()
+
+
 def test_refinement_fills_a_gap_the_first_search_left():
     # A long block with a small knob at its lower end (a forearm and its hand): started
     # from the block alone, refinement only grows the block; searching the unexplained
