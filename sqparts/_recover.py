@@ -24,7 +24,7 @@ import numpy as np
 from ._camera import Camera
 from ._fit import Encoding
 from ._part import Part, stack_parts
-from ._refine import EncodingCost, _pixel_errors, encoding_cost, part_statistics, refine_parts, render_each, select_rendered
+from ._refine import EncodingCost, encoding_cost, layer_errors, part_statistics, refine_parts, render_each, select_rendered
 from ._render import render_range_image
 from ._search import RangeData, fit_image
 from ._select import Costs, SelectionProblem, select_parts
@@ -245,7 +245,7 @@ def recover(
 def _candidates(fits, data: RangeData):
     """All regions' candidates with Γ > 0 as one batch: the parts, their depth layers
     over the whole image (:func:`~sqparts._refine.render_each`) and their explained and
-    commission masks by the joint encoding's rule (:func:`~sqparts._refine._pixel_errors`):
+    commission masks by the joint encoding's rule (:func:`~sqparts._refine.layer_errors`):
     a polished part may outgrow the window it was searched in, and its commission
     outside the window counts in E all the same."""
     parts = [f.parts[i] for f in fits for i in range(len(f.gamma)) if float(f.gamma[i]) > 0]
@@ -253,10 +253,7 @@ def _candidates(fits, data: RangeData):
         return None, None, None, None
     parts = stack_parts(parts)
     layers = render_each(parts.to_vector(), data.camera)
-    with np.errstate(invalid="ignore"):
-        explained, commission = _pixel_errors(np.isfinite(layers), layers, data.image[None], data.figure_region[None],
-                                              data.encoding.sigma)
-    return parts, layers, explained, commission
+    return parts, layers, *layer_errors(layers, data)
 
 
 # --- real scenes: clean-up, figure/ground, one recovery per figure ----------------------

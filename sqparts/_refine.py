@@ -154,10 +154,16 @@ def _count(n: int, rendered, labels, data: RangeData, costs: Costs, layers=None)
     return EncodingCost(float(costs.total(n, e, c)), n, e, c, costs.figure_pixels - e, rendered.astype(np.float32), labels, explained, commission, layers)
 
 
+def layer_errors(depth: np.ndarray, data: RangeData) -> tuple[np.ndarray, np.ndarray]:
+    """Explained and commission masks (:func:`_pixel_errors`) of rendered depth
+    (..., H, W) (inf = miss): one part's layer, a stack of them, or a scene's."""
+    with np.errstate(invalid="ignore"):
+        return _pixel_errors(np.isfinite(depth), depth, data.image, data.figure_region, data.encoding.sigma)
+
+
 def _layer_counts(depth: np.ndarray, data: RangeData) -> tuple[np.ndarray, np.ndarray]:
     """Explained and commission pixel counts of rendered depth (..., H, W) (inf = miss)."""
-    with np.errstate(invalid="ignore"):
-        e, c = _pixel_errors(np.isfinite(depth), depth, data.image, data.figure_region, data.encoding.sigma)
+    e, c = layer_errors(depth, data)
     return e.sum((-2, -1)), c.sum((-2, -1))
 
 
