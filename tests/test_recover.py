@@ -281,6 +281,13 @@ def test_settling_a_small_part_removes_its_commission():
     assert (after.explained_mask & (truth == 1)).sum() >= 0.9 * (truth == 1).sum()
 
 
+def _render_one(part, cam):
+    """One part's pixel labels (0 = the part), prepared data and costs."""
+    depth, truth = (np.asarray(a) for a in sqparts.render_range_image(sqparts.stack_parts([part]), cam, return_labels=True))
+    data = sqparts.prepare(depth, cam)
+    return truth, data, sqparts.Costs.from_encoding(data.encoding, int(data.figure_mask.sum()))
+
+
 def test_refinement_merges_two_halves_of_a_bent_part():
     # One limb bent in the image plane, started as two straight halves (the elbow's
     # two sides): merging replaces them by one bent part (section 4.1) at a lower E.
@@ -293,9 +300,7 @@ def test_refinement_merges_two_halves_of_a_bent_part():
     rot = np.array([[0.0, 0.0, 1.0], [1.0, 0.0, 0.0], [0.0, 1.0, 0.0]])  # local z -> image x, local x -> image y
     truth_part = sqparts.Part(size=[0.035, 0.035, length], position=c, orientation=rotation_vector(rot),
                               bend=[bend, 0.0])
-    depth, truth = (np.asarray(a) for a in sqparts.render_range_image(sqparts.stack_parts([truth_part]), cam, return_labels=True))
-    data = sqparts.prepare(depth, cam)
-    costs = sqparts.Costs.from_encoding(data.encoding, int(data.figure_mask.sum()))
+    truth, data, costs = _render_one(truth_part, cam)
     tips = [c + [-length, bend * length, 0.0], c + [length, bend * length, 0.0]]
     halves = sqparts.stack_parts([limb(tips[0], c, 0.035), limb(c, tips[1], 0.035)])
     kw = dict(rounds=1, split=False)
@@ -317,9 +322,7 @@ def test_refinement_summarises_a_plate_seen_as_patches():
     rot = Rotation.from_euler("xy", [30, -20], degrees=True)
     centre = np.array([0.0, 0.0, 2.0])
     truth_part = sqparts.Part(size=[0.1, 0.004, 0.14], squareness=[0.1, 0.1], position=centre, orientation=rot.as_rotvec())
-    depth, truth = (np.asarray(a) for a in sqparts.render_range_image(sqparts.stack_parts([truth_part]), cam, return_labels=True))
-    data = sqparts.prepare(depth, cam)
-    costs = sqparts.Costs.from_encoding(data.encoding, int(data.figure_mask.sum()))
+    truth, data, costs = _render_one(truth_part, cam)
     m = rot.as_matrix()
     patches = sqparts.stack_parts([
         sqparts.Part(size=[0.05, 0.02, 0.07], position=centre + m @ [sx * 0.05, 0.02, sz * 0.07], orientation=rot.as_rotvec())
