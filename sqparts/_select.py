@@ -24,8 +24,11 @@ the quadratic is linearised with y_ij = x_i x_j and solved to optimality by HiGH
 
 from __future__ import annotations
 
+import contextlib
 import dataclasses
 import itertools
+import os
+import sys
 
 import jax
 import jax.numpy as jnp
@@ -162,6 +165,34 @@ def select_best_first(problem: SelectionProblem, *, max_iter: int | None = None)
     return np.asarray(x) > 0.5
 
 
+@contextlib.contextmanager
+def _quiet_stdout():
+    """Silence what C code writes to standard output (file descriptor 1), buffered or not."""
+    sys.stdout.flush()
+    try:
+        saved = os.dup(1)
+    except OSError:  # no descriptor 1 at all
+        yield
+        return
+    try:
+        with open(os.devnull, "w") as null:
+            os.dup2(null.fileno(), 1)
+        yield
+    finally:
+        _flush_c_stdio()
+        os.dup2(saved, 1)
+        os.close(saved)
+
+
+def _flush_c_stdio():
+    try:
+        import ctypes
+
+        ctypes.CDLL(None).fflush(None)
+    except (OSError, AttributeError, TypeError):  # no C library to ask (not POSIX)
+        pass
+
+
 def select_exact(problem: SelectionProblem, *, time_limit: float = 30.0) -> tuple[np.ndarray, bool]:
     """Globally optimal X by integer programming (HiGHS): E = linear·x + Σ_{i<j} 2 Q_ij
     y_ij + const with y_ij = x_i x_j enforced by y ≥ x_i + x_j - 1 where Q_ij > 0 and
@@ -175,7 +206,8 @@ def select_exact(problem: SelectionProblem, *, time_limit: float = 30.0) -> tupl
     pairs = [(i, j) for i, j in zip(*np.triu_indices(n, 1)) if abs(q[i, j]) > 1e-12]
 
     def solve(start):
-        h = highspy.Highs()
+        with _quiet_stdout():  # highspy >= 1.16 prints a banner from its constructor
+            h = highspy.Highs()
         h.setOptionValue("output_flag", False)
         h.setOptionValue("time_limit", float(time_limit))
         m = n + len(pairs)

@@ -60,6 +60,17 @@ def test_exact_and_best_first_against_brute_force():
     assert best_first_optimal >= 8  # the greedy search is usually, not always, optimal
 
 
+def test_exact_selection_prints_nothing(capfd):
+    # highspy >= 1.16 prints a banner from its C++ constructor, past Python's sys.stdout.
+    e, c = _random_masks(np.random.default_rng(3), 5)
+    print("before", flush=True)
+    x, optimal = sqparts.select_exact(SelectionProblem.from_masks(e, c, COSTS))
+    print("after", flush=True)
+    assert optimal and x.shape == (5,)
+    out, err = capfd.readouterr()
+    assert out == "before\nafter\n" and "HiGHS" not in err
+
+
 def test_select_parts_errors_and_empty():
     p = SelectionProblem.from_masks(np.zeros((0, 4), bool), np.zeros((0, 4), bool), COSTS)
     assert sqparts.select_best_first(p).shape == (0,)
