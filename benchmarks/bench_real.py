@@ -69,7 +69,7 @@ def motorcycle():
 
 def inputs(only=None):
     if only in (None, "kinect"):
-        yield "kinect", "laptop and box on a table (Kinect)", *sqparts.read_range_image(DATA / "grabber_frame0.pcd"), {"max_figures": 4}
+        yield "kinect", "laptop and box on a table (Kinect)", *sqparts.read_range_image(DATA / "grabber_frame0.pcd"), {}
     if only in (None, "mug"):
         yield "mug", "mug on a table (stereo)", *sqparts.read_range_image(DATA / "table_scene_mug_stereo_textured.pcd"), {}
     if only in (None, "teapot"):

@@ -374,6 +374,7 @@ def figure_ground(
     min_pixels: int | None = None,
     max_figures: int | None = None,
     max_height: float | None = None,
+    max_border_fraction: float = 0.15,
     seed: int = 0,
 ) -> FigureGround:
     """Separate figures from ground.
@@ -387,7 +388,12 @@ def figure_ground(
     plane, or below the ground plane, are background; with ``max_height`` so is everything farther than that above the ground
     (the paper's "cube of data"). The rest is torn into pieces at depth discontinuities
     (:func:`torn_components`), and the pieces of at least ``min_pixels`` (default: 0.25%
-    of the returns, at least 16) are the figures.
+    of the returns, at least 16) are the figures, except, once a plane is removed, a piece
+    with more than ``max_border_fraction`` of its returns on the outer frame of the
+    measured area (a band 1/40 of the image's shorter side wide, at least 3 pixels): that
+    is background running off the image, like the planes (a wall's edge where two planes
+    meet, a cable, the end of a shelf), not an object; 1 keeps such pieces. ``max_figures``
+    keeps the largest figures.
     """
     d = _check_depth(depth, camera)
     if not (isinstance(planes, (int, np.integer)) and planes >= 0):
@@ -404,6 +410,8 @@ def figure_ground(
     if min_pixels is None:
         min_pixels = max(16, int(0.0025 * valid.sum()))
     _check_positive("min_pixels", min_pixels, integer=True)
+    if not (isinstance(max_border_fraction, (int, float, np.integer, np.floating)) and 0 <= max_border_fraction <= 1):
+        raise ValueError(f"max_border_fraction: expected a number in [0, 1], got {max_border_fraction!r}")
     pts = camera.points(d)
     frame = _outer_frame(valid)
     background = np.zeros(d.shape, bool)
@@ -436,12 +444,15 @@ def figure_ground(
     keep = ndimage.binary_opening(valid & ~background, structure=np.ones((2, 2), bool)) if found else valid
     pieces = torn_components(d, camera, keep, tear=tear)
     sizes = np.bincount(pieces[pieces >= 0], minlength=1)
+    border = _outer_frame(valid, width=max(3, min(d.shape) // 40)) if found and max_border_fraction < 1 else None
     figures = []
     labels = np.full(d.shape, -1, np.int64)
     for i in np.flatnonzero(sizes >= min_pixels):
         if max_figures is not None and len(figures) >= max_figures:
             break
         piece = pieces == i
+        if border is not None and (piece & border).sum() > max_border_fraction * sizes[i]:
+            continue
         holes = ndimage.binary_fill_holes(piece) & ~valid  # no return inside the outline
         mask = piece | holes
         labels[mask & (labels < 0)] = len(figures)

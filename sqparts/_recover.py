@@ -399,6 +399,7 @@ def recover_scene(
     min_figure_pixels: int | None = None,
     max_figures: int | None = None,
     max_height: float | None = None,
+    max_border_fraction: float = 0.15,
     depth_range=None,
     prettify: bool = False,
     up=None,
@@ -418,7 +419,7 @@ def recover_scene(
     clean : remove missing returns, flying pixels and outliers (:func:`~sqparts.clean_range_image`).
     figure_ground : remove background planes and split the rest into figures
         (:func:`~sqparts.figure_ground`); off: the whole image is one figure.
-    tear, planes, plane_threshold, min_figure_pixels, max_figures, max_height :
+    tear, planes, plane_threshold, min_figure_pixels, max_figures, max_height, max_border_fraction :
         passed to the clean-up and figure/ground stages.
     depth_range : (near, far): drop returns outside (the paper's "cube of data").
     prettify : snap near-vertical / near-horizontal parts to gravity
@@ -448,7 +449,8 @@ def recover_scene(
     fg = None
     if figure_ground:
         fg = _figure_ground(d, camera, planes=planes, plane_threshold=plane_threshold, tear=tear,
-                            min_pixels=min_figure_pixels, max_figures=max_figures, max_height=max_height)
+                            min_pixels=min_figure_pixels, max_figures=max_figures, max_height=max_height,
+                            max_border_fraction=max_border_fraction)
         masks = fg.figures
         if not masks:
             raise ValueError("depth: no figure left after removing the background; try figure_ground=False or a smaller min_figure_pixels")

@@ -94,7 +94,7 @@ def _recover_options(args) -> dict:
                 refine_rounds=args.refine_rounds, resolution=args.resolution, clean=args.clean,
                 figure_ground=args.figure_ground, planes=args.planes, tear=args.tear,
                 min_figure_pixels=args.min_figure_pixels, max_figures=args.max_figures,
-                prettify=args.prettify, max_angle=args.max_angle, max_bits=args.max_bits)
+                max_border_fraction=args.max_border_fraction, prettify=args.prettify, max_angle=args.max_angle, max_bits=args.max_bits)
     for name in ("max_size", "sigma", "tear"):
         v = getattr(args, name)
         if v is not None and not v > 0:
@@ -107,6 +107,8 @@ def _recover_options(args) -> dict:
         v = getattr(args, name)
         if v is not None and v < 1:
             raise ValueError(f"--{name.replace('_', '-')}: expected an integer >= 1, got {v}")
+    if not 0 <= args.max_border_fraction <= 1:
+        raise ValueError(f"--max-border-fraction: expected a number in [0, 1], got {args.max_border_fraction}")
     if args.up is not None:
         try:
             up = [float(x) for x in args.up.split(",")]
@@ -256,6 +258,8 @@ def build_parser() -> argparse.ArgumentParser:
                    help="depth jump, in pixel footprints, that separates figures (default 8)")
     g.add_argument("--min-figure-pixels", type=int, default=None, help="smallest figure kept")
     g.add_argument("--max-figures", type=int, default=None, help="recover at most this many figures")
+    g.add_argument("--max-border-fraction", type=float, default=0.15,
+                   help="a piece with more of its pixels on the edge of the measured area is background (1 = keep)")
     g.add_argument("--depth-range", default=None, help="NEAR,FAR: drop returns outside (scene units)")
     g.add_argument("--prettify", action="store_true",
                    help="snap nearly vertical/horizontal parts to gravity (section 4.3)")

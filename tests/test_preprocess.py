@@ -150,6 +150,29 @@ def test_figure_ground_room_corner():
         assert max(ious) > 0.9, ious
 
 
+def test_figure_ground_drops_background_running_off_the_image():
+    # A part in the middle, a large part cut by the left edge (10% of it on the frame) and
+    # a scrap of a thin one at the right edge (over 40% on the frame): the scrap is dropped.
+    parts = sqparts.stack_parts([on_table((0.0, 0.05), 0.12, 0.07), on_table((-0.8, 0.0), 0.15, 0.16),
+                                 on_table((0.95, 0.0), 0.1, 0.07)])
+    depth_parts, labels = (np.asarray(a) for a in sqparts.render_range_image(parts, CAM, return_labels=True))
+    table = plane_depth(CAM, TABLE_N, TABLE_D)
+    depth = np.fmin(depth_parts, table).astype(np.float32)
+    truth = [(labels == i) & (depth_parts <= table) for i in range(3)]
+    frame = np.zeros(depth.shape, bool)
+    frame[:3], frame[-3:], frame[:, :3], frame[:, -3:] = True, True, True, True
+    on_frame = [(t & frame).sum() / t.sum() for t in truth]
+    assert on_frame[0] == 0 and 0.05 < on_frame[1] < 0.15 and on_frame[2] > 0.3, on_frame
+    fg = sqparts.figure_ground(depth, CAM)
+    assert len(fg.figures) == 2
+    for mask, t in zip(fg.figures, truth[:2][::-1]):  # largest first: the cut part, the middle one
+        assert (mask & t).sum() / (mask | t).sum() > 0.9
+    kept = sqparts.figure_ground(depth, CAM, max_border_fraction=1.0)
+    assert len(kept.figures) == 3 and (kept.figures[2] & truth[2]).sum() / (kept.figures[2] | truth[2]).sum() > 0.9
+    with pytest.raises(ValueError, match=r"max_border_fraction: expected a number in \[0, 1\], got 1.5"):
+        sqparts.figure_ground(depth, CAM, max_border_fraction=1.5)
+
+
 def test_figure_ground_without_ground_keeps_everything(table_scene):
     depth, truth = table_scene
     parts_only = np.where(truth[0] | truth[1], depth, np.nan)

@@ -46,7 +46,8 @@ def test_cli_real_data_options_errors(tmp_path, capsys):
     base = ["recover", str(tmp_path / "d.npy"), "--camera", str(tmp_path / "cam.json"), "--out", str(tmp_path / "o")]
     for extra, word in ((["--up", "1,2"], "--up"), (["--depth-range", "x"], "--depth-range"),
                         (["--tear", "-1"], "--tear"), (["--planes", "-1"], "--planes"),
-                        (["--max-figures", "0"], "--max-figures")):
+                        (["--max-figures", "0"], "--max-figures"),
+                        (["--max-border-fraction", "1.5"], "--max-border-fraction")):
         assert main(base + extra) == 2
         err = capsys.readouterr().err.strip()
         assert err.startswith("sqparts: error: ") and word in err and "\n" not in err
