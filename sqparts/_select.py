@@ -167,8 +167,10 @@ def select_best_first(problem: SelectionProblem, *, max_iter: int | None = None)
 
 @contextlib.contextmanager
 def _quiet_stdout():
-    """Silence what C code writes to standard output (file descriptor 1), buffered or not."""
-    sys.stdout.flush()
+    """Silence what C code writes to standard output (file descriptor 1), buffered or not.
+    The descriptor is process-wide: keep what runs inside short (a constructor)."""
+    if sys.stdout is not None:
+        sys.stdout.flush()
     try:
         saved = os.dup(1)
     except OSError:  # no descriptor 1 at all
