@@ -90,25 +90,38 @@ def snap_to_gravity(parts: Part, up, *, max_angle: float = 15.0) -> tuple[Part, 
 def prettify(parts: Part, data, costs: Costs, *, up, max_angle: float = 15.0, max_bits: float = 56.0):
     """Snap nearly vertical / horizontal parts to gravity, one part at a time, keeping a
     snap only if the joint description length E rises by at most ``max_bits``
-    (default: half a part's κ0). Returns (parts, cost, report), where each report entry
-    says what was tried (``snap``, ``angle_deg``), the change in E (``delta_bits``) and
-    whether it was ``kept``."""
-    from ._refine import encoding_cost
+    (default: half a part's κ0) and every part that paid for itself still does (removing
+    it would not shorten the description: a snap may not make a part worth dropping).
+    Returns (parts, cost, report), where each report entry says what was tried (``snap``,
+    ``angle_deg``), the change in E (``delta_bits``), whether it was ``kept`` and, if
+    not, ``why``."""
+    from ._refine import costs_removing, encoding_cost
 
     if not (isinstance(max_bits, (int, float)) and math.isfinite(max_bits) and max_bits >= 0):
         raise ValueError(f"max_bits: expected a finite number >= 0, got {max_bits!r}")
     snapped, report = snap_to_gravity(parts, up, max_angle=max_angle)
     cost = encoding_cost(parts, data, costs)
-    current = parts
+    every = range(len(parts))
+
+    def paying(c):  # which parts lower E by their presence
+        return np.array([r.total > c.total for r in costs_removing(c, every, data, costs)])
+
+    current, pays = parts, paying(cost)
     for i, entry in enumerate(report):
         entry["kept"], entry["delta_bits"] = False, 0.0
         if entry["snap"] == "none":
             continue
-        trial = stack_parts([snapped[j] if j == i else current[j] for j in range(len(current))])
+        trial = stack_parts([snapped[j] if j == i else current[j] for j in every])
         trial_cost = encoding_cost(trial, data, costs)
         entry["delta_bits"] = trial_cost.total - cost.total
-        if entry["delta_bits"] <= max_bits:
-            current, cost, entry["kept"] = trial, trial_cost, True
+        if entry["delta_bits"] > max_bits:
+            entry["why"] = "costs more than max_bits"
+            continue
+        trial_pays = paying(trial_cost)
+        if (pays & ~trial_pays).any():
+            entry["why"] = "a part would no longer pay for itself"
+            continue
+        current, cost, pays, entry["kept"] = trial, trial_cost, trial_pays, True
     return current, cost, report
 
 

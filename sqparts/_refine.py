@@ -135,6 +135,13 @@ def costs_adding(cost: EncodingCost, extra, data: RangeData, costs: Costs) -> li
     return [layers_cost(np.concatenate([cost.layers, t[None]]), data, costs) for t in new]
 
 
+def costs_removing(cost: EncodingCost, which, data: RangeData, costs: Costs) -> list[EncodingCost]:
+    """E of the parts behind ``cost`` less each part in ``which`` in turn (nothing is
+    rendered: the remaining layers are composed again)."""
+    n = len(cost.layers)
+    return [layers_cost(cost.layers[np.arange(n) != i], data, costs) for i in which]
+
+
 def _least_pixels(costs: Costs) -> float:
     """Explained pixels a part needs to pay for its κ0 bits."""
     return costs.part / max(costs.omission - costs.explained, 1e-9)
@@ -593,12 +600,11 @@ def drop_unprofitable(parts: Part, data: RangeData, costs: Costs, *, cost: Encod
         # can be worth dropping; the others are not re-rendered.
         own = np.array([(cost.labels == i)[cost.explained_mask].sum() for i in range(len(parts))])
         gain = own * (costs.omission - costs.explained)
-        for i in np.flatnonzero(gain < 2 * costs.part + costs.commission * cost.commission):
-            keep = np.delete(np.arange(len(parts)), i)
-            trial = jax.tree_util.tree_map(lambda x: x[keep], parts)
-            c = layers_cost(cost.layers[keep], data, costs)
+        which = np.flatnonzero(gain < 2 * costs.part + costs.commission * cost.commission)
+        for i, c in zip(which, costs_removing(cost, which, data, costs)):
             if c.total < cost.total - 1e-9 and (best is None or c.total < best[1].total):
-                best = (trial, c)
+                keep = np.delete(np.arange(len(parts)), i)
+                best = (jax.tree_util.tree_map(lambda x: x[keep], parts), c)
         if best is not None:
             parts, cost = best
             improved = True
@@ -778,7 +784,8 @@ def refine_parts(
     """Joint refinement: ``rounds`` of :func:`polish_jointly` (``steps`` solver steps
     each), then :func:`split_parts` (when ``split``), :func:`fill_gaps` (when ``search``,
     the first search's :class:`~sqparts.SearchSettings`, is given),
-    :func:`drop_unprofitable` and :func:`merge_adjacent` (when ``merge``). Returns
+    :func:`drop_unprofitable` and :func:`merge_adjacent` (when ``merge``; then
+    :func:`drop_unprofitable` again if a merge was made). Returns
     (parts, final cost, history of E after each stage)."""
     parts = _host_parts(_vectors(parts))
     cost = encoding_cost(parts, data, costs)
@@ -795,6 +802,10 @@ def refine_parts(
     parts, cost = drop_unprofitable(parts, data, costs, cost=cost)
     history.append(("drop", cost.total))
     if merge:
+        before = cost.total
         parts, cost = merge_adjacent(parts, data, costs, steps=steps, cost=cost)
         history.append(("merge", cost.total))
+        if cost.total < before:  # a merged part may now explain what a neighbour paid for
+            parts, cost = drop_unprofitable(parts, data, costs, cost=cost)
+            history.append(("drop", cost.total))
     return Part.from_vector(_vectors(parts)), cost, history

@@ -95,6 +95,23 @@ def test_prettify_tilted_gate(rng):
     assert all(e["delta_bits"] <= 0 for e in strict if e["kept"])
     with pytest.raises(ValueError, match="max_bits"):
         sqparts.prettify(tilted, data, costs, up=UP, max_bits=-1.0)
+    # Without the middle bar (closer, so that each member pays for itself), within 30
+    # degrees and with no bit budget, the true brace is tried too: turned by 27 degrees
+    # it would cross empty space and no longer pay for itself, so it is not snapped.
+    # Checked by rendering the result without each part in turn.
+    cam = sqparts.PinholeCamera(320, 192, 250.0, 250.0, 159.5, 95.5)
+    keep = [0, 1, 2, 4]
+    depth = np.asarray(sqparts.render_range_image(sqparts.stack_parts([truth[i] for i in keep + [5]]), cam))
+    data = prepare(depth, cam)
+    costs = Costs.from_encoding(data.encoding, int(data.figure_mask.sum()))
+    start = sqparts.stack_parts([tilted[i] for i in keep] + [truth[5]])
+    parts, cost, loose = sqparts.prettify(start, data, costs, up=UP, max_angle=30.0, max_bits=1e9)
+    assert [e["kept"] for e in loose] == [True] * 4 + [False]
+    assert loose[4]["snap"] == "horizontal" and "pay" in loose[4]["why"]
+    np.testing.assert_allclose(np.asarray(parts.rotation())[4], np.asarray(truth.rotation())[5], atol=1e-6)
+    for i in range(len(parts)):
+        rest = sqparts.stack_parts([parts[j] for j in range(len(parts)) if j != i])
+        assert encoding_cost(rest, data, costs).total > cost.total
 
 
 def brownian_surface(rng, shape, scale):
