@@ -8,7 +8,7 @@ Data from ``../shared/data`` (see its README) and scikit-image:
 * ``skimage.data.stereo_motorcycle()``: Middlebury 2014 disparity -> depth.
 
 Writes ``docs/real_<name>.png`` (report), ``docs/real_<name>_residual.png`` and
-``benchmarks/results/real.json``. Each input is recovered with the default (~2^16)
+``benchmarks/results/real_<input>.json`` (the three teapot views in one). Each input is recovered with the default (~2^16)
 grid at about 160 pixels across.
 
     python benchmarks/bench_real.py [--grid default] [--only NAME]
@@ -119,7 +119,9 @@ def main():
         }
         rows.append(row)
         print(f"{name}: {rec.summary()}; {resid.summary()}; wall {wall:.1f} s", flush=True)
-    save("real" + (f"_{args.only}" if args.only else ""), {"machine": machine(), "grid": args.grid, "rows": rows})
+    for family in dict.fromkeys(r["name"].split("-")[0] for r in rows):  # teapot-side -> teapot
+        family_rows = [r for r in rows if r["name"].split("-")[0] == family]
+        save(f"real_{family}", {"machine": machine(), "grid": args.grid, "rows": family_rows})
 
 
 if __name__ == "__main__":

@@ -265,7 +265,7 @@ def build_parser() -> argparse.ArgumentParser:
                    help="snap nearly vertical/horizontal parts to gravity (section 4.3)")
     g.add_argument("--up", default=None, help="x,y,z gravity up in the camera frame (default: ground normal)")
     g.add_argument("--max-angle", type=float, default=15.0, help="prettify parts within this many degrees")
-    g.add_argument("--max-bits", type=float, default=56.0, help="prettify only if E rises at most this")
+    g.add_argument("--max-bits", type=float, default=56.0, help="prettify only if E rises at most this (and every part still pays)")
     p.set_defaults(func=cmd_recover)
 
     p = sub.add_parser("demo", help="recover the built-in articulated human (Figure 7)")
