@@ -8,8 +8,8 @@ Data from ``../shared/data`` (see its README) and scikit-image:
 * ``skimage.data.stereo_motorcycle()``: Middlebury 2014 disparity -> depth.
 
 Writes ``docs/real_<name>.png`` (report), ``docs/real_<name>_residual.png`` and
-``benchmarks/results/real_<input>.json`` (the three teapot views in one). Each input is recovered with the default (~2^16)
-grid at about 160 pixels across.
+``benchmarks/results/real_<input>.json`` (the three teapot views in one). Each input
+is recovered with the default (~2^16) grid at about 160 pixels across.
 
     python benchmarks/bench_real.py [--grid default] [--only NAME]
 """

@@ -784,8 +784,7 @@ def refine_parts(
     """Joint refinement: ``rounds`` of :func:`polish_jointly` (``steps`` solver steps
     each), then :func:`split_parts` (when ``split``), :func:`fill_gaps` (when ``search``,
     the first search's :class:`~sqparts.SearchSettings`, is given),
-    :func:`drop_unprofitable` and :func:`merge_adjacent` (when ``merge``; then
-    :func:`drop_unprofitable` again if a merge was made). Returns
+    :func:`drop_unprofitable` and :func:`merge_adjacent` (when ``merge``). Returns
     (parts, final cost, history of E after each stage)."""
     parts = _host_parts(_vectors(parts))
     cost = encoding_cost(parts, data, costs)
@@ -802,10 +801,6 @@ def refine_parts(
     parts, cost = drop_unprofitable(parts, data, costs, cost=cost)
     history.append(("drop", cost.total))
     if merge:
-        before = cost.total
         parts, cost = merge_adjacent(parts, data, costs, steps=steps, cost=cost)
         history.append(("merge", cost.total))
-        if cost.total < before:  # a merged part may now explain what a neighbour paid for
-            parts, cost = drop_unprofitable(parts, data, costs, cost=cost)
-            history.append(("drop", cost.total))
     return Part.from_vector(_vectors(parts)), cost, history
