@@ -459,21 +459,25 @@ def omitted_blobs(omitted: np.ndarray) -> tuple[np.ndarray, int]:
 
 def fill_gaps(
     parts: Part, data: RangeData, costs: Costs, settings, *, steps: int = 20, rounds: int = 3, blobs: int = 4,
-    cost: EncodingCost | None = None,
+    seeds: int = 3, cost: EncodingCost | None = None,
 ):
     """Search the figure's unexplained blobs for parts the first search missed (a hand, a
     foot, a teapot's lid: too small for the scales searched around the skeleton): the
     ``blobs`` largest :func:`omitted_blobs` that could pay for a part are searched again with
     :func:`~sqparts._search.fit_region` at their innermost pixel, ``max_size`` 3/4 of
-    the blob's extent across the image (same window and grid: nothing is recompiled);
-    each candidate is grown by ``rounds`` of region growing beside the current parts,
-    the best one per blob is settled on E itself (:func:`settle_part`: a pixel of
+    the blob's extent across the image (same window and grid: nothing is recompiled). A
+    blob more than two of its widest discs long may hold several things (a lid's knob on
+    the lid's rim seen edge-on), so it is also searched at up to ``seeds`` more of its
+    skeleton points (:func:`~sqparts._search.region_centers`, thickest first, spaced by
+    the blob's inscribed radius), each at a scale of four times its own inscribed
+    radius. Each candidate is grown by ``rounds`` of region growing beside the current
+    parts, the best one per search is settled on E itself (:func:`settle_part`: a pixel of
     commission outweighs the few a hand explains), and they are added, largest gain
     first, when E falls. ``settings`` are the first search's
     :class:`~sqparts.SearchSettings`."""
     from scipy.ndimage import distance_transform_edt
 
-    from ._search import fit_region
+    from ._search import fit_region, region_centers
 
     cost = encoding_cost(parts, data, costs) if cost is None else cost
     least = _least_pixels(costs)
@@ -484,20 +488,30 @@ def fill_gaps(
     sizes = np.bincount(blob_labels.ravel(), minlength=count + 1)[1:]
     inner = distance_transform_edt(omitted)
     vec = _vectors(parts)
-    found, owner = [], []
+    found, seed = [], []
+
+    def search(centre, max_size):
+        fit = fit_region(data, dataclasses.replace(settings, max_size=float(np.clip(max_size, 1e-6, settings.max_size))), centre)
+        good = _vectors(fit.parts)[np.asarray(fit.gamma) > 0]
+        found.extend(good)
+        seed.extend([centre] * len(good))
+
     for b in np.argsort(-sizes, kind="stable")[:blobs]:
         blob = blob_labels == b + 1
         if sizes[b] < least:
             continue
-        centre = np.unravel_index(int(np.argmax(np.where(blob, inner, -1.0))), blob.shape)
+        radius = np.where(blob, inner, 0.0)
+        centre = tuple(int(i) for i in np.unravel_index(int(np.argmax(radius)), blob.shape))
         rows, cols = np.nonzero(blob)
         pixel = float(data.camera.pixel_size_at(float(np.nanmedian(data.image[blob]))))
-        extent = pixel * (max(np.ptp(rows), np.ptp(cols)) + 1)  # across the image, not in depth
-        local = dataclasses.replace(settings, max_size=float(np.clip(0.75 * extent, 1e-6, settings.max_size)))
-        fit = fit_region(data, local, centre)
-        good = _vectors(fit.parts)[np.asarray(fit.gamma) > 0]
-        found += list(good)
-        owner += [int(b)] * len(good)
+        length = max(np.ptp(rows), np.ptp(cols)) + 1  # across the image, not in depth
+        search(centre, 0.75 * pixel * length)
+        if length > 4 * radius[centre]:
+            spacing = max(float(radius[centre]), 1.0)
+            points = [(int(r), int(c)) for r, c in region_centers(blob, spacing=spacing)
+                      if (r - centre[0]) ** 2 + (c - centre[1]) ** 2 >= spacing**2]
+            for r, c in points[:seeds]:
+                search((r, c), 4 * pixel * float(radius[r, c]))
     if not found:
         return parts, cost
     n = len(parts)
@@ -510,9 +524,9 @@ def fill_gaps(
             if c.total < scores[k].total:
                 found[k], scores[k] = v, c
     best = {}
-    for k, (b, c) in enumerate(zip(owner, scores)):
-        if b not in best or c.total < scores[best[b]].total:
-            best[b] = k
+    for k, (s, c) in enumerate(zip(seed, scores)):
+        if s not in best or c.total < scores[best[s]].total:
+            best[s] = k
     rest = cost.layers.min(0) if n else np.full(data.image.shape, np.inf, np.float32)
     for k in best.values():
         found[k] = settle_part(found[k], scores[k].layers[n], rest, data, costs)
@@ -784,8 +798,10 @@ def refine_parts(
     """Joint refinement: ``rounds`` of :func:`polish_jointly` (``steps`` solver steps
     each), then :func:`split_parts` (when ``split``), :func:`fill_gaps` (when ``search``,
     the first search's :class:`~sqparts.SearchSettings`, is given),
-    :func:`drop_unprofitable` and :func:`merge_adjacent` (when ``merge``). Returns
-    (parts, final cost, history of E after each stage)."""
+    :func:`drop_unprofitable` and :func:`merge_adjacent` (when ``merge``; then
+    :func:`drop_unprofitable` again if a merge was made: the merged part may explain
+    what a neighbour paid for). Returns (parts, final cost, history of E after each
+    stage)."""
     parts = _host_parts(_vectors(parts))
     cost = encoding_cost(parts, data, costs)
     history = [("initial", cost.total)]
@@ -801,6 +817,10 @@ def refine_parts(
     parts, cost = drop_unprofitable(parts, data, costs, cost=cost)
     history.append(("drop", cost.total))
     if merge:
+        before = cost.total
         parts, cost = merge_adjacent(parts, data, costs, steps=steps, cost=cost)
         history.append(("merge", cost.total))
+        if cost.total < before:
+            parts, cost = drop_unprofitable(parts, data, costs, cost=cost)
+            history.append(("drop after merge", cost.total))
     return Part.from_vector(_vectors(parts)), cost, history
