@@ -474,7 +474,12 @@ def fill_gaps(
     parts, the best one per search is settled on E itself (:func:`settle_part`: a pixel of
     commission outweighs the few a hand explains), and they are added, largest gain
     first, when E falls. ``settings`` are the first search's
-    :class:`~sqparts.SearchSettings`."""
+    :class:`~sqparts.SearchSettings`.
+
+    Returns a list of (parts, cost): the parts with the innermost searches' additions,
+    then, if the skeleton points' searches change them, with all additions. A part that
+    pays here can still stop a merge that would have paid more, so
+    :func:`refine_parts` finishes each and keeps the shorter description."""
     from scipy.ndimage import distance_transform_edt
 
     from ._search import fit_region, region_centers
@@ -484,11 +489,11 @@ def fill_gaps(
     omitted = data.figure_mask & ~cost.explained_mask
     blob_labels, count = omitted_blobs(omitted)
     if count == 0:
-        return parts, cost
+        return [(parts, cost)]
     sizes = np.bincount(blob_labels.ravel(), minlength=count + 1)[1:]
     inner = distance_transform_edt(omitted)
     vec = _vectors(parts)
-    found, seed = [], []
+    found, seed, innermost = [], [], set()
 
     def search(centre, max_size):
         fit = fit_region(data, dataclasses.replace(settings, max_size=float(np.clip(max_size, 1e-6, settings.max_size))), centre)
@@ -506,6 +511,7 @@ def fill_gaps(
         pixel = float(data.camera.pixel_size_at(float(np.nanmedian(data.image[blob]))))
         length = max(np.ptp(rows), np.ptp(cols)) + 1  # across the image, not in depth
         search(centre, 0.75 * pixel * length)
+        innermost.add(centre)
         if length > 4 * radius[centre]:
             spacing = max(float(radius[centre]), 1.0)
             points = [(int(r), int(c)) for r, c in region_centers(blob, spacing=spacing)
@@ -513,7 +519,7 @@ def fill_gaps(
             for r, c in points[:seeds]:
                 search((r, c), 4 * pixel * float(radius[r, c]))
     if not found:
-        return parts, cost
+        return [(parts, cost)]
     n = len(parts)
     found = np.stack(found)
     scores = costs_adding(cost, found, data, costs)
@@ -531,12 +537,21 @@ def fill_gaps(
     for k in best.values():
         found[k] = settle_part(found[k], scores[k].layers[n], rest, data, costs)
     settled = dict(zip(best.values(), costs_adding(cost, found[list(best.values())], data, costs)))
-    for k in sorted(settled, key=lambda k: settled[k].total):
-        trial = np.concatenate([vec, found[k : k + 1]])
-        c = layers_cost(np.concatenate([cost.layers, settled[k].layers[n:]]), data, costs)
-        if c.total < cost.total - 1e-9:
-            vec, cost = trial, c
-    return _host_parts(vec), cost
+
+    def add(keys):
+        v, e = vec, cost
+        for k in sorted(keys, key=lambda k: settled[k].total):
+            c = layers_cost(np.concatenate([e.layers, settled[k].layers[n:]]), data, costs)
+            if c.total < e.total - 1e-9:
+                v, e = np.concatenate([v, found[k : k + 1]]), c
+        return v, e
+
+    fills = [add([k for s, k in best.items() if s in innermost])]
+    if any(s not in innermost for s in best):
+        more = add(list(best.values()))
+        if not (more[0].shape == fills[0][0].shape and np.array_equal(more[0], fills[0][0])):
+            fills.append(more)
+    return [(_host_parts(v), e) for v, e in fills]
 
 
 _CROP = 32
@@ -800,8 +815,11 @@ def refine_parts(
     the first search's :class:`~sqparts.SearchSettings`, is given),
     :func:`drop_unprofitable` and :func:`merge_adjacent` (when ``merge``; then
     :func:`drop_unprofitable` again if a merge was made: the merged part may explain
-    what a neighbour paid for). Returns (parts, final cost, history of E after each
-    stage)."""
+    what a neighbour paid for). The gap search may offer two sets of additions (its
+    innermost searches' and all of them, see :func:`fill_gaps`): a small part that pays
+    for itself can still stop a merge that would have paid more, so dropping and
+    merging run after each, and the shorter description is kept. Returns (parts, final
+    cost, history of E after each stage)."""
     parts = _host_parts(_vectors(parts))
     cost = encoding_cost(parts, data, costs)
     history = [("initial", cost.total)]
@@ -811,16 +829,26 @@ def refine_parts(
     if split:
         parts, cost = split_parts(parts, data, costs, steps=steps, cost=cost)
         history.append(("split", cost.total))
-    if search is not None:
-        parts, cost = fill_gaps(parts, data, costs, search, steps=steps, cost=cost)
-        history.append(("fill gaps", cost.total))
-    parts, cost = drop_unprofitable(parts, data, costs, cost=cost)
-    history.append(("drop", cost.total))
-    if merge:
-        before = cost.total
-        parts, cost = merge_adjacent(parts, data, costs, steps=steps, cost=cost)
-        history.append(("merge", cost.total))
-        if cost.total < before:
-            parts, cost = drop_unprofitable(parts, data, costs, cost=cost)
-            history.append(("drop after merge", cost.total))
-    return Part.from_vector(_vectors(parts)), cost, history
+
+    def finish(parts, cost):
+        stages = []
+        parts, cost = drop_unprofitable(parts, data, costs, cost=cost)
+        stages.append(("drop", cost.total))
+        if merge:
+            before = cost.total
+            parts, cost = merge_adjacent(parts, data, costs, steps=steps, cost=cost)
+            stages.append(("merge", cost.total))
+            if cost.total < before:
+                parts, cost = drop_unprofitable(parts, data, costs, cost=cost)
+                stages.append(("drop after merge", cost.total))
+        return parts, cost, stages
+
+    if search is None:
+        parts, cost, stages = finish(parts, cost)
+    else:
+        fills = fill_gaps(parts, data, costs, search, steps=steps, cost=cost)
+        ends = [finish(*fill) for fill in fills]
+        k = min(range(len(ends)), key=lambda k: ends[k][1].total)
+        parts, cost, stages = ends[k]
+        history.append(("fill gaps", fills[k][1].total))
+    return Part.from_vector(_vectors(parts)), cost, history + stages
