@@ -12,11 +12,12 @@ them (optimistix Levenberg-Marquardt on radial surface distances, batched over p
 while the background rays around it must miss it; a change is kept only if E falls, like
 the paper's accept-if-improved descent. Then a part that spans two (a torso with its
 pelvis) is split in two along its axis, blobs of unexplained pixels are searched again
-at their own scale for the parts the first search missed (each new small part settled
-by a pattern search on E itself), a part that no longer pays for its bits is dropped,
-and adjacent parts are merged when one part encodes them more cheaply: two into one bent
-part (section 4.1), or a group into one part started from its pixels' moments (a flat
-box for a laptop seen as patches); each only when E falls. Every stage takes and returns the
+at their own scale for the parts the first search missed (a long blob also at its
+skeleton points; each new small part settled by a pattern search on E itself), a part
+that no longer pays for its bits is dropped, and adjacent parts are merged when one part
+encodes them more cheaply: two into one bent part (section 4.1), or a group into one part
+started from its pixels' moments (a flat box for a laptop seen as patches), after which
+parts the merge made redundant are dropped again; each only when E falls. Every stage takes and returns the
 joint rendering's :class:`EncodingCost`, whose per-part depth layers let a trial
 re-render only the parts it changes.
 """
