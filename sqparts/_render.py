@@ -88,14 +88,21 @@ def cast_ray(
     init = (t_start_sg, t_start_sg, t_out_sg, jnp.zeros((), bool), jnp.zeros_like(t_start_sg))
     (t_sg, _, _, found, _), _ = jax.lax.scan(newton, init, None, length=max(newton_steps - 1, 0))
     t_sg = jax.lax.stop_gradient(t_sg)
-    # The final step carries the gradient: t = t* - g(t*; θ) / g'(t*).
-    val, slope = g_and_slope(t_sg, part, o, d)
-    slope_sg = jax.lax.stop_gradient(slope)
-    step = -val / jnp.where(slope_sg < 0, slope_sg, -1.0)
+    val_sg, slope_sg = g_and_slope(t_sg, part_sg, o_sg, d_sg)
+    hit = box_hit & (found | (val_sg < HIT_TOLERANCE)) & (t_sg > 0)
+    step_sg = -val_sg / jnp.where(slope_sg < 0, slope_sg, -1.0)
     # At a tangent (grazing) point the slope is ~0 and the step explodes: keep the iterate.
-    small = (slope_sg < 0) & (jnp.abs(jax.lax.stop_gradient(step)) <= 0.01 * (t_out_sg - t_start_sg))
+    small = hit & (slope_sg < 0) & (jnp.abs(step_sg) <= 0.01 * (t_out_sg - t_start_sg))
+    # The final step carries the gradient: t = t* - g(t*; θ) / g'(t*), where g is taken
+    # with gradients and g' is not (no second derivatives). Where the step is not taken
+    # (a miss, or a grazing ray), g is evaluated at the part's centre instead: reverse
+    # mode multiplies the untaken branch's partials by a zero cotangent, and at a miss
+    # they can be infinite (F overflows far outside a boxy part), which gives NaN.
+    point = jnp.where(small, o + t_sg * d, jnp.zeros_like(o))
+    val = gauge(part, point)
+    step = -val / jnp.where(small, slope_sg, -1.0)
     t = jnp.where(small, t_sg + step, t_sg)
-    hit = box_hit & (found | (jax.lax.stop_gradient(val) < HIT_TOLERANCE)) & (t > 0)
+    hit = hit & (t > 0)
     return jnp.where(hit, t, 0.0), hit
 
 
