@@ -1,182 +1,89 @@
 """sqparts: recover the part structure of objects from range images.
 
 An implementation of A. Pentland, "Recognition by Parts" (SRI, 1987) in JAX. The public
-API is exactly what this module re-exports, in pipeline order.
+API is exactly what this module re-exports, in pipeline order. The names are
+imported on first use (PEP 562), so that ``import sqparts.cli`` and ``sqparts --help``
+start without loading JAX.
 """
 
-from ._part import (
-    BEND_RANGE,
-    SQUARENESS_RANGE,
-    TAPER_RANGE,
-    Part,
-    inside_outside,
-    rotation_matrix,
-    stack_parts,
-    surface_distance,
-    surface_point,
-)
-from ._camera import OrthographicCamera, PinholeCamera, ScannerCamera, camera_from_json
-from ._preprocess import (
-    CleanedRange,
-    FigureGround,
-    Plane,
-    clean_range_image,
-    downsample,
-    estimate_noise,
-    figure_ground,
-    fit_plane,
-    flying_pixels,
-    torn_components,
-)
-from ._render import cast_batch, cast_part, cast_ray, cast_scene, render_each, render_range_image
-from ._fit import Encoding, commission_mask, encoding_for, gamma, gamma_terms, smooth_gamma
-from ._grid import PRESETS, Grid, grid_preset
-from ._search import (
-    RangeData,
-    RegionFit,
-    SearchSettings,
-    convex_width,
-    expanding_grid,
-    fit_image,
-    fit_region,
-    gamma_profile,
-    grow_polish,
-    make_settings,
-    polish_part,
-    prepare,
-    ray_penetration,
-    region_centers,
-    score_region,
-)
-from ._select import (
-    Costs,
-    SelectionProblem,
-    area_matrix,
-    description_length,
-    select_best_first,
-    select_brute_force,
-    select_exact,
-    select_parts,
-)
-from ._refine import EncodingCost, encoding_cost, refine_parts, select_rendered
-from ._recover import MultiscaleRecovery, Recovery, SceneRecovery, recover, recover_multiscale, recover_scene
-from ._postprocess import (
-    FractalSurface,
-    ResidualModel,
-    fit_fractal,
-    prettify,
-    residual_model,
-    snap_rotation,
-    snap_to_gravity,
-)
-from ._scenes import BUILTIN_SCENES, BuiltinScene, builtin_scene
-from ._io import (
-    load_camera,
-    load_scene,
-    read_range_image,
-    save_camera,
-    save_scene,
-    scene_from_dict,
-    scene_to_dict,
-    write_range_image,
-)
-from ._mesh import load_mesh, part_mesh, render_mesh, save_mesh, scene_mesh
+from __future__ import annotations
 
-__version__ = "0.1.0"
+import importlib
+import importlib.metadata
 
-__all__ = [
-    "BEND_RANGE",
-    "SQUARENESS_RANGE",
-    "TAPER_RANGE",
-    "Part",
-    "inside_outside",
-    "surface_distance",
-    "rotation_matrix",
-    "stack_parts",
-    "surface_point",
-    "OrthographicCamera",
-    "PinholeCamera",
-    "ScannerCamera",
-    "camera_from_json",
-    "CleanedRange",
-    "FigureGround",
-    "Plane",
-    "clean_range_image",
-    "downsample",
-    "estimate_noise",
-    "figure_ground",
-    "fit_plane",
-    "flying_pixels",
-    "torn_components",
-    "cast_batch",
-    "cast_part",
-    "cast_ray",
-    "cast_scene",
-    "render_each",
-    "render_range_image",
-    "Encoding",
-    "encoding_for",
-    "gamma",
-    "gamma_terms",
-    "commission_mask",
-    "smooth_gamma",
-    "PRESETS",
-    "Grid",
-    "grid_preset",
-    "RangeData",
-    "RegionFit",
-    "SearchSettings",
-    "convex_width",
-    "expanding_grid",
-    "fit_image",
-    "fit_region",
-    "gamma_profile",
-    "make_settings",
-    "polish_part",
-    "grow_polish",
-    "ray_penetration",
-    "prepare",
-    "region_centers",
-    "score_region",
-    "Costs",
-    "SelectionProblem",
-    "area_matrix",
-    "description_length",
-    "select_best_first",
-    "select_brute_force",
-    "select_exact",
-    "select_parts",
-    "EncodingCost",
-    "encoding_cost",
-    "refine_parts",
-    "select_rendered",
-    "Recovery",
-    "recover",
-    "SceneRecovery",
-    "MultiscaleRecovery",
-    "recover_scene",
-    "recover_multiscale",
-    "FractalSurface",
-    "ResidualModel",
-    "fit_fractal",
-    "prettify",
-    "residual_model",
-    "snap_rotation",
-    "snap_to_gravity",
-    "BUILTIN_SCENES",
-    "BuiltinScene",
-    "builtin_scene",
-    "load_camera",
-    "load_scene",
-    "read_range_image",
-    "save_camera",
-    "save_scene",
-    "scene_from_dict",
-    "scene_to_dict",
-    "write_range_image",
-    "load_mesh",
-    "part_mesh",
-    "render_mesh",
-    "save_mesh",
-    "scene_mesh",
-]
+_EXPORTS = {
+    "_part": (
+        "BEND_RANGE", "SQUARENESS_RANGE", "TAPER_RANGE", "Part", "inside_outside",
+        "rotation_matrix", "stack_parts", "surface_distance", "surface_point",
+    ),
+    "_camera": (
+        "OrthographicCamera", "PinholeCamera", "ScannerCamera", "camera_from_json",
+    ),
+    "_preprocess": (
+        "CleanedRange", "FigureGround", "Plane", "clean_range_image", "downsample",
+        "estimate_noise", "figure_ground", "fit_plane", "flying_pixels", "torn_components",
+    ),
+    "_render": (
+        "cast_batch", "cast_part", "cast_ray", "cast_scene", "render_each",
+        "render_range_image",
+    ),
+    "_fit": (
+        "Encoding", "commission_mask", "encoding_for", "gamma", "gamma_terms",
+        "smooth_gamma",
+    ),
+    "_grid": (
+        "PRESETS", "Grid", "grid_preset",
+    ),
+    "_search": (
+        "RangeData", "RegionFit", "SearchSettings", "convex_width", "expanding_grid",
+        "fit_image", "fit_region", "gamma_profile", "grow_polish", "make_settings",
+        "polish_part", "prepare", "ray_penetration", "region_centers", "score_region",
+    ),
+    "_select": (
+        "Costs", "SelectionProblem", "area_matrix", "description_length",
+        "select_best_first", "select_brute_force", "select_exact", "select_parts",
+    ),
+    "_refine": (
+        "EncodingCost", "encoding_cost", "refine_parts", "select_rendered",
+    ),
+    "_recover": (
+        "MultiscaleRecovery", "Recovery", "SceneRecovery", "recover", "recover_multiscale",
+        "recover_scene",
+    ),
+    "_postprocess": (
+        "FractalSurface", "ResidualModel", "fit_fractal", "prettify", "residual_model",
+        "snap_rotation", "snap_to_gravity",
+    ),
+    "_scenes": (
+        "BUILTIN_SCENES", "BuiltinScene", "builtin_scene",
+    ),
+    "_io": (
+        "load_camera", "load_scene", "read_range_image", "save_camera", "save_scene",
+        "scene_from_dict", "scene_to_dict", "write_range_image",
+    ),
+    "_mesh": (
+        "load_mesh", "part_mesh", "render_mesh", "save_mesh", "scene_mesh",
+    ),
+}
+"""Each module's public names, in pipeline order."""
+
+__all__ = [name for names in _EXPORTS.values() for name in names]
+_MODULE = {name: module for module, names in _EXPORTS.items() for name in names}
+
+try:
+    __version__ = importlib.metadata.version("sqparts")
+except importlib.metadata.PackageNotFoundError:  # run from a source tree without installing
+    __version__ = "0+unknown"
+
+
+def __getattr__(name: str):
+    module = _MODULE.get(name)
+    if module is None:
+        raise AttributeError(f"module 'sqparts' has no attribute {name!r}")
+    value = getattr(importlib.import_module(f".{module}", __name__), name)
+    globals()[name] = value
+    return value
+
+
+def __dir__() -> list[str]:
+    return sorted(set(globals()) | set(__all__))

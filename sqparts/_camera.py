@@ -27,9 +27,24 @@ import numpy as np
 from ._typing import Array, Float
 
 
+MAX_SIDE = 32768
+"""Longest image side a camera or range image may have."""
+MAX_PIXELS = 2**24
+"""Most pixels a camera or range image may have (4096 x 4096): rendering allocates a
+few hundred bytes per pixel, so larger images are refused before anything is allocated."""
+
+
+def _check_image_size(width: int, height: int) -> None:
+    if width > MAX_SIDE or height > MAX_SIDE or width * height > MAX_PIXELS:
+        raise ValueError(
+            f"camera: got {width}x{height} pixels, expected at most {MAX_PIXELS} pixels "
+            f"and {MAX_SIDE} per side"
+        )
+
+
 def _check_positive_int(name: str, value) -> int:
     if isinstance(value, bool) or not isinstance(value, (int, np.integer)) or value <= 0:
-        raise ValueError(f"{name}: expected a positive integer, got {value!r}")
+        raise ValueError(f"{name}: got {value!r}, expected a positive integer")
     return int(value)
 
 
@@ -37,10 +52,10 @@ def _check_finite(name: str, value, *, positive: bool = False) -> float:
     try:
         v = float(value)
     except (TypeError, ValueError):
-        raise ValueError(f"{name}: expected a number, got {value!r}") from None
+        raise ValueError(f"{name}: got {value!r}, expected a number") from None
     if not np.isfinite(v) or (positive and v <= 0):
         want = "a finite number > 0" if positive else "a finite number"
-        raise ValueError(f"{name}: expected {want}, got {value!r}")
+        raise ValueError(f"{name}: got {value!r}, expected {want}")
     return v
 
 
@@ -80,10 +95,10 @@ class _Camera:
         """The camera of an image binned ``factor`` × ``factor`` (pixel (i, j) of the new
         image covers old pixels [factor·i, factor·i + factor))."""
         if not (isinstance(factor, (int, np.integer)) and factor >= 1):
-            raise ValueError(f"factor: expected an integer >= 1, got {factor!r}")
+            raise ValueError(f"factor: got {factor!r}, expected an integer >= 1")
         f = int(factor)
         if f > min(self.width, self.height):
-            raise ValueError(f"factor: expected at most {min(self.width, self.height)} for a {self.width}x{self.height} camera, got {f}")
+            raise ValueError(f"factor: got {f}, expected at most {min(self.width, self.height)} for a {self.width}x{self.height} camera")
         shift = (f - 1) / 2.0
         common = dict(width=self.width // f, height=self.height // f, cx=(self.cx - shift) / f, cy=(self.cy - shift) / f)
         return dataclasses.replace(self, **common, **self._scaled_fields(f))
@@ -106,8 +121,7 @@ class PinholeCamera(_Camera):
     cy: float
 
     def __post_init__(self):
-        _check_positive_int("width", self.width)
-        _check_positive_int("height", self.height)
+        _check_image_size(_check_positive_int("width", self.width), _check_positive_int("height", self.height))
         for name in ("fx", "fy"):
             object.__setattr__(self, name, _check_finite(name, getattr(self, name), positive=True))
         for name in ("cx", "cy"):
@@ -148,8 +162,7 @@ class OrthographicCamera(_Camera):
     cy: float
 
     def __post_init__(self):
-        _check_positive_int("width", self.width)
-        _check_positive_int("height", self.height)
+        _check_image_size(_check_positive_int("width", self.width), _check_positive_int("height", self.height))
         object.__setattr__(
             self, "pixel_size", _check_finite("pixel_size", self.pixel_size, positive=True)
         )
@@ -202,8 +215,7 @@ class ScannerCamera(_Camera):
     measures_range = True
 
     def __post_init__(self):
-        _check_positive_int("width", self.width)
-        _check_positive_int("height", self.height)
+        _check_image_size(_check_positive_int("width", self.width), _check_positive_int("height", self.height))
         for name in ("azimuth_step", "elevation_step"):
             object.__setattr__(self, name, _check_finite(name, getattr(self, name), positive=True))
         for name in ("cx", "cy"):
@@ -212,8 +224,8 @@ class ScannerCamera(_Camera):
         half_el = max(self.cy, self.height - 1 - self.cy) * self.elevation_step
         if half_az >= np.pi / 2 or half_el >= np.pi / 2:
             raise ValueError(
-                "azimuth_step/elevation_step: expected a field of view under 180 degrees, "
-                f"got half-angles {np.degrees(half_az):.1f} and {np.degrees(half_el):.1f} degrees"
+                f"azimuth_step/elevation_step: got half-angles {np.degrees(half_az):.1f} and "
+                f"{np.degrees(half_el):.1f} degrees, expected a field of view under 180 degrees"
             )
 
     def _rays(self, uu, vv):
@@ -247,12 +259,12 @@ def check_range_image(depth, camera: Camera) -> np.ndarray:
     """A range image checked against its camera, as float64 with NaN for every pixel
     without a return (NaN, inf, 0 or negative)."""
     if not isinstance(camera, _Camera):
-        raise TypeError(f"camera: expected a sqparts camera, got {type(camera).__name__}")
+        raise TypeError(f"camera: got {type(camera).__name__}, expected a sqparts camera")
     d = np.asarray(depth, np.float64)
     if d.ndim != 2:
-        raise ValueError(f"depth: expected a 2-D range image, got shape {d.shape}")
+        raise ValueError(f"depth: got shape {d.shape}, expected a 2-D range image")
     if d.shape != (camera.height, camera.width):
-        raise ValueError(f"depth: expected shape {(camera.height, camera.width)} to match the camera, got {d.shape}")
+        raise ValueError(f"depth: got shape {d.shape}, expected {(camera.height, camera.width)} to match the camera")
     with np.errstate(invalid="ignore"):
         return np.where(np.isfinite(d) & (d > 0), d, np.nan)
 
@@ -260,7 +272,7 @@ def check_range_image(depth, camera: Camera) -> np.ndarray:
 def camera_from_json(data: dict) -> Camera:
     """Build a camera from its JSON dict (Open3D pinhole, orthographic or scanner)."""
     if not isinstance(data, dict):
-        raise ValueError(f"camera: expected a JSON object, got {type(data).__name__}")
+        raise ValueError(f"camera: got {type(data).__name__}, expected a JSON object")
     model = data.get("model", "pinhole")
     known = {
         "pinhole": {"width", "height", "intrinsic_matrix", "model"},
@@ -269,26 +281,29 @@ def camera_from_json(data: dict) -> Camera:
     }
     if model not in known:
         raise ValueError(
-            f"camera.model: expected one of {sorted(known)}, got {model!r}"
+            f"camera.model: got {model!r}, expected one of {sorted(known)}"
         )
     required = known[model] - {"model"}
     missing = sorted(required - set(data))
     if missing:
-        raise ValueError(f"camera: missing key(s) {missing} for a {model} camera")
+        raise ValueError(f"camera: got no {', '.join(missing)}, expected keys {sorted(required)} for a {model} camera")
     unknown = sorted(set(data) - known[model])
     if unknown:
-        raise ValueError(f"camera: unknown key(s) {unknown} for a {model} camera")
+        raise ValueError(f"camera: got unknown key(s) {unknown}, expected only {sorted(known[model])} for a {model} camera")
     if model == "pinhole":
-        k = np.asarray(data["intrinsic_matrix"], dtype=float)
+        try:
+            k = np.asarray(data["intrinsic_matrix"], dtype=float)
+        except (TypeError, ValueError):
+            raise ValueError(f"camera.intrinsic_matrix: got {data['intrinsic_matrix']!r:.80}, expected 9 numbers") from None
         if k.size != 9:
             raise ValueError(
-                f"camera.intrinsic_matrix: expected 9 numbers (column-major 3x3), got {k.size}"
+                f"camera.intrinsic_matrix: got {k.size}, expected 9 numbers (column-major 3x3)"
             )
         k = k.reshape(3, 3, order="F")
-        if abs(k[0, 1]) > 1e-9 or abs(k[1, 0]) > 1e-9 or np.any(np.abs(k[2] - [0, 0, 1]) > 1e-9):
+        if not np.all(np.isfinite(k)) or abs(k[0, 1]) > 1e-9 or abs(k[1, 0]) > 1e-9 or np.any(np.abs(k[2] - [0, 0, 1]) > 1e-9):
             raise ValueError(
-                "camera.intrinsic_matrix: expected [[fx,0,cx],[0,fy,cy],[0,0,1]] "
-                f"(column-major), got {k.tolist()}"
+                f"camera.intrinsic_matrix: got {k.tolist()}, expected finite "
+                "[[fx,0,cx],[0,fy,cy],[0,0,1]] (column-major)"
             )
         return PinholeCamera(data["width"], data["height"], k[0, 0], k[1, 1], k[0, 2], k[1, 2])
     if model == "orthographic":

@@ -66,9 +66,9 @@ class Encoding:
         for name in ("sigma", "quantum", "depth_range", "commission_weight", "bits_per_parameter"):
             v = getattr(self, name)
             if not (isinstance(v, (int, float, np.floating)) and math.isfinite(v) and v > 0):
-                raise ValueError(f"{name}: expected a finite number > 0, got {v!r}")
+                raise ValueError(f"{name}: got {v!r}, expected a finite number > 0")
         if self.sigma < self.quantum:
-            raise ValueError(f"sigma: expected at least the quantum {self.quantum:.3g}, got {self.sigma:.3g}")
+            raise ValueError(f"sigma: got {self.sigma:.3g}, expected at least the quantum {self.quantum:.3g}")
 
     @property
     def pixel_bits(self) -> float:
@@ -127,7 +127,7 @@ def encoding_for(
     d = np.asarray(depth, np.float64)
     d = d[np.isfinite(d)]
     if d.size < 2:
-        raise ValueError(f"depth: expected at least 2 valid pixels, got {d.size}")
+        raise ValueError(f"depth: got {d.size} valid pixels, expected at least 2")
     depth_range = float(d.max() - d.min())
     if depth_range <= 0:
         depth_range = float(abs(d.max())) * 1e-3 or 1.0

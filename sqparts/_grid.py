@@ -30,9 +30,9 @@ import numpy as np
 def _values(name, v, lo=None, hi=None):
     arr = np.atleast_1d(np.asarray(v, np.float64))
     if arr.ndim != 1 or arr.size == 0 or not np.all(np.isfinite(arr)):
-        raise ValueError(f"{name}: expected a non-empty list of finite numbers, got {v!r}")
+        raise ValueError(f"{name}: got {v!r}, expected a non-empty list of finite numbers")
     if (lo is not None and np.any(arr < lo)) or (hi is not None and np.any(arr > hi)):
-        raise ValueError(f"{name}: expected values in [{lo}, {hi}], got {arr.tolist()}")
+        raise ValueError(f"{name}: got {arr.tolist()}, expected values in [{lo}, {hi}]")
     return tuple(float(x) for x in arr)
 
 
@@ -77,7 +77,7 @@ class Grid:
         for name in ("axis_step", "roll_step"):
             v = getattr(self, name)
             if not (isinstance(v, (int, float)) and 0 < v <= 180):
-                raise ValueError(f"{name}: expected degrees in (0, 180], got {v!r}")
+                raise ValueError(f"{name}: got {v!r}, expected degrees in (0, 180]")
 
     # ---------------------------------------------------------------------------
     def axis_directions(self) -> np.ndarray:
@@ -180,5 +180,5 @@ def grid_preset(name_or_grid) -> Grid:
     if isinstance(name_or_grid, Grid):
         return name_or_grid
     if name_or_grid not in PRESETS:
-        raise ValueError(f"grid: expected a Grid or one of {sorted(PRESETS)}, got {name_or_grid!r}")
+        raise ValueError(f"grid: got {name_or_grid!r}, expected a Grid or one of {sorted(PRESETS)}")
     return PRESETS[name_or_grid]

@@ -23,7 +23,7 @@ from pathlib import Path
 
 import numpy as np
 
-from ._camera import Camera, PinholeCamera, camera_from_json
+from ._camera import MAX_PIXELS, MAX_SIDE, Camera, PinholeCamera, camera_from_json
 from ._part import Part, rotation_vector, stack_parts
 
 PART_KEYS = {"size", "squareness", "position", "rotation", "bend", "taper"}
@@ -31,13 +31,26 @@ ANNOTATION_KEYS = {"name", "gamma", "bits_saved", "fraction_explained", "pixels"
 RANGE_IMAGE_SUFFIXES = (".npy", ".png", ".tif", ".tiff", ".pcd")
 
 
+MAX_JSON_BYTES = 64 * 2**20
+"""Largest scene or camera JSON file read (64 MiB)."""
+
+
+def _temporary_name(directory: Path, suffix: str) -> Path:
+    # Short, so that a legal name of up to 255 bytes can still be staged beside it.
+    return directory / f".sqparts-{os.urandom(6).hex()}{suffix}"
+
+
 @contextlib.contextmanager
 def atomic_write(path, mode: str = "wb"):
-    """Open a temporary file next to ``path`` and move it into place only on success."""
+    """Open a temporary file next to ``path`` and move it into place only on success.
+
+    The file gets the mode the umask gives (as ``open`` would), not ``mkstemp``'s 0600.
+    """
     path = Path(path)
-    if path.parent and not path.parent.exists():
-        raise FileNotFoundError(f"out: directory {str(path.parent)!r} does not exist")
-    fd, tmp = tempfile.mkstemp(dir=path.parent or ".", prefix=f".{path.name}.", suffix=".tmp")
+    if path.parent and not path.parent.is_dir():
+        raise FileNotFoundError(f"out: got {str(path)!r}, expected a path in an existing directory")
+    tmp = _temporary_name(path.parent, ".tmp")
+    fd = os.open(tmp, os.O_WRONLY | os.O_CREAT | os.O_EXCL, 0o666)
     try:
         with os.fdopen(fd, mode) as f:
             yield f
@@ -48,14 +61,71 @@ def atomic_write(path, mode: str = "wb"):
         raise
 
 
+def check_new_output(path, *, overwrite: bool = False) -> Path:
+    """``path`` if it may be written: it does not exist, is an empty folder, or
+    ``overwrite`` is set; raises ``FileExistsError`` (naming ``--out``) otherwise."""
+    path = Path(path)
+    if not overwrite and path.exists() and not (path.is_dir() and not any(path.iterdir())):
+        raise FileExistsError(f"--out: got {str(path)!r}, which exists, expected a new path (or --overwrite)")
+    return path
+
+
+@contextlib.contextmanager
+def staged_folder(path, *, overwrite: bool = False):
+    """Write a set of outputs that appear together or not at all.
+
+    Yields a temporary folder beside ``path``; on success it is renamed to ``path`` in
+    one step (an existing ``path`` is replaced only with ``overwrite``, or when it is
+    an empty folder); on any exception or signal the temporary folder is removed and
+    ``path`` is left as it was. The folder gets the mode the umask gives.
+    """
+    import shutil
+
+    path = check_new_output(path, overwrite=overwrite)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    tmp = _temporary_name(path.parent, ".tmp")
+    tmp.mkdir(mode=0o777)
+    old = None
+    try:
+        yield tmp
+        check_new_output(path, overwrite=overwrite)  # nobody made it meanwhile
+        if path.exists() and (not path.is_dir() or any(path.iterdir())):
+            old = _temporary_name(path.parent, ".old")
+            os.rename(path, old)
+        elif path.is_dir():
+            path.rmdir()
+        os.rename(tmp, path)
+    except BaseException:
+        shutil.rmtree(tmp, ignore_errors=True)
+        if old is not None and not path.exists():
+            os.rename(old, path)
+            old = None
+        raise
+    finally:
+        if old is not None:
+            if old.is_dir():
+                shutil.rmtree(old, ignore_errors=True)
+            else:
+                old.unlink(missing_ok=True)
+
+
 def _load_json(path, what: str):
     path = Path(path)
     if not path.is_file():
-        raise FileNotFoundError(f"{what}: no such file {str(path)!r}")
+        raise FileNotFoundError(f"{what}: got {str(path)!r}, expected an existing file")
+    size = path.stat().st_size
+    if size > MAX_JSON_BYTES:
+        raise ValueError(f"{what}: got a file of {size} bytes, expected at most {MAX_JSON_BYTES}")
     try:
-        return json.loads(path.read_text())
-    except (json.JSONDecodeError, UnicodeDecodeError) as e:
-        raise ValueError(f"{what}: {str(path)!r} is not valid JSON ({e})") from None
+        return json.loads(path.read_bytes(), parse_constant=_reject_constant)
+    except RecursionError:
+        raise ValueError(f"{what}: got JSON nested too deeply to parse in {str(path)!r}, expected a {what} file") from None
+    except (ValueError, UnicodeDecodeError) as e:  # JSONDecodeError is a ValueError
+        raise ValueError(f"{what}: got {str(path)!r}, expected valid JSON ({e})") from None
+
+
+def _reject_constant(name: str):
+    raise ValueError(f"got {name}, expected finite numbers")
 
 
 # --- scenes ------------------------------------------------------------------------
@@ -65,27 +135,30 @@ def part_from_dict(d: dict, *, index: int = 0) -> tuple[Part, dict]:
     """One part from its JSON dict; returns the part and its annotations."""
     where = f"parts[{index}]"
     if not isinstance(d, dict):
-        raise ValueError(f"{where}: expected a JSON object, got {type(d).__name__}")
+        raise ValueError(f"{where}: got {type(d).__name__}, expected a JSON object")
     unknown = sorted(set(d) - PART_KEYS - ANNOTATION_KEYS)
     if unknown:
         raise ValueError(
-            f"{where}: unknown key(s) {unknown}; expected {sorted(PART_KEYS)} "
+            f"{where}: got unknown key(s) {unknown}, expected {sorted(PART_KEYS)} "
             f"(+ annotations {sorted(ANNOTATION_KEYS)})"
         )
     missing = sorted({"size", "squareness", "position"} - set(d))
     if missing:
-        raise ValueError(f"{where}: missing key(s) {missing}")
+        raise ValueError(f"{where}: got no {', '.join(missing)}, expected keys {sorted(PART_KEYS)} (size, squareness and position required)")
+    def numbers(key, default=None):
+        try:
+            return np.asarray(d.get(key, default), dtype=np.float64)
+        except (TypeError, ValueError):
+            raise ValueError(f"{where}.{key}: got {d[key]!r:.60}, expected numbers") from None
+
+    fields = {key: numbers(key, default) for key, default in
+              (("size", None), ("squareness", None), ("position", None), ("rotation", np.eye(3)),
+               ("bend", [0.0, 0.0]), ("taper", 0.0))}
     try:
-        rotation = np.asarray(d.get("rotation", np.eye(3)), dtype=float)
-        orientation = rotation_vector(rotation)
-        part = Part(
-            size=np.asarray(d["size"], dtype=np.float32),
-            squareness=np.asarray(d["squareness"], dtype=np.float32),
-            position=np.asarray(d["position"], dtype=np.float32),
-            orientation=orientation.astype(np.float32),
-            bend=np.asarray(d.get("bend", [0.0, 0.0]), dtype=np.float32),
-            taper=np.asarray(d.get("taper", 0.0), dtype=np.float32),
-        )
+        orientation = rotation_vector(fields.pop("rotation"))
+        with np.errstate(over="ignore"):  # beyond float32: an inf that Part rejects by name
+            part = Part(orientation=orientation.astype(np.float32),
+                        **{k: v.astype(np.float32) for k, v in fields.items()})
     except (ValueError, TypeError) as e:
         raise ValueError(f"{where}.{e}") from None
     return part, {k: d[k] for k in d if k in ANNOTATION_KEYS}
@@ -116,9 +189,9 @@ def _jsonable(v):
 def scene_from_dict(data) -> tuple[Part, list[dict], dict]:
     """Parse scene JSON: returns (batched parts, per-part annotations, top-level metadata)."""
     if not isinstance(data, dict) or "parts" not in data:
-        raise ValueError('scene: expected a JSON object with a "parts" list')
+        raise ValueError(f'scene: got {type(data).__name__}{" without parts" if isinstance(data, dict) else ""}, expected a JSON object with a "parts" list')
     if not isinstance(data["parts"], list) or not data["parts"]:
-        raise ValueError('scene.parts: expected a non-empty list of parts')
+        raise ValueError(f"scene.parts: got {data['parts']!r:.40}, expected a non-empty list of parts")
     parsed = [part_from_dict(d, index=i) for i, d in enumerate(data["parts"])]
     meta = {k: v for k, v in data.items() if k != "parts"}
     return stack_parts([p for p, _ in parsed]), [a for _, a in parsed], meta
@@ -177,15 +250,16 @@ def read_range_image(path, *, depth_scale: float = 0.001) -> tuple[np.ndarray, C
     suffix = path.suffix.lower()
     if suffix not in RANGE_IMAGE_SUFFIXES:
         raise ValueError(
-            f"input: expected a range image ending in {', '.join(RANGE_IMAGE_SUFFIXES)}, "
-            f"got {str(path)!r}"
+            f"input: got {str(path)!r}, expected a range image ending in "
+            f"{', '.join(RANGE_IMAGE_SUFFIXES)}"
         )
     if not path.is_file():
-        raise FileNotFoundError(f"input: no such file {str(path)!r}")
+        raise FileNotFoundError(f"input: got {str(path)!r}, expected an existing file")
     if not (isinstance(depth_scale, (int, float)) and np.isfinite(depth_scale) and depth_scale > 0):
-        raise ValueError(f"depth_scale: expected a number > 0, got {depth_scale!r}")
+        raise ValueError(f"depth_scale: got {depth_scale!r}, expected a number > 0")
     camera = None
     try:
+        _check_image_size(path, _declared_shape(path, suffix))
         if suffix == ".npy":
             depth = np.load(path, allow_pickle=False)
         elif suffix == ".png":
@@ -195,7 +269,7 @@ def read_range_image(path, *, depth_scale: float = 0.001) -> tuple[np.ndarray, C
                 raw = np.asarray(im)
             if raw.ndim != 2 or raw.dtype not in (np.uint16, np.int32, np.uint8):
                 raise ValueError(
-                    f"input: expected a single-channel 16-bit PNG, got {raw.dtype} "
+                    f"input: got {raw.dtype} , expected a single-channel 16-bit PNG"
                     f"with shape {raw.shape}"
                 )
             depth = np.where(raw == 0, np.nan, raw.astype(np.float64) * depth_scale)
@@ -206,19 +280,61 @@ def read_range_image(path, *, depth_scale: float = 0.001) -> tuple[np.ndarray, C
             depth = raw if np.issubdtype(raw.dtype, np.floating) else raw * depth_scale
         else:
             depth, camera = _read_pcd(path)
-    except (OSError, ValueError, EOFError) as e:
+    except (OSError, ValueError, EOFError, MemoryError) as e:
         msg = str(e)
         if msg.startswith("input:"):
             raise ValueError(msg) from None
-        raise ValueError(f"input: could not read {str(path)!r} ({e})") from None
+        raise ValueError(f"input: got {str(path)!r}, expected a readable range image ({type(e).__name__}: {e})") from None
     depth = np.asarray(depth)
     if depth.ndim != 2 or not np.issubdtype(depth.dtype, np.number):
         raise ValueError(
-            f"input: expected a 2-D numeric range image, got {depth.dtype} with shape {depth.shape}"
+            f"input: got {depth.dtype} with shape {depth.shape}, expected a 2-D numeric range image"
         )
     depth = depth.astype(np.float32)
     depth[~np.isfinite(depth) | (depth <= 0)] = np.nan
     return depth, camera
+
+
+def _declared_shape(path: Path, suffix: str) -> tuple[int, ...]:
+    """The image shape a file's header declares, read before any pixel is decoded."""
+    if suffix == ".npy":
+        return tuple(np.load(path, mmap_mode="r", allow_pickle=False).shape)  # maps, reads nothing
+    if suffix == ".png":
+        from PIL import Image
+
+        # PIL's own bomb check (an error past 2 x MAX_IMAGE_PIXELS) is ours to make.
+        limit, Image.MAX_IMAGE_PIXELS = Image.MAX_IMAGE_PIXELS, None
+        try:
+            with Image.open(path) as im:
+                return (im.size[1], im.size[0])
+        finally:
+            Image.MAX_IMAGE_PIXELS = limit
+    if suffix in (".tif", ".tiff"):
+        import tifffile
+
+        with tifffile.TiffFile(path) as tif:
+            return tuple(tif.series[0].shape) if tif.series else ()
+    header = {}
+    with open(path, "rb") as f:
+        for line in f:
+            words = line.decode("ascii", "replace").split()
+            if words and not words[0].startswith("#"):
+                header[words[0].upper()] = words[1:]
+            if words[:1] == ["DATA"] or len(header) > 32:
+                break
+    try:
+        return (int(header["HEIGHT"][0]), int(header["WIDTH"][0]))
+    except (KeyError, IndexError, ValueError):
+        raise ValueError(f"input: got {str(path)!r}, expected a .pcd header with WIDTH and HEIGHT") from None
+
+
+def _check_image_size(path: Path, shape: tuple[int, ...]) -> None:
+    pixels = int(np.prod(shape, dtype=np.float64)) if shape else 0
+    if pixels > MAX_PIXELS or any(n > MAX_SIDE for n in shape):
+        raise ValueError(
+            f"input: got an image of shape {tuple(shape)} in {str(path)!r}, expected at most "
+            f"{MAX_PIXELS} pixels and {MAX_SIDE} per side"
+        )
 
 
 def _read_pcd(path) -> tuple[np.ndarray, PinholeCamera]:
@@ -227,7 +343,7 @@ def _read_pcd(path) -> tuple[np.ndarray, PinholeCamera]:
     pc = PointCloud.from_path(path)
     w, h = int(pc.metadata.width), int(pc.metadata.height)
     if h <= 1:
-        raise ValueError(f"input: expected an organized .pcd (height > 1), got height {h}")
+        raise ValueError(f"input: got height {h}, expected an organized .pcd (height > 1)")
     xyz = pc.numpy(("x", "y", "z")).astype(np.float64).reshape(h, w, 3)
     return xyz[..., 2], intrinsics_from_points(xyz)
 
@@ -238,7 +354,7 @@ def intrinsics_from_points(xyz: np.ndarray) -> PinholeCamera:
     v, u = np.mgrid[0:h, 0:w]
     ok = np.isfinite(xyz).all(-1) & (xyz[..., 2] > 0)
     if ok.sum() < 10:
-        raise ValueError("input: the point cloud has fewer than 10 valid points")
+        raise ValueError(f"input: got a point cloud with {int(ok.sum())} valid points, expected at least 10")
     xz = xyz[..., 0][ok] / xyz[..., 2][ok]
     yz = xyz[..., 1][ok] / xyz[..., 2][ok]
     fx, cx = np.linalg.lstsq(np.c_[xz, np.ones_like(xz)], u[ok], rcond=None)[0]
@@ -258,10 +374,15 @@ def write_range_image(path, depth, *, depth_scale: float = 0.001) -> None:
     elif suffix == ".png":
         from PIL import Image
 
-        scaled = np.where(np.isfinite(depth), np.round(depth / depth_scale), 0)
-        if scaled.max(initial=0) > 65535:
+        if not (isinstance(depth_scale, (int, float, np.floating)) and np.isfinite(depth_scale) and depth_scale > 0):
+            raise ValueError(f"depth_scale: got {depth_scale!r}, expected a finite number > 0")
+        returns = np.isfinite(depth) & (depth > 0)
+        scaled = np.where(returns, np.round(np.where(returns, depth, 0) / depth_scale), 0)
+        if returns.any() and not (1 <= scaled[returns].min() and scaled[returns].max() <= 65535):
+            near, far = float(depth[returns].min()), float(depth[returns].max())
             raise ValueError(
-                f"depth_scale: depth {np.nanmax(depth):.3g} / {depth_scale} does not fit 16 bits"
+                f"depth_scale: got {depth_scale!r}, expected a scale at which depths "
+                f"{near:.4g}..{far:.4g} are 1..65535 units (16-bit PNG, 0 = no return)"
             )
         with atomic_write(path) as f:
             Image.fromarray(scaled.astype(np.uint16)).save(f, format="PNG")
@@ -275,4 +396,4 @@ def write_range_image(path, depth, *, depth_scale: float = 0.001) -> None:
         with atomic_write(path) as f:
             f.write(buffer.getvalue())
     else:
-        raise ValueError(f"out: expected a path ending in .npy, .png or .tif, got {str(path)!r}")
+        raise ValueError(f"--out: got {str(path)!r}, expected a path ending in .npy, .png or .tif")

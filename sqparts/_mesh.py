@@ -43,9 +43,9 @@ def part_mesh(part: Part, *, resolution: int = 48) -> trimesh.Trimesh:
     many distinct angles per quarter).
     """
     if part.batch_shape != ():
-        raise ValueError(f"part: expected a single part, got batch shape {part.batch_shape}")
+        raise ValueError(f"part: got batch shape {part.batch_shape}, expected a single part")
     if not isinstance(resolution, int) or resolution < 4:
-        raise ValueError(f"resolution: expected an integer >= 4, got {resolution!r}")
+        raise ValueError(f"resolution: got {resolution!r}, expected an integer >= 4")
     e1, e2 = (float(x) for x in np.asarray(part.squareness))
     q1 = _quarter_angles(e1, resolution)
     eta_half = q1[1:-1]  # exclude 0 (added once) and π/2 (the pole)
@@ -92,7 +92,7 @@ def save_mesh(path, mesh: trimesh.Trimesh) -> None:
     suffix = path.suffix.lower()
     if suffix not in MESH_SUFFIXES:
         raise ValueError(
-            f"out: expected a mesh path ending in {', '.join(MESH_SUFFIXES)}, got {str(path)!r}"
+            f"out: got {str(path)!r}, expected a mesh path ending in {', '.join(MESH_SUFFIXES)}"
         )
     data = mesh.export(file_type=suffix[1:])
     with atomic_write(path, "wb") as f:
@@ -103,13 +103,13 @@ def load_mesh(path) -> trimesh.Trimesh:
     """Read a mesh file (any format trimesh reads); scenes are flattened to one mesh."""
     path = Path(path)
     if not path.is_file():
-        raise FileNotFoundError(f"mesh: no such file {str(path)!r}")
+        raise FileNotFoundError(f"mesh: got {str(path)!r}, expected an existing file")
     try:
         loaded = trimesh.load(path, force="mesh")
     except Exception as e:  # trimesh raises many types for bad files
-        raise ValueError(f"mesh: could not read {str(path)!r} ({e})") from None
+        raise ValueError(f"mesh: got {str(path)!r}, expected a readable mesh ({e})") from None
     if not isinstance(loaded, trimesh.Trimesh) or len(loaded.faces) == 0:
-        raise ValueError(f"mesh: {str(path)!r} holds no triangles")
+        raise ValueError(f"mesh: got {str(path)!r} with no triangles, expected a triangle mesh")
     return loaded
 
 

@@ -110,12 +110,12 @@ def rotation_vector(matrix: Float[ArrayLike, "3 3"]) -> np.ndarray:
     """
     m = np.asarray(matrix, dtype=np.float64)
     if m.shape != (3, 3) or not np.all(np.isfinite(m)):
-        raise ValueError(f"rotation: expected a finite 3x3 matrix, got shape {m.shape}")
+        raise ValueError(f"rotation: got shape {m.shape}, expected a finite 3x3 matrix")
     err = np.abs(m @ m.T - np.eye(3)).max()
     if err > 1e-4 or np.linalg.det(m) < 0:
         raise ValueError(
-            f"rotation: expected an orthonormal matrix with determinant +1, got "
-            f"|R R^T - I| = {err:.2g}, det = {np.linalg.det(m):.3g}"
+            f"rotation: got |R R^T - I| = {err:.2g}, det = {np.linalg.det(m):.3g}, expected an "
+            "orthonormal matrix with determinant +1"
         )
     with jax.enable_x64(True):
         return np.array(matrix_to_rotation_vector(jnp.asarray(m, jnp.float64)), np.float64)
@@ -192,7 +192,7 @@ class Part(eqx.Module):
         # Concrete vectors are sliced on the host (see _host_op).
         v = vector if _traced(vector) else np.asarray(vector)
         if v.shape[-1:] != (14,):
-            raise ValueError(f"vector: expected a trailing axis of 14, got shape {v.shape}")
+            raise ValueError(f"vector: got shape {v.shape}, expected a trailing axis of 14")
         return cls(
             position=v[..., 0:3],
             orientation=v[..., 3:6],
@@ -208,7 +208,7 @@ class Part(eqx.Module):
 
     def __len__(self) -> int:
         if not self.batch_shape:
-            raise TypeError("len() of a single Part; only a batch of parts has a length")
+            raise TypeError("part: got a single Part, expected a batch (only a batch of parts has a length)")
         return self.batch_shape[0]
 
     def __iter__(self):
@@ -218,7 +218,7 @@ class Part(eqx.Module):
 
     def __getitem__(self, index) -> "Part":
         if isinstance(index, (int, np.integer)) and self.batch_shape and not -len(self) <= index < len(self):
-            raise IndexError(f"index: {index} is out of range for a batch of {len(self)} parts")
+            raise IndexError(f"index: got {index}, expected an index into a batch of {len(self)} parts")
         return jax.tree_util.tree_map(lambda x: _host_op(lambda _, a: a[index], x), self)
 
     def rotation(self) -> Float[Array, "*batch 3 3"]:
@@ -252,18 +252,18 @@ def _validate(fields: dict, batch: tuple[int, ...]) -> None:
     }
     if fields["size"].ndim == 0 or fields["size"].shape[-1] != 3:
         raise ValueError(
-            f"size: expected 3 semi-axes (a1, a2, a3), got shape {fields['size'].shape}"
+            f"size: got shape {fields['size'].shape}, expected 3 semi-axes (a1, a2, a3)"
         )
     for name, shape in want.items():
         got = fields[name].shape
         if got != shape:
-            raise ValueError(f"{name}: expected shape {shape}, got {got}")
+            raise ValueError(f"{name}: got shape {got}, expected {shape}")
         values = np.asarray(fields[name])
         if not np.all(np.isfinite(values)):
-            raise ValueError(f"{name}: expected finite values, got {values.tolist()}")
+            raise ValueError(f"{name}: got {values.tolist()}, expected finite values")
     size = np.asarray(fields["size"])
     if np.any(size <= 0):
-        raise ValueError(f"size: expected semi-axes > 0, got {size.tolist()}")
+        raise ValueError(f"size: got {size.tolist()}, expected semi-axes > 0")
     for name, (lo, hi) in (
         ("squareness", SQUARENESS_RANGE),
         ("bend", BEND_RANGE),
@@ -271,7 +271,7 @@ def _validate(fields: dict, batch: tuple[int, ...]) -> None:
     ):
         values = np.asarray(fields[name])
         if np.any(values < lo) or np.any(values > hi):
-            raise ValueError(f"{name}: expected values in [{lo}, {hi}], got {values.tolist()}")
+            raise ValueError(f"{name}: got {values.tolist()}, expected values in [{lo}, {hi}]")
 
 
 # --- geometry of one part -----------------------------------------------------------
@@ -379,7 +379,7 @@ def stack_parts(parts) -> Part:
     """Stack a sequence of single parts into one batched :class:`Part` (a scene)."""
     parts = list(parts)
     if not parts:
-        raise ValueError("parts: expected at least one part, got an empty sequence")
+        raise ValueError("parts: got an empty sequence, expected at least one part")
     return jax.tree_util.tree_map(lambda *xs: _host_op(lambda xp, *a: xp.stack(a), *xs), *parts)
 
 

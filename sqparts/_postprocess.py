@@ -33,7 +33,7 @@ from ._select import Costs
 def _unit(name: str, v) -> np.ndarray:
     a = np.asarray(v, np.float64).reshape(-1)
     if a.shape != (3,) or not np.all(np.isfinite(a)) or np.linalg.norm(a) < 1e-12:
-        raise ValueError(f"{name}: expected a non-zero 3-vector, got {v!r}")
+        raise ValueError(f"{name}: got {v!r}, expected a non-zero 3-vector")
     return a / np.linalg.norm(a)
 
 
@@ -77,7 +77,7 @@ def snap_rotation(matrix, up, *, max_angle: float = 15.0) -> tuple[np.ndarray, s
 def snap_to_gravity(parts: Part, up, *, max_angle: float = 15.0) -> tuple[Part, list[dict]]:
     """:func:`snap_rotation` for every part (turned about its own centre)."""
     if not (isinstance(max_angle, (int, float)) and 0 <= max_angle <= 90):
-        raise ValueError(f"max_angle: expected degrees in [0, 90], got {max_angle!r}")
+        raise ValueError(f"max_angle: got {max_angle!r}, expected degrees in [0, 90]")
     out, report = [], []
     for i in range(len(parts)):
         p = parts[i]
@@ -98,7 +98,7 @@ def prettify(parts: Part, data, costs: Costs, *, up, max_angle: float = 15.0, ma
     from ._refine import costs_removing, encoding_cost
 
     if not (isinstance(max_bits, (int, float)) and math.isfinite(max_bits) and max_bits >= 0):
-        raise ValueError(f"max_bits: expected a finite number >= 0, got {max_bits!r}")
+        raise ValueError(f"max_bits: got {max_bits!r}, expected a finite number >= 0")
     snapped, report = snap_to_gravity(parts, up, max_angle=max_angle)
     cost = encoding_cost(parts, data, costs)
     every = range(len(parts))
@@ -191,7 +191,7 @@ def fit_fractal(residual, *, lags=(1, 2, 3, 4, 6, 8)) -> FractalSurface:
     l, v = variogram(residual, lags)
     ok = v > 0
     if ok.sum() < 2:
-        raise ValueError("residual: expected at least two lags with 16 valid pixel pairs and non-zero variance")
+        raise ValueError("residual: got too few valid pixel pairs, expected at least two lags with 16 pairs and non-zero variance")
     slope, icpt = np.polyfit(np.log(l[ok]), np.log(v[ok]), 1)
     hurst = float(np.clip(slope / 2.0, 0.01, 0.99))
     return FractalSurface(hurst, float(math.exp(icpt / 2.0)), tuple(l.tolist()), tuple(v.tolist()))
@@ -225,7 +225,7 @@ class ResidualModel:
 def residual_model(recovery, *, clip: float = 2.0, seed: int = 0) -> ResidualModel:
     """The residual surface model of a :class:`~sqparts.Recovery` (section 2.1.1)."""
     if not (isinstance(clip, (int, float)) and clip > 0):
-        raise ValueError(f"clip: expected a number > 0, got {clip!r}")
+        raise ValueError(f"clip: got {clip!r}, expected a number > 0")
     model = np.asarray(recovery.cost.rendered, np.float64)
     depth = np.asarray(recovery.depth, np.float64)
     sigma = float(recovery.settings["sigma"])

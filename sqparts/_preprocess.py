@@ -40,7 +40,7 @@ def _check_positive(name: str, value, *, integer: bool = False):
     ok = isinstance(value, (int, np.integer)) if integer else isinstance(value, (int, float, np.number))
     if not ok or not math.isfinite(value) or value <= 0:
         kind = "an integer" if integer else "a finite number"
-        raise ValueError(f"{name}: expected {kind} > 0, got {value!r}")
+        raise ValueError(f"{name}: got {value!r}, expected {kind} > 0")
     return value
 
 
@@ -202,6 +202,21 @@ class CleanedRange:
                 f"outlier pixels removed; {q}; noise {self.noise:.3g}")
 
 
+def crop_depth_range(depth, depth_range: tuple[float, float] | None) -> np.ndarray:
+    """Drop returns outside ``depth_range`` (near, far; the paper's "cube of data")."""
+    d = np.asarray(depth)
+    if depth_range is None:
+        return d
+    try:
+        near, far = (float(x) for x in depth_range)
+    except (TypeError, ValueError):
+        raise ValueError(f"depth_range: got {depth_range!r}, expected (near, far)") from None
+    if not (0 <= near < far):
+        raise ValueError(f"depth_range: got {depth_range!r}, expected 0 <= near < far")
+    with np.errstate(invalid="ignore"):
+        return np.where((d >= near) & (d <= far), d, np.nan).astype(d.dtype)
+
+
 def clean_range_image(
     depth,
     camera: Camera,
@@ -217,15 +232,7 @@ def clean_range_image(
     raw = np.asarray(depth, np.float64)
     d = _check_depth(raw, camera)
     missing = int((~np.isfinite(d)).sum())
-    if depth_range is not None:
-        try:
-            near, far = (float(x) for x in depth_range)
-        except (TypeError, ValueError):
-            raise ValueError(f"depth_range: expected (near, far), got {depth_range!r}") from None
-        if not (0 <= near < far):
-            raise ValueError(f"depth_range: expected 0 <= near < far, got {depth_range!r}")
-        with np.errstate(invalid="ignore"):
-            d = np.where((d >= near) & (d <= far), d, np.nan)
+    d = crop_depth_range(d, depth_range)
     quantum = estimate_quantum(d)
     flying = flying_pixels(d, camera, tear=tear)
     d = np.where(flying, np.nan, d)
@@ -265,7 +272,7 @@ def fit_plane(
     _check_positive("threshold", threshold)
     p = np.asarray(points, np.float64)
     if p.ndim != 2 or p.shape[1] != 3 or len(p) < 3:
-        raise ValueError(f"points: expected at least 3 points of shape (N, 3), got {p.shape}")
+        raise ValueError(f"points: got {p.shape}, expected at least 3 points of shape (N, 3)")
     rng = np.random.default_rng(seed)
     test = p if len(p) <= sample else p[rng.choice(len(p), sample, replace=False)]
     tri = p[rng.integers(0, len(p), (iterations, 3)) if triples is None else np.asarray(triples)]
@@ -275,7 +282,7 @@ def fit_plane(
     n = n[ok] / norm[ok, None]
     off = -np.einsum("ij,ij->i", n, tri[ok, 0])
     if len(n) == 0:
-        raise ValueError("points: all samples are collinear; no plane")
+        raise ValueError("points: got collinear samples, expected points spanning a plane")
     score = (np.abs(test @ n.T + off) <= threshold).sum(axis=0)
     best = int(np.argmax(score))
     normal, offset = n[best], off[best]
@@ -397,12 +404,12 @@ def figure_ground(
     """
     d = _check_depth(depth, camera)
     if not (isinstance(planes, (int, np.integer)) and planes >= 0):
-        raise ValueError(f"planes: expected an integer >= 0, got {planes!r}")
+        raise ValueError(f"planes: got {planes!r}, expected an integer >= 0")
     if not (0 < min_plane_fraction <= 1):
-        raise ValueError(f"min_plane_fraction: expected a number in (0, 1], got {min_plane_fraction!r}")
+        raise ValueError(f"min_plane_fraction: got {min_plane_fraction!r}, expected a number in (0, 1]")
     valid = np.isfinite(d)
     if valid.sum() < 16:
-        raise ValueError(f"depth: expected at least 16 returns, got {int(valid.sum())}")
+        raise ValueError(f"depth: got {int(valid.sum())} returns, expected at least 16")
     if plane_threshold is None:
         q = estimate_quantum(d) or 0.0
         plane_threshold = max(0.01 * float(np.median(d[valid])), 3 * q)
@@ -411,7 +418,7 @@ def figure_ground(
         min_pixels = max(16, int(0.0025 * valid.sum()))
     _check_positive("min_pixels", min_pixels, integer=True)
     if not (isinstance(max_border_fraction, (int, float, np.integer, np.floating)) and 0 <= max_border_fraction <= 1):
-        raise ValueError(f"max_border_fraction: expected a number in [0, 1], got {max_border_fraction!r}")
+        raise ValueError(f"max_border_fraction: got {max_border_fraction!r}, expected a number in [0, 1]")
     pts = camera.points(d)
     frame = _outer_frame(valid)
     background = np.zeros(d.shape, bool)

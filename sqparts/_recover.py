@@ -130,6 +130,10 @@ class Recovery(_Fractions):
         )
 
 
+MAX_REFINE_ROUNDS = 100
+"""Most rounds of joint refinement a recovery may ask for (a bound on its work)."""
+
+
 def recover(
     depth,
     camera: Camera,
@@ -177,6 +181,10 @@ def recover(
         (``restarts=3, polish_rounds=6, polish_steps=15``): flat boxes then come back
         with ε ≈ 0.1 rather than as rounded blobs (see ``benchmarks/README.md``).
     """
+    if isinstance(refine_rounds, bool) or not isinstance(refine_rounds, (int, np.integer)) or not (
+        0 <= refine_rounds <= MAX_REFINE_ROUNDS
+    ):
+        raise ValueError(f"refine_rounds: got {refine_rounds!r}, expected an integer in [0, {MAX_REFINE_ROUNDS}]")
     for name, value in (("polish_candidates", top_k), ("polish_rounds", 3), ("polish_steps", 10), ("restarts", 0)):
         search_kwargs.setdefault(name, value)
     t0 = time.perf_counter()
@@ -189,7 +197,7 @@ def recover(
     costs = Costs.from_encoding(data.encoding, int(data.figure_mask.sum()))
     parts, layers, explained, commission = _candidates(fits, data)
     if parts is None:
-        raise ValueError("depth: the search found no part that explains any pixel")
+        raise ValueError("depth: got an image where the search found no part that explains any pixel, expected a figure the grid can fit")
     problem = SelectionProblem.from_masks(explained, commission, costs)
     chosen, method = select_parts(problem, method=selection)
     chosen = select_rendered(layers, data, costs, start=chosen)
@@ -429,7 +437,7 @@ def recover_scene(
     """
     from ._postprocess import prettify as _prettify
     from ._fit import encoding_for
-    from ._preprocess import DEFAULT_TEAR, auto_factor, clean_range_image, downsample, estimate_noise
+    from ._preprocess import DEFAULT_TEAR, auto_factor, clean_range_image, crop_depth_range, downsample, estimate_noise
     from ._preprocess import figure_ground as _figure_ground
     from ._search import default_max_size, prepare, window_for
 
@@ -437,15 +445,18 @@ def recover_scene(
     tear = DEFAULT_TEAR if tear is None else tear
     d = np.asarray(depth, np.float32)
     if d.ndim != 2:
-        raise ValueError(f"depth: expected a 2-D range image, got shape {d.shape}")
+        raise ValueError(f"depth: got shape {d.shape}, expected a 2-D range image")
     if resolution is not None and not (isinstance(resolution, (int, np.integer)) and resolution >= 0):
-        raise ValueError(f"resolution: expected an integer >= 0 or None, got {resolution!r}")
+        raise ValueError(f"resolution: got {resolution!r}, expected an integer >= 0 or None")
     factor = auto_factor(d.shape, resolution) if resolution else 1
     if factor > 1:
         d, camera = downsample(d, camera, factor)
-    cleaned = clean_range_image(d, camera, tear=tear, depth_range=depth_range) if clean else None
-    if cleaned is not None:
+    if clean:
+        cleaned = clean_range_image(d, camera, tear=tear, depth_range=depth_range)
         d = cleaned.depth
+    else:
+        cleaned = None
+        d = crop_depth_range(d, depth_range)
     fg = None
     if figure_ground:
         fg = _figure_ground(d, camera, planes=planes, plane_threshold=plane_threshold, tear=tear,
@@ -453,7 +464,7 @@ def recover_scene(
                             max_border_fraction=max_border_fraction)
         masks = fg.figures
         if not masks:
-            raise ValueError("depth: no figure left after removing the background; try figure_ground=False or a smaller min_figure_pixels")
+            raise ValueError("depth: got no figure left after removing the background, expected at least one (try figure_ground=False or a smaller min_figure_pixels)")
     else:
         masks = [np.isfinite(d)]
     t1 = time.perf_counter()
@@ -476,11 +487,11 @@ def recover_scene(
             raise
         recoveries.append(rec)
     if not recoveries:
-        raise ValueError("depth: the search found no part on any figure")
+        raise ValueError("depth: got figures on which the search found no part, expected at least one part")
     if prettify:
         gravity = up if up is not None else (fg.up if fg is not None else None)
         if gravity is None:
-            raise ValueError("up: prettifying needs the gravity direction; no ground plane was found, so give up=(x, y, z)")
+            raise ValueError("up: got nothing and no ground plane was found, expected the gravity direction up=(x, y, z) for prettifying")
         for rec in recoveries:
             parts, cost, report = _prettify(rec.parts, rec.data, rec.costs, up=gravity, max_angle=max_angle, max_bits=max_bits)
             rec.parts, rec.cost = parts, cost
@@ -551,7 +562,7 @@ def recover_multiscale(depth, camera: Camera, *, levels: int = 3, figure=None, m
     from ._search import prepare
 
     if not (isinstance(levels, (int, np.integer)) and 1 <= levels <= 6):
-        raise ValueError(f"levels: expected an integer in [1, 6], got {levels!r}")
+        raise ValueError(f"levels: got {levels!r}, expected an integer in [1, 6]")
     d0 = np.asarray(depth, np.float32)
     data0 = prepare(d0, camera, figure=figure)
     if max_size is None:

@@ -155,21 +155,37 @@ def cast_batch(
     )
 
 
+MIN_NEWTON_STEPS = 5
+"""Fewest Newton steps a rendering may use: with 4 or fewer, rays of deformed parts are
+left unconverged (IoU 0.86 at 4 steps, 0.77 at 3, 0 at 1, measured against 24 steps)."""
+MAX_NEWTON_STEPS = 64
+
+
+def _check_newton_steps(newton_steps) -> int:
+    if isinstance(newton_steps, bool) or not isinstance(newton_steps, (int, np.integer)) or not (
+        MIN_NEWTON_STEPS <= newton_steps <= MAX_NEWTON_STEPS
+    ):
+        raise ValueError(
+            f"newton_steps: got {newton_steps!r}, expected an integer in [{MIN_NEWTON_STEPS}, {MAX_NEWTON_STEPS}]"
+        )
+    return int(newton_steps)
+
+
 def _check_camera(camera) -> None:
     if not isinstance(camera, _Camera):
         raise TypeError(
-            f"camera: expected a PinholeCamera, OrthographicCamera or ScannerCamera, "
-            f"got {type(camera).__name__}"
+            f"camera: got {type(camera).__name__}, expected a PinholeCamera, OrthographicCamera "
+            "or ScannerCamera"
         )
 
 
 def _as_scene(parts) -> Part:
     if not isinstance(parts, Part):
-        raise TypeError(f"parts: expected a Part (single or batched), got {type(parts).__name__}")
+        raise TypeError(f"parts: got {type(parts).__name__}, expected a Part (single or batched)")
     if parts.batch_shape == ():
         return jax.tree_util.tree_map(lambda x: x[None], parts)
     if len(parts.batch_shape) != 1:
-        raise ValueError(f"parts: expected one batch axis, got batch shape {parts.batch_shape}")
+        raise ValueError(f"parts: got batch shape {parts.batch_shape}, expected one batch axis")
     return parts
 
 
@@ -207,12 +223,13 @@ def render_range_image(
     depth : float32 array, shape (height, width) or (rows, cols); NaN where no return.
     """
     _check_camera(camera)
+    newton_steps = _check_newton_steps(newton_steps)
     scene = _as_scene(parts)
     if window is None:
         corner, shape = jnp.zeros(2, jnp.float32), None
     else:
         if len(window) != 4:
-            raise ValueError(f"window: expected (row0, col0, rows, cols), got {window!r}")
+            raise ValueError(f"window: got {window!r}, expected (row0, col0, rows, cols)")
         corner = jnp.asarray(window[:2], jnp.float32)
         shape = (int(window[2]), int(window[3]))
     depth, labels = _render_scene(scene, camera, corner, shape, newton_steps)
@@ -235,9 +252,10 @@ def render_each(
 ) -> Float[Array, "n h w"]:
     """Render every part of a batch on its own (no occlusion), chunked by ``batch_size``."""
     _check_camera(camera)
+    newton_steps = _check_newton_steps(newton_steps)
     scene = _as_scene(parts)
     if not isinstance(batch_size, int) or batch_size <= 0:
-        raise ValueError(f"batch_size: expected a positive integer, got {batch_size!r}")
+        raise ValueError(f"batch_size: got {batch_size!r}, expected a positive integer")
     return _render_batch(scene, camera, batch_size, newton_steps)
 
 

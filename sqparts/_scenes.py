@@ -171,5 +171,5 @@ BUILTIN_SCENES = {"human": human, "chair": chair, "castings": castings, "gate": 
 def builtin_scene(name: str, **kwargs) -> BuiltinScene:
     """One of :data:`BUILTIN_SCENES` by name."""
     if name not in BUILTIN_SCENES:
-        raise ValueError(f"scene: expected one of {sorted(BUILTIN_SCENES)}, got {name!r}")
+        raise ValueError(f"scene: got {name!r}, expected one of {sorted(BUILTIN_SCENES)}")
     return BUILTIN_SCENES[name](**kwargs)

@@ -92,13 +92,13 @@ class SearchSettings:
         for name in ("window", "top_k", "stride", "survivors", "batch_size", "newton_steps"):
             v = getattr(self, name)
             if not isinstance(v, (int, np.integer)) or isinstance(v, bool) or v <= 0:
-                raise ValueError(f"{name}: expected a positive integer, got {v!r}")
+                raise ValueError(f"{name}: got {v!r}, expected a positive integer")
         for name in ("polish_steps", "polish_rounds", "polish_candidates", "restarts"):
             v = getattr(self, name)
             if not (isinstance(v, int) and v >= 0):
-                raise ValueError(f"{name}: expected an integer >= 0, got {v!r}")
+                raise ValueError(f"{name}: got {v!r}, expected an integer >= 0")
         if not (math.isfinite(self.max_size) and self.max_size > 0):
-            raise ValueError(f"max_size: expected a finite number > 0, got {self.max_size!r}")
+            raise ValueError(f"max_size: got {self.max_size!r}, expected a finite number > 0")
 
 
 @dataclasses.dataclass(frozen=True)
@@ -148,9 +148,11 @@ def prepare(depth, camera: Camera, *, figure=None, encoding: Encoding | None = N
     d = check_range_image(depth, camera).astype(np.float32)
     fig = np.isfinite(d) if figure is None else np.asarray(figure, bool)
     if fig.shape != d.shape:
-        raise ValueError(f"figure: expected shape {d.shape}, got {fig.shape}")
+        raise ValueError(f"figure: got shape {fig.shape}, expected {d.shape}")
     if (fig & np.isfinite(d)).sum() < 4:
-        raise ValueError(f"depth: expected a figure of at least 4 pixels with returns, got {int((fig & np.isfinite(d)).sum())}")
+        raise ValueError(f"depth: got a figure of {int((fig & np.isfinite(d)).sum())} pixels with returns, expected at least 4")
+    if encoding is not None and not isinstance(encoding, Encoding):
+        raise TypeError(f"encoding: got {encoding!r:.60} ({type(encoding).__name__}), expected a sqparts.Encoding or None")
     enc = encoding or encoding_for(d[fig & np.isfinite(d)])
     return RangeData(
         jnp.asarray(np.pad(d, pad, constant_values=np.nan)),
@@ -168,8 +170,20 @@ def default_max_size(data: RangeData) -> float:
     return max(extent / 4.0, 1e-6)
 
 
+def check_max_size(max_size) -> float:
+    """``max_size`` as a float, checked: a finite number > 0."""
+    try:
+        value = float(max_size)
+    except (TypeError, ValueError):
+        value = math.nan
+    if not (math.isfinite(value) and value > 0) or isinstance(max_size, bool):
+        raise ValueError(f"max_size: got {max_size!r}, expected a finite number > 0")
+    return value
+
+
 def window_for(data: RangeData, max_size: float, *, multiple: int = 8) -> int:
     """Window side (pixels) covering the projected diameter of the largest part."""
+    max_size = check_max_size(max_size)
     depth = float(np.nanmedian(data.image[data.figure_mask]))
     pixel = float(np.asarray(data.camera.pixel_size_at(jnp.asarray(depth))))
     side = 2.0 * max_size / pixel * 1.1
@@ -193,9 +207,9 @@ def region_centers(figure, *, spacing: float, method: str = "skeleton", grid_sha
 
     fig = np.asarray(figure, bool)
     if method not in ("skeleton", "grid", "both"):
-        raise ValueError(f"method: expected 'skeleton', 'grid' or 'both', got {method!r}")
+        raise ValueError(f"method: got {method!r}, expected 'skeleton', 'grid' or 'both'")
     if not (spacing > 0):
-        raise ValueError(f"spacing: expected a number > 0, got {spacing!r}")
+        raise ValueError(f"spacing: got {spacing!r}, expected a number > 0")
     centres: list = []
     if method in ("skeleton", "both"):
         from scipy.ndimage import maximum_filter
@@ -634,10 +648,10 @@ def _to_image(masks, corner, shape) -> np.ndarray:
 
 def make_settings(data: RangeData, *, grid="default", max_size=None, window=None, **kwargs) -> SearchSettings:
     """:class:`SearchSettings` with the scale and window derived from the data."""
-    max_size = float(max_size) if max_size is not None else default_max_size(data)
+    max_size = check_max_size(max_size) if max_size is not None else default_max_size(data)
     window = int(window) if window is not None else window_for(data, max_size)
     if window > 2 * data.pad:
-        raise ValueError(f"window: expected at most {2 * data.pad} pixels (twice the padding), got {window}")
+        raise ValueError(f"window: got {window}, expected at most {2 * data.pad} pixels (twice the padding)")
     return SearchSettings(grid=grid_preset(grid), max_size=max_size, window=window, **kwargs)
 
 

@@ -255,7 +255,7 @@ def select_brute_force(problem: SelectionProblem) -> np.ndarray:
     """Exhaustive minimum of E(X) (reference for tests; n ≤ 16)."""
     n = problem.size
     if n > 16:
-        raise ValueError(f"problem: brute force takes at most 16 candidates, got {n}")
+        raise ValueError(f"problem: got {n} candidates, expected at most 16 for brute force")
     best, best_x = np.inf, np.zeros(n, bool)
     for bits in itertools.product([0, 1], repeat=n):
         e = problem.energy(bits)
@@ -273,7 +273,7 @@ def select_parts(
     found, reported as ``"exact (time limit)"``, never worse than best-first). Returns
     (selection, method used)."""
     if method not in ("auto", "exact", "best-first"):
-        raise ValueError(f"method: expected 'auto', 'exact' or 'best-first', got {method!r}")
+        raise ValueError(f"method: got {method!r}, expected 'auto', 'exact' or 'best-first'")
     if method == "best-first" or (method == "auto" and problem.size > exact_limit):
         return select_best_first(problem), "best-first"
     x, optimal = select_exact(problem, time_limit=time_limit)

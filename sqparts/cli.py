@@ -1,19 +1,452 @@
 """The ``sqparts`` command line: render, mesh, show, recover, demo.
 
-User errors (missing files, bad JSON, out-of-range parameters) print one line
-``sqparts: error: ...`` and exit with status 2; outputs are written atomically, so a
-failed command leaves no half-written file.
+What it promises (README, "Errors and guarantees"):
+
+* A user error (missing file, bad JSON, an out-of-range or non-finite number, an
+  option argparse rejects) prints one line ``sqparts: error: ARGUMENT: got X, expected
+  Y`` and exits with status 2; no traceback.
+* Outputs appear together or not at all: a recovery's files are written into a
+  temporary folder beside the output and renamed into place in one step; a single
+  file is written to a temporary name and renamed. An existing output is never
+  replaced unless ``--overwrite`` is given.
+* SIGINT and SIGTERM stop the run at any moment with status 130 or 143, leaving no
+  partial output (outputs already complete stay).
 """
 
 from __future__ import annotations
 
 import argparse
+import contextlib
 import os
+import signal
 import sys
+import threading
 import time
 from pathlib import Path
 
 import numpy as np
+
+
+# --- arguments ------------------------------------------------------------------------
+
+
+class UsageError(ValueError):
+    """A command line argparse rejected, in the one message style."""
+
+
+def _number(want: str, *, low=None, high=None, integer: bool = False, open_low: bool = False):
+    """An argparse ``type`` accepting a finite number (or integer) in [low, high]."""
+
+    def parse(text: str):
+        try:
+            value = int(text) if integer else float(text)
+        except ValueError:
+            value = None
+        ok = value is not None and np.isfinite(value)
+        ok = ok and (low is None or (value > low if open_low else value >= low))
+        ok = ok and (high is None or value <= high)
+        if not ok:
+            raise argparse.ArgumentTypeError(f"got {text!r}, expected {want}")
+        return value
+
+    return parse
+
+
+_POSITIVE = _number("a finite number > 0", low=0, open_low=True)
+_POSITIVE_INT = _number("an integer >= 1", low=1, integer=True)
+
+
+def _argparse_message(message: str) -> str:
+    """argparse's messages in the one style ``ARGUMENT: got X, expected Y``."""
+    import re
+
+    if m := re.match(r"the following arguments are required: (.*)", message):
+        return f"{m[1]}: got nothing, expected a value (required)"
+    if m := re.match(r"unrecognized arguments: (.*)", message):
+        return f"arguments: got {m[1]!r}, expected only the options that --help lists"
+    if m := re.match(r"argument (\S+?)(?:/\S+)?: invalid choice: (\S+) \(choose from (.*)\)", message):
+        return f"{m[1]}: got {m[2]}, expected one of {m[3]}"
+    if m := re.match(r"argument (\S+?)(?:/\S+)?: invalid \S+ value: (.*)", message):
+        return f"{m[1]}: got {m[2]}, expected a number"
+    if m := re.match(r"argument (\S+?)(?:/\S+)?: expected (.*)", message):
+        return f"{m[1]}: got nothing, expected {m[2]}"
+    if m := re.match(r"argument (\S+?)(?:/\S+)?: ignored explicit argument (.*)", message):
+        return f"{m[1]}: got {m[2]}, expected no value"
+    if m := re.match(r"ambiguous option: (\S+) could match (.*)", message):
+        return f"{m[1]}: got an abbreviation of several options, expected one of {m[2]}"
+    if m := re.match(r"argument (\S+?)(?:/\S+)?: (.*)", message):
+        return f"{m[1]}: {m[2]}"
+    return f"arguments: {message}"
+
+
+class _Parser(argparse.ArgumentParser):
+    def error(self, message):
+        raise UsageError(_argparse_message(message))
+
+
+# --- outputs ----------------------------------------------------------------------------
+
+
+def _range_out(path: str) -> Path:
+    p = Path(path)
+    if p.suffix.lower() not in (".npy", ".png", ".tif", ".tiff"):
+        raise ValueError(f"--out: got {path!r}, expected a path ending in .npy, .png or .tif")
+    return p
+
+
+def _new_file(args, path) -> Path:
+    from ._io import check_new_output
+
+    path = check_new_output(path, overwrite=args.overwrite)
+    if path.is_dir():
+        raise IsADirectoryError(f"--out: got {str(path)!r}, which is a folder, expected a file path")
+    return path
+
+
+def cmd_render(args) -> int:
+    from ._io import load_camera, load_scene, write_range_image
+    from ._render import render_range_image
+
+    out = _new_file(args, _range_out(args.out))
+    parts = load_scene(args.scene)
+    camera = load_camera(args.camera)
+    depth = render_range_image(parts, camera)
+    write_range_image(out, depth, depth_scale=args.depth_scale)
+    _say(args, f"wrote {out} ({camera.width}x{camera.height}, {len(parts)} parts)")
+    return 0
+
+
+def cmd_mesh(args) -> int:
+    from ._io import load_scene
+    from ._mesh import MESH_SUFFIXES, save_mesh, scene_mesh
+
+    if Path(args.out).suffix.lower() not in MESH_SUFFIXES:
+        raise ValueError(f"--out: got {args.out!r}, expected a mesh path ending in {', '.join(MESH_SUFFIXES)}")
+    out = _new_file(args, args.out)
+    parts = load_scene(args.scene)
+    mesh = scene_mesh(parts, resolution=args.resolution, union=args.union)
+    save_mesh(out, mesh)
+    _say(args, f"wrote {out} ({len(mesh.faces)} triangles, {len(parts)} parts)")
+    return 0
+
+
+def cmd_show(args) -> int:
+    from ._io import read_range_image
+    from ._plot import save_range_image_png
+
+    if Path(args.out).suffix.lower() != ".png":
+        raise ValueError(f"--out: got {args.out!r}, expected a path ending in .png")
+    out = _new_file(args, args.out)
+    depth, _ = read_range_image(args.input, depth_scale=args.depth_scale)
+    save_range_image_png(out, depth, title=Path(args.input).name)
+    _say(args, f"wrote {out}")
+    return 0
+
+
+def _write_recovery(folder: Path, recovery, *, title: str, names=None) -> None:
+    """parts.json, model.ply and report.png into ``folder`` (a staged folder)."""
+    import json
+
+    from ._io import atomic_write
+    from ._mesh import save_mesh, scene_mesh
+    from ._plot import save_report
+
+    text = json.dumps(recovery.scene_dict(names), indent=2)
+    with atomic_write(folder / "parts.json", "w") as f:
+        f.write(text + "\n")
+    save_mesh(folder / "model.ply", scene_mesh(recovery.parts, resolution=24))
+    save_report(folder / "report.png", recovery, title=title)
+
+
+def _recover_options(args) -> dict:
+    opts = dict(grid=args.grid, max_size=args.max_size, selection=args.selection,
+                refine_rounds=args.refine_rounds, resolution=args.resolution, clean=args.clean,
+                figure_ground=args.figure_ground, planes=args.planes, tear=args.tear,
+                min_figure_pixels=args.min_figure_pixels, max_figures=args.max_figures,
+                max_border_fraction=args.max_border_fraction, prettify=args.prettify,
+                max_angle=args.max_angle, max_bits=args.max_bits)
+    if args.up is not None:
+        try:
+            up = [float(x) for x in args.up.split(",")]
+        except ValueError:
+            up = []
+        if len(up) != 3 or not np.all(np.isfinite(up)) or not any(up):
+            raise ValueError(f"--up: got {args.up!r}, expected three finite numbers x,y,z, not all 0 (camera frame)")
+        opts["up"] = up
+    if args.depth_range is not None:
+        try:
+            near, far = (float(x) for x in args.depth_range.split(","))
+        except ValueError:
+            near = far = np.nan
+        if not (0 <= near < far):
+            raise ValueError(f"--depth-range: got {args.depth_range!r}, expected NEAR,FAR with 0 <= NEAR < FAR")
+        opts["depth_range"] = (near, far)
+    return opts
+
+
+def _inputs(paths) -> list[Path]:
+    from ._io import RANGE_IMAGE_SUFFIXES
+
+    out = []
+    for p in map(Path, paths):
+        if p.is_dir():
+            found = sorted(q for q in p.iterdir() if q.suffix.lower() in RANGE_IMAGE_SUFFIXES and q.is_file())
+            if not found:
+                raise ValueError(f"input: got folder {str(p)!r}, expected range images in it ({', '.join(RANGE_IMAGE_SUFFIXES)})")
+            out.extend(found)
+        elif not p.exists():
+            raise FileNotFoundError(f"input: got {str(p)!r}, expected an existing file or folder")
+        else:
+            out.append(p)
+    seen = {}
+    for p in out:
+        key = p.resolve()
+        if key in seen:
+            raise ValueError(f"input: got {str(p)!r} twice (also as {str(seen[key])!r}), expected each input once")
+        seen[key] = p
+    return out
+
+
+def output_names(paths) -> list[str]:
+    """One sub-folder name per input: its stem where no other input shares it, else its
+    path relative to the inputs' common folder (without the suffix where that is
+    enough: ``a/x.npy b/x.npy`` -> ``a/x``, ``b/x``; ``a.npy a.png`` -> ``a.npy``, ``a.png``)."""
+    resolved = [Path(p).resolve() for p in paths]
+    root = Path(os.path.commonpath([str(r.parent) for r in resolved]))
+    relative = [r.relative_to(root) for r in resolved]
+    stems = [r.stem for r in relative]
+    bare = [str(r.with_suffix("")) for r in relative]
+    return [
+        stem if stems.count(stem) == 1 else name if bare.count(name) == 1 else str(r)
+        for stem, name, r in zip(stems, bare, relative)
+    ]
+
+
+def _progress(args, desc: str, unit: str):
+    if args.quiet:
+        return None
+    from tqdm import tqdm
+
+    return lambda it: tqdm(it, desc=desc, unit=unit, leave=False)
+
+
+def cmd_recover(args) -> int:
+    from ._fit import encoding_for
+    from ._io import check_new_output, load_camera, read_range_image, staged_folder
+    from ._recover import recover_scene
+
+    inputs = _inputs(args.input)
+    out = Path(args.out)
+    targets = [out] if len(inputs) == 1 else [out / name for name in output_names(inputs)]
+    for target in targets:  # before any work: never overwrite silently
+        check_new_output(target, overwrite=args.overwrite)
+    camera_arg = load_camera(args.camera) if args.camera else None
+    opts = _recover_options(args)
+    # Read and check every input before any work, so a bad one fails fast.
+    loaded = []
+    for path in inputs:
+        depth, camera = read_range_image(path, depth_scale=args.depth_scale)
+        camera = camera_arg or camera
+        if camera is None:
+            raise ValueError(f"--camera: got nothing for {str(path)!r}, which carries no camera, expected --camera CAM.json")
+        if depth.shape != (camera.height, camera.width):
+            raise ValueError(
+                f"--camera: got a {camera.width}x{camera.height} camera for {str(path)!r}, expected "
+                f"{depth.shape[1]}x{depth.shape[0]} (the image's size)"
+            )
+        loaded.append((path, depth, camera))
+    progress = _progress(args, "regions", "region")
+    for (path, depth, camera), target in zip(loaded, targets):
+        enc = encoding_for(depth[np.isfinite(depth)], sigma=args.sigma) if args.sigma else None
+        recovery = recover_scene(depth, camera, encoding=enc, progress=progress, **opts)
+        with staged_folder(target, overwrite=args.overwrite) as folder:
+            _write_recovery(folder, recovery, title=path.name)
+        _say(args, f"{path.name}: {recovery.summary()}\n  wrote {target}/parts.json, model.ply, report.png")
+    return 0
+
+
+def cmd_demo(args) -> int:
+    from ._io import check_new_output, staged_folder, write_range_image
+    from ._recover import recover
+    from ._render import render_range_image
+    from ._scenes import builtin_scene
+
+    out = check_new_output(args.out, overwrite=args.overwrite)
+    t0 = time.perf_counter()
+    scene = builtin_scene("human", resolution=args.resolution)
+    depth = render_range_image(scene.parts, scene.camera)
+    recovery = recover(np.asarray(depth), scene.camera, progress=_progress(args, "regions", "region"))
+    with staged_folder(out, overwrite=args.overwrite) as folder:
+        write_range_image(folder / "range.npy", depth)
+        _write_recovery(folder, recovery, title=f"demo: {scene.description}")
+    _say(args, f"demo: {scene.description}\n  true parts: {len(scene.parts)}; recovered: "
+               f"{recovery.summary()}\n  wall time {time.perf_counter() - t0:.1f} s including compilation\n"
+               f"  wrote {out}/range.npy, parts.json, model.ply, report.png")
+    return 0
+
+
+def _say(args, msg: str) -> None:
+    if not getattr(args, "quiet", False):
+        print(msg)
+
+
+def build_parser() -> argparse.ArgumentParser:
+    from ._recover import MAX_REFINE_ROUNDS
+
+    depth_scale = _number("a finite number > 0 (metres per PNG unit)", low=0, open_low=True)
+    parser = _Parser(
+        prog="sqparts",
+        description="Recover part structure (deformed superquadrics) from range images.",
+    )
+    sub = parser.add_subparsers(dest="command", required=True, metavar="COMMAND", parser_class=_Parser)
+
+    p = sub.add_parser("render", help="render a scene JSON into a range image")
+    p.add_argument("scene", help="scene JSON ({\"parts\": [...]})")
+    p.add_argument("--camera", required=True, help="camera JSON (Open3D pinhole or orthographic)")
+    p.add_argument("--out", required=True, help="output range image (.npy, .png 16-bit, .tif)")
+    p.add_argument("--depth-scale", type=depth_scale, default=0.001, help="PNG units per value (m)")
+    p.set_defaults(func=cmd_render)
+
+    p = sub.add_parser("mesh", help="export a scene JSON as a mesh")
+    p.add_argument("scene")
+    p.add_argument("--out", required=True, help="mesh file (.ply, .obj, .stl, .glb, .off)")
+    p.add_argument("--resolution", type=_number("an integer in [4, 512]", low=4, high=512, integer=True),
+                   default=32, help="samples per quarter turn")
+    p.add_argument("--union", action="store_true", help="Boolean union into one body")
+    p.set_defaults(func=cmd_mesh)
+
+    p = sub.add_parser("show", help="save a range image as a PNG picture")
+    p.add_argument("input", help="range image (.npy, .png, .tif, .pcd)")
+    p.add_argument("--out", required=True, help="output picture (.png)")
+    p.add_argument("--depth-scale", type=depth_scale, default=0.001)
+    p.set_defaults(func=cmd_show)
+
+    p = sub.add_parser("recover", help="recover parts from range images")
+    p.add_argument("input", nargs="+", help="range images (.npy .png .tif .pcd) or folders of them")
+    p.add_argument("--camera", help="camera JSON (a .pcd carries its own)")
+    p.add_argument("--out", required=True, help="output directory (one sub-folder per input if several)")
+    p.add_argument("--grid", default="coarse", choices=["coarse", "default", "fine"], help="hypothesis grid")
+    p.add_argument("--max-size", type=_POSITIVE, default=None, help="largest semi-axis searched (scene units)")
+    p.add_argument("--sigma", type=_POSITIVE, default=None, help="match tolerance σ (scene units)")
+    p.add_argument("--selection", default="auto", choices=["auto", "exact", "best-first"])
+    p.add_argument("--refine-rounds", type=_number(f"an integer in [0, {MAX_REFINE_ROUNDS}]", low=0,
+                   high=MAX_REFINE_ROUNDS, integer=True), default=2)
+    p.add_argument("--depth-scale", type=depth_scale, default=0.001, help="PNG units per value (m)")
+    g = p.add_argument_group("real data (clean-up, figure/ground, prettifying)")
+    g.add_argument("--resolution", type=_number("an integer >= 0", low=0, integer=True), default=160,
+                   help="bin the image so its longest side is about this many pixels (0 = full resolution)")
+    g.add_argument("--no-clean", dest="clean", action="store_false",
+                   help="keep flying pixels and isolated outliers")
+    g.add_argument("--no-figure-ground", dest="figure_ground", action="store_false",
+                   help="no plane removal or splitting: the whole image is one figure")
+    g.add_argument("--planes", type=_number("an integer in [0, 16]", low=0, high=16, integer=True), default=3,
+                   help="background planes (table or floor and the walls of a corner) to remove")
+    g.add_argument("--tear", type=_POSITIVE, default=None,
+                   help="depth jump, in pixel footprints, that separates figures (default 8)")
+    g.add_argument("--min-figure-pixels", type=_POSITIVE_INT, default=None, help="smallest figure kept")
+    g.add_argument("--max-figures", type=_POSITIVE_INT, default=None, help="recover at most this many figures")
+    g.add_argument("--max-border-fraction", type=_number("a number in [0, 1]", low=0, high=1), default=0.15,
+                   help="a piece with more of its pixels on the edge of the measured area is background (1 = keep)")
+    g.add_argument("--depth-range", default=None, help="NEAR,FAR: drop returns outside (scene units)")
+    g.add_argument("--prettify", action="store_true",
+                   help="snap nearly vertical/horizontal parts to gravity (section 4.3)")
+    g.add_argument("--up", default=None, help="x,y,z gravity up in the camera frame (default: ground normal)")
+    g.add_argument("--max-angle", type=_number("a number in [0, 90]", low=0, high=90), default=15.0,
+                   help="prettify parts within this many degrees")
+    g.add_argument("--max-bits", type=_number("a finite number >= 0", low=0), default=56.0,
+                   help="prettify only if E rises at most this (and every part still pays)")
+    p.set_defaults(func=cmd_recover)
+
+    p = sub.add_parser("demo", help="recover the built-in articulated human (Figure 7)")
+    p.add_argument("--out", default="sqparts-demo", help="output directory (default sqparts-demo)")
+    p.add_argument("--resolution", type=_number("an integer in [32, 1024]", low=32, high=1024, integer=True),
+                   default=128)
+    p.set_defaults(func=cmd_demo)
+
+    for p in sub.choices.values():
+        p.add_argument("--overwrite", action="store_true", help="replace an existing output (default: refuse)")
+        p.add_argument("--quiet", action="store_true", help="print nothing on success")
+    return parser
+
+
+# --- signals and exit status ------------------------------------------------------------
+
+
+class Interrupted(BaseException):
+    """SIGINT or SIGTERM arrived: unwinds like KeyboardInterrupt (staged outputs are
+    removed on the way) and ends the run with status 128 + the signal's number."""
+
+    def __init__(self, signum: int):
+        super().__init__(signum)
+        self.signum = signum
+
+
+_signal_state = {"pending": None, "raised": False, "defer": False}
+
+
+def _on_signal(signum, frame):
+    state = _signal_state
+    if state["raised"]:  # the run is already stopping: its clean-up must not be interrupted
+        return
+    state["pending"] = signum
+    if state["defer"]:
+        return
+    state["raised"] = True
+    raise Interrupted(signum)
+
+
+def _deliver_again(signum, frame):
+    _signal_state["raised"] = False
+    _on_signal(_signal_state["pending"], frame)
+
+
+def _unraisable(hook):
+    """Python swallows an exception raised where it cannot propagate (a garbage-collector
+    callback, ``__del__``; JAX's GC callback runs often). When that swallows an
+    :class:`Interrupted`, the signal is delivered again 10 ms later (SIGALRM), in
+    whatever ordinary frame runs then."""
+
+    def handle(unraisable):
+        if isinstance(unraisable.exc_value, Interrupted):
+            signal.setitimer(signal.ITIMER_REAL, 0.01)
+        else:
+            hook(unraisable)
+
+    return handle
+
+
+@contextlib.contextmanager
+def _signals_stop_the_run():
+    """SIGINT and SIGTERM raise :class:`Interrupted`, whatever the inherited disposition
+    (a shell starts background jobs with SIGINT ignored). Only the main thread can."""
+    if threading.current_thread() is not threading.main_thread():
+        yield
+        return
+    _signal_state.update(pending=None, raised=False, defer=False)
+    handlers = {signal.SIGINT: _on_signal, signal.SIGTERM: _on_signal, signal.SIGALRM: _deliver_again}
+    previous = {s: signal.signal(s, handler) for s, handler in handlers.items()}
+    hook, sys.unraisablehook = sys.unraisablehook, _unraisable(sys.unraisablehook)
+    try:
+        yield
+    finally:
+        signal.setitimer(signal.ITIMER_REAL, 0)
+        sys.unraisablehook = hook
+        for s, handler in previous.items():
+            signal.signal(s, handler)
+
+
+@contextlib.contextmanager
+def _signals_deferred():
+    """Hold a signal back while compiled extensions load (an exception raised inside
+    jaxlib's initialisation can crash the process); it stops the run right after."""
+    _signal_state["defer"] = True
+    try:
+        yield
+    finally:
+        _signal_state["defer"] = False
+        if _signal_state["pending"] is not None and not _signal_state["raised"]:
+            _signal_state["raised"] = True
+            raise Interrupted(_signal_state["pending"])
 
 
 def _enable_compilation_cache() -> None:
@@ -29,265 +462,27 @@ def _enable_compilation_cache() -> None:
         pass
 
 
-def _range_out(path: str) -> Path:
-    p = Path(path)
-    if p.suffix.lower() not in (".npy", ".png", ".tif", ".tiff"):
-        raise ValueError(f"--out: expected a path ending in .npy, .png or .tif, got {path!r}")
-    return p
-
-
-def cmd_render(args) -> int:
-    from ._io import load_camera, load_scene, write_range_image
-    from ._render import render_range_image
-
-    out = _range_out(args.out)
-    parts = load_scene(args.scene)
-    camera = load_camera(args.camera)
-    depth = render_range_image(parts, camera)
-    write_range_image(out, depth, depth_scale=args.depth_scale)
-    _say(args, f"wrote {out} ({camera.width}x{camera.height}, {len(parts)} parts)")
-    return 0
-
-
-def cmd_mesh(args) -> int:
-    from ._io import load_scene
-    from ._mesh import save_mesh, scene_mesh
-
-    parts = load_scene(args.scene)
-    if args.resolution < 4:
-        raise ValueError(f"--resolution: expected an integer >= 4, got {args.resolution}")
-    mesh = scene_mesh(parts, resolution=args.resolution, union=args.union)
-    save_mesh(args.out, mesh)
-    _say(args, f"wrote {args.out} ({len(mesh.faces)} triangles, {len(parts)} parts)")
-    return 0
-
-
-def cmd_show(args) -> int:
-    from ._io import read_range_image
-    from ._plot import save_range_image_png
-
-    if Path(args.out).suffix.lower() != ".png":
-        raise ValueError(f"--out: expected a path ending in .png, got {args.out!r}")
-    depth, _ = read_range_image(args.input, depth_scale=args.depth_scale)
-    save_range_image_png(args.out, depth, title=Path(args.input).name)
-    _say(args, f"wrote {args.out}")
-    return 0
-
-
-def _write_recovery(out: Path, recovery, *, title: str, names=None) -> None:
-    import json
-
-    from ._io import atomic_write
-    from ._mesh import save_mesh, scene_mesh
-    from ._plot import save_report
-
-    out.mkdir(parents=True, exist_ok=True)
-    text = json.dumps(recovery.scene_dict(names), indent=2)
-    with atomic_write(out / "parts.json", "w") as f:
-        f.write(text + "\n")
-    save_mesh(out / "model.ply", scene_mesh(recovery.parts, resolution=24))
-    save_report(out / "report.png", recovery, title=title)
-
-
-def _recover_options(args) -> dict:
-    opts = dict(grid=args.grid, max_size=args.max_size, selection=args.selection,
-                refine_rounds=args.refine_rounds, resolution=args.resolution, clean=args.clean,
-                figure_ground=args.figure_ground, planes=args.planes, tear=args.tear,
-                min_figure_pixels=args.min_figure_pixels, max_figures=args.max_figures,
-                max_border_fraction=args.max_border_fraction, prettify=args.prettify, max_angle=args.max_angle, max_bits=args.max_bits)
-    for name in ("max_size", "sigma", "tear"):
-        v = getattr(args, name)
-        if v is not None and not v > 0:
-            raise ValueError(f"--{name.replace('_', '-')}: expected a number > 0, got {v}")
-    for name in ("refine_rounds", "resolution", "planes"):
-        v = getattr(args, name)
-        if v < 0:
-            raise ValueError(f"--{name.replace('_', '-')}: expected an integer >= 0, got {v}")
-    for name in ("min_figure_pixels", "max_figures"):
-        v = getattr(args, name)
-        if v is not None and v < 1:
-            raise ValueError(f"--{name.replace('_', '-')}: expected an integer >= 1, got {v}")
-    if not 0 <= args.max_border_fraction <= 1:
-        raise ValueError(f"--max-border-fraction: expected a number in [0, 1], got {args.max_border_fraction}")
-    if args.up is not None:
-        try:
-            up = [float(x) for x in args.up.split(",")]
-        except ValueError:
-            up = []
-        if len(up) != 3 or not np.all(np.isfinite(up)) or not any(up):
-            raise ValueError(f"--up: expected three numbers x,y,z (camera frame), got {args.up!r}")
-        opts["up"] = up
-    if args.depth_range is not None:
-        try:
-            near, far = (float(x) for x in args.depth_range.split(","))
-        except ValueError:
-            raise ValueError(f"--depth-range: expected NEAR,FAR, got {args.depth_range!r}") from None
-        opts["depth_range"] = (near, far)
-    return opts
-
-
-def _inputs(paths) -> list[Path]:
-    from ._io import RANGE_IMAGE_SUFFIXES
-
-    out = []
-    for p in map(Path, paths):
-        if p.is_dir():
-            found = sorted(q for q in p.iterdir() if q.suffix.lower() in RANGE_IMAGE_SUFFIXES)
-            if not found:
-                raise ValueError(f"input: folder {str(p)!r} holds no range images ({', '.join(RANGE_IMAGE_SUFFIXES)})")
-            out.extend(found)
-        elif not p.exists():
-            raise FileNotFoundError(f"input: no such file {str(p)!r}")
-        else:
-            out.append(p)
-    return out
-
-
-def cmd_recover(args) -> int:
-    from ._fit import encoding_for
-    from ._io import load_camera, read_range_image
-    from ._recover import recover_scene
-
-    inputs = _inputs(args.input)
-    camera_arg = load_camera(args.camera) if args.camera else None
-    opts = _recover_options(args)
-    # Read and check every input before any work, so a bad one fails fast.
-    loaded = []
-    for path in inputs:
-        depth, camera = read_range_image(path, depth_scale=args.depth_scale)
-        camera = camera_arg or camera
-        if camera is None:
-            raise ValueError(f"--camera: {path.name} carries no camera; give --camera CAM.json")
-        if depth.shape != (camera.height, camera.width):
-            raise ValueError(
-                f"--camera: {path.name} is {depth.shape[1]}x{depth.shape[0]} but the camera is "
-                f"{camera.width}x{camera.height}"
-            )
-        loaded.append((path, depth, camera))
-    out = Path(args.out)
-    progress = None
-    if not args.quiet:
-        from tqdm import tqdm
-
-        progress = lambda it: tqdm(it, desc="regions", unit="region", leave=False)  # noqa: E731
-    for path, depth, camera in loaded:
-        enc = encoding_for(depth[np.isfinite(depth)], sigma=args.sigma) if args.sigma else None
-        recovery = recover_scene(depth, camera, encoding=enc, progress=progress, **opts)
-        target = out if len(loaded) == 1 else out / path.stem
-        _write_recovery(target, recovery, title=path.name)
-        _say(args, f"{path.name}: {recovery.summary()}\n  wrote {target}/parts.json, model.ply, report.png")
-    return 0
-
-
-def cmd_demo(args) -> int:
-    from ._io import write_range_image
-    from ._recover import recover
-    from ._render import render_range_image
-    from ._scenes import builtin_scene
-
-    out = Path(args.out)
-    out.mkdir(parents=True, exist_ok=True)
-    t0 = time.perf_counter()
-    scene = builtin_scene("human", resolution=args.resolution)
-    depth = render_range_image(scene.parts, scene.camera)
-    write_range_image(out / "range.npy", depth)
-    progress = None
-    if not args.quiet:
-        from tqdm import tqdm
-
-        progress = lambda it: tqdm(it, desc="regions", unit="region", leave=False)  # noqa: E731
-    recovery = recover(np.asarray(depth), scene.camera, progress=progress)
-    _write_recovery(out, recovery, title=f"demo: {scene.description}")
-    _say(args, f"demo: {scene.description}\n  true parts: {len(scene.parts)}; recovered: "
-               f"{recovery.summary()}\n  wall time {time.perf_counter() - t0:.1f} s including compilation\n"
-               f"  wrote {out}/range.npy, parts.json, model.ply, report.png")
-    return 0
-
-
-def _say(args, msg: str) -> None:
-    if not getattr(args, "quiet", False):
-        print(msg)
-
-
-def build_parser() -> argparse.ArgumentParser:
-    parser = argparse.ArgumentParser(
-        prog="sqparts",
-        description="Recover part structure (deformed superquadrics) from range images.",
-    )
-    sub = parser.add_subparsers(dest="command", required=True, metavar="COMMAND")
-
-    p = sub.add_parser("render", help="render a scene JSON into a range image")
-    p.add_argument("scene", help="scene JSON ({\"parts\": [...]})")
-    p.add_argument("--camera", required=True, help="camera JSON (Open3D pinhole or orthographic)")
-    p.add_argument("--out", required=True, help="output range image (.npy, .png 16-bit, .tif)")
-    p.add_argument("--depth-scale", type=float, default=0.001, help="PNG units per value (m)")
-    p.set_defaults(func=cmd_render)
-
-    p = sub.add_parser("mesh", help="export a scene JSON as a mesh")
-    p.add_argument("scene")
-    p.add_argument("--out", required=True, help="mesh file (.ply, .obj, .stl, .glb, .off)")
-    p.add_argument("--resolution", type=int, default=32, help="samples per quarter turn")
-    p.add_argument("--union", action="store_true", help="Boolean union into one body")
-    p.set_defaults(func=cmd_mesh)
-
-    p = sub.add_parser("show", help="save a range image as a PNG picture")
-    p.add_argument("input", help="range image (.npy, .png, .tif, .pcd)")
-    p.add_argument("--out", required=True, help="output picture (.png)")
-    p.add_argument("--depth-scale", type=float, default=0.001)
-    p.set_defaults(func=cmd_show)
-
-    p = sub.add_parser("recover", help="recover parts from range images")
-    p.add_argument("input", nargs="+", help="range images (.npy .png .tif .pcd) or folders of them")
-    p.add_argument("--camera", help="camera JSON (a .pcd carries its own)")
-    p.add_argument("--out", required=True, help="output directory (one sub-folder per input if several)")
-    p.add_argument("--grid", default="coarse", choices=["coarse", "default", "fine"], help="hypothesis grid")
-    p.add_argument("--max-size", type=float, default=None, help="largest semi-axis searched (scene units)")
-    p.add_argument("--sigma", type=float, default=None, help="match tolerance σ (scene units)")
-    p.add_argument("--selection", default="auto", choices=["auto", "exact", "best-first"])
-    p.add_argument("--refine-rounds", type=int, default=2)
-    p.add_argument("--depth-scale", type=float, default=0.001, help="PNG units per value (m)")
-    g = p.add_argument_group("real data (clean-up, figure/ground, prettifying)")
-    g.add_argument("--resolution", type=int, default=160,
-                   help="bin the image so its longest side is about this many pixels (0 = full resolution)")
-    g.add_argument("--no-clean", dest="clean", action="store_false",
-                   help="keep flying pixels and isolated outliers")
-    g.add_argument("--no-figure-ground", dest="figure_ground", action="store_false",
-                   help="no plane removal or splitting: the whole image is one figure")
-    g.add_argument("--planes", type=int, default=3, help="background planes (table or floor and the walls of a corner) to remove")
-    g.add_argument("--tear", type=float, default=None,
-                   help="depth jump, in pixel footprints, that separates figures (default 8)")
-    g.add_argument("--min-figure-pixels", type=int, default=None, help="smallest figure kept")
-    g.add_argument("--max-figures", type=int, default=None, help="recover at most this many figures")
-    g.add_argument("--max-border-fraction", type=float, default=0.15,
-                   help="a piece with more of its pixels on the edge of the measured area is background (1 = keep)")
-    g.add_argument("--depth-range", default=None, help="NEAR,FAR: drop returns outside (scene units)")
-    g.add_argument("--prettify", action="store_true",
-                   help="snap nearly vertical/horizontal parts to gravity (section 4.3)")
-    g.add_argument("--up", default=None, help="x,y,z gravity up in the camera frame (default: ground normal)")
-    g.add_argument("--max-angle", type=float, default=15.0, help="prettify parts within this many degrees")
-    g.add_argument("--max-bits", type=float, default=56.0, help="prettify only if E rises at most this (and every part still pays)")
-    p.set_defaults(func=cmd_recover)
-
-    p = sub.add_parser("demo", help="recover the built-in articulated human (Figure 7)")
-    p.add_argument("--out", default="sqparts-demo", help="output directory (default sqparts-demo)")
-    p.add_argument("--resolution", type=int, default=128)
-    p.set_defaults(func=cmd_demo)
-
-    for p in sub.choices.values():
-        p.add_argument("--quiet", action="store_true", help="print nothing on success")
-    return parser
+def _error(message: str) -> int:
+    print(f"sqparts: error: {message.splitlines()[0] if message else 'unknown error'}", file=sys.stderr)
+    return 2
 
 
 def main(argv=None) -> int:
-    parser = build_parser()
-    args = parser.parse_args(argv)
-    _enable_compilation_cache()
-    try:
-        return args.func(args)
-    except (ValueError, TypeError, OSError) as e:
-        msg = str(e).splitlines()[0] if str(e) else type(e).__name__
-        print(f"sqparts: error: {msg}", file=sys.stderr)
-        return 2
-    except KeyboardInterrupt:
-        print("sqparts: interrupted", file=sys.stderr)
-        return 130
+    """Run the command line; returns the exit status (0, 2 for a user error, 130/143
+    when interrupted by SIGINT/SIGTERM)."""
+    with _signals_stop_the_run():
+        try:
+            with _signals_deferred():
+                from . import _io, _mesh, _plot, _recover  # noqa: F401  (JAX, trimesh, matplotlib)
+
+                args = build_parser().parse_args(argv)
+                _enable_compilation_cache()
+            return args.func(args)
+        except (ValueError, TypeError, OSError) as e:
+            return _error(str(e) or type(e).__name__)
+        except MemoryError:
+            return _error("memory: got an input too large for this machine's memory, expected a smaller image or fewer parts")
+        except (Interrupted, KeyboardInterrupt) as e:
+            signum = getattr(e, "signum", signal.SIGINT)
+            print(f"sqparts: interrupted by {signal.Signals(signum).name}; no partial output left", file=sys.stderr)
+            return 128 + int(signum)

@@ -42,20 +42,20 @@ def _error(capsys, argv):
 def test_bad_inputs_give_one_line_and_no_file(files, capsys):
     out = files / "o.npy"
     base = ["render", str(files / "scene.json"), "--camera", str(files / "cam.json"), "--out", str(out)]
-    assert "no such file" in _error(capsys, ["render", str(files / "nope.json")] + base[2:])
+    assert "expected an existing file" in _error(capsys, ["render", str(files / "nope.json")] + base[2:])
     bad = dict(SCENE, parts=[dict(SCENE["parts"][0], size=[0.2, -1, 0.3])])
     (files / "neg.json").write_text(json.dumps(bad))
-    assert "size: expected semi-axes > 0" in _error(capsys, ["render", str(files / "neg.json")] + base[2:])
+    assert "expected semi-axes > 0" in _error(capsys, ["render", str(files / "neg.json")] + base[2:])
     unk = dict(SCENE, parts=[dict(SCENE["parts"][0], colour="red")])
     (files / "unk.json").write_text(json.dumps(unk))
-    assert "unknown key(s) ['colour']" in _error(capsys, ["render", str(files / "unk.json")] + base[2:])
+    assert "got unknown key(s) ['colour']" in _error(capsys, ["render", str(files / "unk.json")] + base[2:])
     (files / "garbage.json").write_text("{]")
-    assert "not valid JSON" in _error(capsys, ["render", str(files / "scene.json"), "--camera", str(files / "garbage.json"), "--out", str(out)])
-    assert "--out: expected a path ending in" in _error(capsys, base[:-1] + [str(files / "o.jpg")])
-    assert "does not exist" in _error(capsys, base[:-1] + [str(files / "no" / "dir" / "o.npy")])
+    assert "expected valid JSON" in _error(capsys, ["render", str(files / "scene.json"), "--camera", str(files / "garbage.json"), "--out", str(out)])
+    assert "--out: got" in _error(capsys, base[:-1] + [str(files / "o.jpg")])
+    assert "expected a path in an existing directory" in _error(capsys, base[:-1] + [str(files / "no" / "dir" / "o.npy")])
     np.save(files / "cube.npy", np.zeros((2, 2, 2)))
     assert "expected a 2-D numeric range image" in _error(capsys, ["show", str(files / "cube.npy"), "--out", str(files / "p.png")])
-    assert "--resolution: expected an integer >= 4" in _error(capsys, ["mesh", str(files / "scene.json"), "--out", str(files / "m.ply"), "--resolution", "2"])
+    assert "--resolution: got '2', expected an integer in [4, 512]" in _error(capsys, ["mesh", str(files / "scene.json"), "--out", str(files / "m.ply"), "--resolution", "2"])
     assert not out.exists() and not (files / "p.png").exists() and not (files / "m.ply").exists()
     assert not list(files.glob(".*.tmp"))
 

@@ -169,7 +169,7 @@ def test_figure_ground_drops_background_running_off_the_image():
         assert (mask & t).sum() / (mask | t).sum() > 0.9
     kept = sqparts.figure_ground(depth, CAM, max_border_fraction=1.0)
     assert len(kept.figures) == 3 and (kept.figures[2] & truth[2]).sum() / (kept.figures[2] | truth[2]).sum() > 0.9
-    with pytest.raises(ValueError, match=r"max_border_fraction: expected a number in \[0, 1\], got 1.5"):
+    with pytest.raises(ValueError, match=r"max_border_fraction: got 1.5, expected a number in \[0, 1\]"):
         sqparts.figure_ground(depth, CAM, max_border_fraction=1.5)
 
 
@@ -237,7 +237,7 @@ def test_clean_missing_and_outliers():
         sqparts.clean_range_image(d, cam, depth_range=(2, 1))
     with pytest.raises(ValueError, match="tear"):
         sqparts.flying_pixels(d, cam, tear=-1)
-    with pytest.raises(ValueError, match="depth: expected shape"):
+    with pytest.raises(ValueError, match="depth: got shape"):
         sqparts.clean_range_image(d[:5], cam)
 
 

@@ -1,0 +1,382 @@
+"""Faults and bad input (issue 26): each failure found by fuzzing the CLI and the library
+is a test here. The promise: one line ``sqparts: error: ARGUMENT: got X, expected Y``
+and exit 2; outputs that appear together or not at all; no silent overwrite; SIGINT /
+SIGTERM stop the run with 130 / 143 at any moment; finite reverse-mode gradients."""
+
+import json
+import os
+import re
+import signal
+import struct
+import subprocess
+import sys
+import time
+import zlib
+from pathlib import Path
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+
+import sqparts
+from sqparts import cli
+from sqparts.cli import main
+
+CAMERA = {"width": 32, "height": 24, "intrinsic_matrix": [40.0, 0, 0, 0, 40.0, 0, 15.5, 11.5, 1]}
+SCENE = {"parts": [{"size": [0.2, 0.15, 0.3], "squareness": [0.5, 1.0], "position": [0, 0, 2.0],
+                    "rotation": [[1, 0, 0], [0, 0, -1], [0, 1, 0]], "taper": 0.2}]}
+STYLE = re.compile(r"^sqparts: error: \S.*?: got .+, expected .+$")
+FAST = ["--resolution", "0", "--refine-rounds", "0", "--quiet"]
+OUTPUTS = {"parts.json", "model.ply", "report.png"}
+
+
+@pytest.fixture
+def files(tmp_path):
+    (tmp_path / "cam.json").write_text(json.dumps(CAMERA))
+    (tmp_path / "scene.json").write_text(json.dumps(SCENE))
+    depth = np.asarray(sqparts.render_range_image(sqparts.load_scene(tmp_path / "scene.json"),
+                                                  sqparts.load_camera(tmp_path / "cam.json")))
+    np.save(tmp_path / "x.npy", depth)
+    return tmp_path
+
+
+def one_line_error(capsys, argv) -> str:
+    assert main(argv) == 2
+    err = capsys.readouterr().err.strip()
+    assert "\n" not in err and "Traceback" not in err
+    assert STYLE.match(err), err
+    return err
+
+
+def no_staging_left(folder: Path) -> bool:
+    return not [p for p in folder.rglob(".sqparts-*")]
+
+
+# --- lost results ------------------------------------------------------------------------
+
+
+def test_output_names_keep_inputs_apart(tmp_path):
+    a, b = tmp_path / "a", tmp_path / "b"
+    assert cli.output_names([a / "x.npy", b / "x.npy"]) == ["a/x", "b/x"]
+    assert cli.output_names([a / "x.npy", a / "x.png"]) == ["x.npy", "x.png"]
+    assert cli.output_names([a / "x.npy", a / "y.npy", b / "x.png"]) == ["a/x", "y", "b/x"]
+
+
+def test_inputs_sharing_a_stem_each_get_their_folder(files, capsys):
+    (files / "a").mkdir()
+    (files / "b").mkdir()
+    depth = np.load(files / "x.npy")
+    np.save(files / "a" / "x.npy", depth)
+    np.save(files / "b" / "x.npy", depth + 0.5)  # the same part half a metre farther
+    from sqparts._io import write_range_image
+
+    write_range_image(files / "a" / "x.png", depth)
+    out = files / "out"
+    assert main(["recover", str(files / "a" / "x.npy"), str(files / "b" / "x.npy"), str(files / "a" / "x.png"),
+                 "--camera", str(files / "cam.json"), "--out", str(out), *FAST]) == 0
+    folders = {str(p.parent.relative_to(out)) for p in out.rglob("parts.json")}
+    assert folders == {"a/x.npy", "b/x", "a/x.png"}
+    for folder in folders:
+        assert {p.name for p in (out / folder).iterdir()} == OUTPUTS
+    # The two x.npy results are not one result twice.
+    za = json.loads((out / "a/x.npy/parts.json").read_text())["parts"][0]["position"][2]
+    zb = json.loads((out / "b/x/parts.json").read_text())["parts"][0]["position"][2]
+    assert zb - za == pytest.approx(0.5, abs=0.1)
+    assert "twice" in one_line_error(capsys, ["recover", str(files / "x.npy"), str(files / "x.npy"), "--camera",
+                                              str(files / "cam.json"), "--out", str(files / "o2")])
+
+
+def test_existing_output_is_never_overwritten_silently(files, capsys):
+    out = files / "out"
+    base = ["recover", str(files / "x.npy"), "--camera", str(files / "cam.json"), "--out", str(out), *FAST]
+    assert main(base) == 0
+    stamp = (out / "parts.json").stat().st_mtime_ns
+    assert "--overwrite" in one_line_error(capsys, base)
+    assert (out / "parts.json").stat().st_mtime_ns == stamp
+    (out / "mine.txt").write_text("keep?")
+    assert main(base + ["--overwrite"]) == 0
+    assert {p.name for p in out.iterdir()} == OUTPUTS and no_staging_left(files)
+    render = ["render", str(files / "scene.json"), "--camera", str(files / "cam.json"), "--out", str(files / "x.npy")]
+    assert "exists" in one_line_error(capsys, render)
+
+
+# --- partial output sets -------------------------------------------------------------------
+
+
+def test_a_failing_second_write_leaves_nothing(files, capsys, monkeypatch):
+    import sqparts._mesh
+
+    def broken(path, mesh):
+        raise OSError(28, "No space left on device")
+
+    monkeypatch.setattr(sqparts._mesh, "save_mesh", broken)
+    out = files / "out"
+    assert main(["recover", str(files / "x.npy"), "--camera", str(files / "cam.json"), "--out", str(out), *FAST]) == 2
+    err = capsys.readouterr().err
+    assert "No space left" in err and "Traceback" not in err
+    assert not out.exists() and no_staging_left(files)
+
+
+@pytest.mark.parametrize("signum", [signal.SIGTERM, signal.SIGINT])
+def test_a_signal_between_writes_leaves_nothing(files, capsys, monkeypatch, signum):
+    import sqparts._mesh
+
+    save = sqparts._mesh.save_mesh
+
+    def interrupted(path, mesh):
+        save(path, mesh)
+        os.kill(os.getpid(), signum)
+        time.sleep(1.0)  # the handler runs at the next bytecode
+        raise AssertionError("the signal did not stop the run")
+
+    monkeypatch.setattr(sqparts._mesh, "save_mesh", interrupted)
+    out = files / "out"
+    code = main(["recover", str(files / "x.npy"), "--camera", str(files / "cam.json"), "--out", str(out), *FAST])
+    assert code == 128 + signum
+    assert "interrupted" in capsys.readouterr().err
+    assert not out.exists() and no_staging_left(files)
+    assert signal.getsignal(signal.SIGINT) is signal.default_int_handler  # handlers restored
+
+
+def test_demo_with_a_bad_resolution_leaves_no_folder(tmp_path, capsys):
+    out = tmp_path / "demo"
+    assert "--resolution: got '0'" in one_line_error(capsys, ["demo", "--resolution", "0", "--out", str(out)])
+    assert not out.exists()
+
+
+def _run(argv, *, ignore_sigint=False):
+    """``python -m sqparts ARGV`` in a new process; ``ignore_sigint`` starts it with SIGINT
+    ignored, as a shell starts a background job."""
+    env = dict(os.environ, JAX_PLATFORMS="cpu")
+    code = ("import runpy, signal, sys\n"
+            f"if {ignore_sigint}: signal.signal(signal.SIGINT, signal.SIG_IGN)\n"
+            "sys.argv = ['sqparts', *sys.argv[1:]]\n"
+            "runpy.run_module('sqparts', run_name='__main__')\n")
+    return subprocess.Popen([sys.executable, "-c", code, *argv], env=env,
+                            stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("signum, delay, ignore_sigint", [
+    (signal.SIGINT, 0.3, True),   # while JAX loads, with SIGINT ignored by the parent shell
+    (signal.SIGINT, 2.5, True),   # tracing / compiling
+    (signal.SIGTERM, 1.0, False),
+])
+def test_signals_stop_a_run_at_any_moment(files, signum, delay, ignore_sigint):
+    out = files / "out"
+    proc = _run(["recover", str(files / "x.npy"), "--camera", str(files / "cam.json"), "--out", str(out), *FAST],
+                ignore_sigint=ignore_sigint)
+    time.sleep(delay)
+    proc.send_signal(signum)
+    _, err = proc.communicate(timeout=120)
+    if proc.returncode == 0:  # finished before the signal: then everything is there
+        assert {p.name for p in out.iterdir()} == OUTPUTS
+    else:
+        assert proc.returncode == 128 + signum, err
+        assert "Traceback" not in err and not out.exists()
+    assert no_staging_left(files)
+
+
+# --- gradients -----------------------------------------------------------------------------
+
+
+def _random_parts(rng, n):
+    """n parts over the documented box: squareness 0.1-2, taper and bends -1..1, any
+    orientation, sizes over five decades (each seen from three times its size)."""
+    scale = 10.0 ** rng.uniform(-2, 3, n)
+    size = scale[:, None] * rng.uniform(0.3, 1.0, (n, 3))
+    position = np.c_[rng.uniform(-0.2, 0.2, (n, 2)) * scale[:, None], 3.0 * scale]
+    return np.concatenate([position, rng.normal(size=(n, 3)) * 2, size, rng.uniform(0.1, 2, (n, 2)),
+                           rng.uniform(-1, 1, (n, 3))], axis=1).astype(np.float32)
+
+
+def test_reverse_mode_gradients_are_finite_and_equal_forward_mode():
+    from sqparts._render import cast_part
+
+    camera = sqparts.PinholeCamera(16, 16, 20.0, 20.0, 7.5, 7.5)
+    origins, directions = camera.rays()
+
+    def depth_sum(vector):  # every ray, hits and misses, in units of the part's distance
+        t, hit = cast_part(sqparts.Part.from_vector(vector), origins, directions)
+        return jnp.sum(jnp.where(hit, t, 0.0)) / vector[2]
+
+    vectors = _random_parts(np.random.default_rng(26), 500)
+    reverse = np.asarray(jax.jit(jax.vmap(jax.grad(depth_sum)))(vectors))
+    forward = np.asarray(jax.jit(jax.vmap(jax.jacfwd(depth_sum)))(vectors))
+    assert np.isfinite(forward).all()
+    assert np.isfinite(reverse).all(), f"{(~np.isfinite(reverse).all(1)).sum()} of 500 parts"
+    scale = np.maximum(np.linalg.norm(forward, axis=1), 1e-6)
+    assert (np.linalg.norm(reverse - forward, axis=1) / scale).max() <= 0.01
+
+
+def test_gradient_of_a_rendered_image_is_finite_for_a_boxy_part():
+    camera = sqparts.PinholeCamera(24, 24, 30.0, 30.0, 11.5, 11.5)
+
+    def loss(size):
+        part = sqparts.Part(size=size, squareness=jnp.array([0.1, 0.1]), position=jnp.array([0.0, 0.0, 2.0]),
+                            orientation=jnp.array([0.3, 0.5, 0.1]))
+        depth = sqparts.render_range_image(part, camera)
+        return jnp.sum(jnp.where(jnp.isfinite(depth), depth, 0.0))
+
+    size = jnp.array([0.3, 0.2, 0.4])
+    assert np.isfinite(np.asarray(jax.grad(loss)(size))).all()
+    np.testing.assert_allclose(jax.grad(loss)(size), jax.jacfwd(loss)(size), rtol=1e-3, atol=1e-3)
+
+
+# --- silent corruption ------------------------------------------------------------------
+
+
+@pytest.mark.parametrize("scale", ["-0.001", "nan", "1e6", "inf", "0"])
+def test_render_depth_scale_that_cannot_encode_the_image_is_refused(files, capsys, scale):
+    out = files / "d.png"
+    err = one_line_error(capsys, ["render", str(files / "scene.json"), "--camera", str(files / "cam.json"),
+                                  "--out", str(out), "--depth-scale", scale])
+    assert "depth" in err and "scale" in err
+    assert not out.exists()
+
+
+def test_png_round_trip_keeps_every_return(files):
+    from sqparts._io import read_range_image, write_range_image
+
+    depth = np.load(files / "x.npy")
+    write_range_image(files / "d.png", depth, depth_scale=1e-4)
+    back, _ = read_range_image(files / "d.png", depth_scale=1e-4)
+    assert (np.isfinite(back) == np.isfinite(depth)).all()
+    np.testing.assert_allclose(back[np.isfinite(back)], depth[np.isfinite(depth)], atol=5e-5)
+
+
+@pytest.mark.parametrize("entry", [1, 3, 5, 2])
+def test_non_finite_pinhole_matrix_is_refused(files, capsys, entry):
+    k = list(CAMERA["intrinsic_matrix"])
+    k[entry] = float("nan")
+    (files / "nan.json").write_text(json.dumps(dict(CAMERA, intrinsic_matrix=k)))  # writes NaN
+    err = one_line_error(capsys, ["render", str(files / "scene.json"), "--camera", str(files / "nan.json"),
+                                  "--out", str(files / "d.npy")])
+    assert "NaN" in err or "intrinsic_matrix" in err
+    with pytest.raises(ValueError, match="intrinsic_matrix"):
+        sqparts.camera_from_json(dict(CAMERA, intrinsic_matrix=k))
+
+
+@pytest.mark.parametrize("steps", [0, 1, 4, -3, 2.5, 1000])
+def test_render_with_too_few_newton_steps_is_refused(steps):
+    part = sqparts.Part(size=[0.2, 0.2, 0.3], position=[0, 0, 2.0])
+    with pytest.raises(ValueError, match=r"newton_steps: got .*, expected an integer in \[5, 64\]"):
+        sqparts.render_range_image(part, sqparts.PinholeCamera(8, 8, 10.0, 10.0, 3.5, 3.5), newton_steps=steps)
+
+
+def test_depth_range_applies_without_clean_up(files):
+    camera = sqparts.load_camera(files / "cam.json")
+    depth = np.load(files / "x.npy")
+    wall = np.where(np.isfinite(depth), depth, 3.0).astype(np.float32)  # a wall at 3 m behind the part
+    scene = sqparts.recover_scene(wall, camera, clean=False, figure_ground=False, resolution=0,
+                                  depth_range=(1.0, 2.5), refine_rounds=0)
+    kept = np.isfinite(scene.depth)
+    assert (kept == np.isfinite(depth)).all()
+    assert int(scene.figure.sum()) == int(np.isfinite(depth).sum())
+
+
+# --- tracebacks and unbounded work ------------------------------------------------------------
+
+
+def test_deeply_nested_camera_json_is_one_line(files, capsys):
+    (files / "deep.json").write_text("[" * 100_000 + "]" * 100_000)
+    err = one_line_error(capsys, ["render", str(files / "scene.json"), "--camera", str(files / "deep.json"),
+                                  "--out", str(files / "d.npy")])
+    assert err.startswith("sqparts: error: camera:")
+    (files / "deep.json").write_text('{"parts": ' + "[" * 100_000 + "]" * 100_000 + "}")
+    assert "scene:" in one_line_error(capsys, ["render", str(files / "deep.json"), "--camera",
+                                               str(files / "cam.json"), "--out", str(files / "d.npy")])
+
+
+def _png_header_only(path: Path, width: int, height: int) -> None:
+    def chunk(kind: bytes, data: bytes) -> bytes:
+        return struct.pack(">I", len(data)) + kind + data + struct.pack(">I", zlib.crc32(kind + data))
+
+    ihdr = struct.pack(">IIBBBBB", width, height, 16, 0, 0, 0, 0)
+    path.write_bytes(b"\x89PNG\r\n\x1a\n" + chunk(b"IHDR", ihdr) + chunk(b"IDAT", zlib.compress(b"\0" * 64))
+                     + chunk(b"IEND", b""))
+
+
+@pytest.mark.parametrize("suffix", [".png", ".npy"])
+def test_image_header_declaring_a_huge_image_is_refused_before_decoding(files, capsys, suffix):
+    path = files / f"bomb{suffix}"
+    if suffix == ".png":
+        _png_header_only(path, 30000, 30000)
+    else:
+        with open(path, "wb") as f:  # a header declaring 30000 x 30000 float32, and no data
+            np.lib.format.write_array_header_1_0(f, {"descr": "<f4", "fortran_order": False, "shape": (30000, 30000)})
+    err = one_line_error(capsys, ["show", str(path), "--out", str(files / "p.png")])
+    assert "input:" in err
+    assert not (files / "p.png").exists()
+
+
+def test_huge_camera_is_refused_before_allocating(files, capsys):
+    (files / "big.json").write_text(json.dumps(dict(CAMERA, width=50000, height=50000)))
+    err = one_line_error(capsys, ["render", str(files / "scene.json"), "--camera", str(files / "big.json"),
+                                  "--out", str(files / "d.npy")])
+    assert "camera: got 50000x50000" in err
+    with pytest.raises(ValueError, match="camera: got 50000x50000"):
+        sqparts.PinholeCamera(50000, 50000, 1.0, 1.0, 0.0, 0.0)
+
+
+@pytest.mark.parametrize("flag, value", [
+    ("--max-size", "inf"), ("--max-size", "nan"), ("--max-size", "-1"), ("--sigma", "0"), ("--tear", "inf"),
+    ("--refine-rounds", "1000000000"), ("--refine-rounds", "-1"), ("--refine-rounds", "2.5"),
+    ("--resolution", "-4"), ("--planes", "x"), ("--max-border-fraction", "2"), ("--max-angle", "nan"),
+    ("--max-bits", "inf"), ("--min-figure-pixels", "0"), ("--grid", "huge"), ("--selection", "x"),
+    ("--depth-range", "3,1"), ("--depth-range", "nan,2"), ("--up", "0,0,0"), ("--up", "1,inf,0"),
+])
+def test_recover_numbers_are_validated_where_they_enter(files, capsys, flag, value):
+    out = files / "out"
+    err = one_line_error(capsys, ["recover", str(files / "x.npy"), "--camera", str(files / "cam.json"),
+                                  "--out", str(out), flag, value])
+    assert err.startswith(f"sqparts: error: {flag}: got ")
+    assert not out.exists()
+
+
+@pytest.mark.parametrize("argv, start", [
+    (["render"], "scene, --camera, --out: got nothing"),
+    (["render", "s.json", "--camera"], "--camera: got nothing"),
+    (["recover", "x.npy", "--camera", "c.json", "--out", "o", "--bogus"], "arguments: got '--bogus'"),
+    (["nope"], "COMMAND: got 'nope'"),
+    (["mesh", "s.json", "--out", "m.ply", "--resolution", "two"], "--resolution: got 'two'"),
+    (["demo", "--quiet=yes"], "--quiet: got 'yes'"),
+    ([], "COMMAND: got nothing"),
+])
+def test_argparse_errors_are_in_the_one_style(capsys, argv, start):
+    err = one_line_error(capsys, argv)
+    assert err.startswith(f"sqparts: error: {start}"), err
+
+
+def test_library_rejects_a_bad_encoding_by_name(files):
+    depth = np.load(files / "x.npy")
+    with pytest.raises(TypeError, match="encoding: got 'x'"):
+        sqparts.recover(depth, sqparts.load_camera(files / "cam.json"), encoding="x")
+    with pytest.raises(ValueError, match="refine_rounds: got 10000000"):
+        sqparts.recover(depth, sqparts.load_camera(files / "cam.json"), refine_rounds=10_000_000)
+
+
+# --- files -------------------------------------------------------------------------------------
+
+
+def test_outputs_get_the_mode_the_umask_gives(files):
+    old = os.umask(0o027)
+    try:
+        out = files / "out"
+        assert main(["recover", str(files / "x.npy"), "--camera", str(files / "cam.json"), "--out", str(out),
+                     *FAST]) == 0
+        assert main(["render", str(files / "scene.json"), "--camera", str(files / "cam.json"),
+                     "--out", str(files / "d.npy"), "--quiet"]) == 0
+    finally:
+        os.umask(old)
+    assert (out.stat().st_mode & 0o777) == 0o750
+    for p in [*out.iterdir(), files / "d.npy"]:
+        assert (p.stat().st_mode & 0o777) == 0o640, p
+
+
+def test_a_legal_long_name_can_be_written(files):
+    out = files / ("d" * 250 + ".npy")  # 254 bytes: within NAME_MAX (255)
+    assert main(["render", str(files / "scene.json"), "--camera", str(files / "cam.json"), "--out", str(out),
+                 "--quiet"]) == 0
+    assert np.load(out).shape == (24, 32) and no_staging_left(files)
