@@ -478,10 +478,18 @@ def main(argv=None) -> int:
                 args = build_parser().parse_args(argv)
                 _enable_compilation_cache()
             return args.func(args)
-        except (ValueError, TypeError, OSError) as e:
+        except OSError as e:
+            if e.strerror and e.filename:  # raised by the OS, not by us: name the file
+                return _error(f"file: got {str(e.filename)!r} ({e.strerror}), expected a path that can be read or written")
+            return _error(str(e) or type(e).__name__)
+        except (ValueError, TypeError) as e:
             return _error(str(e) or type(e).__name__)
         except MemoryError:
             return _error("memory: got an input too large for this machine's memory, expected a smaller image or fewer parts")
+        except RuntimeError as e:  # XLA's allocation failure; anything else is a bug and keeps its traceback
+            if "RESOURCE_EXHAUSTED" not in str(e):
+                raise
+            return _error("memory: got an input too large for the device's memory, expected a smaller image or fewer parts")
         except (Interrupted, KeyboardInterrupt) as e:
             signum = getattr(e, "signum", signal.SIGINT)
             print(f"sqparts: interrupted by {signal.Signals(signum).name}; no partial output left", file=sys.stderr)
