@@ -170,12 +170,9 @@ def test_signals_stop_a_run_at_any_moment(files, signum, delay, ignore_sigint):
     time.sleep(delay)
     proc.send_signal(signum)
     _, err = proc.communicate(timeout=120)
-    if proc.returncode == 0:  # finished before the signal: then everything is there
-        assert {p.name for p in out.iterdir()} == OUTPUTS
-    else:
-        assert proc.returncode == 128 + signum, err
-        assert "Traceback" not in err and not out.exists()
-    assert no_staging_left(files)
+    # A new process takes several seconds to load JAX and its programs: still running.
+    assert proc.returncode == 128 + signum, err
+    assert "Traceback" not in err and not out.exists() and no_staging_left(files)
 
 
 # --- gradients -----------------------------------------------------------------------------

@@ -57,7 +57,7 @@ def test_region_centres_on_skeleton():
     assert d.min() >= 8
     g = sqparts.region_centers(fig, spacing=8, method="grid")
     assert len(g) > 0 and fig[g[:, 0], g[:, 1]].all()
-    with pytest.raises(ValueError, match=r"method: expected"):
+    with pytest.raises(ValueError, match=r"method: got 'random', expected"):
         sqparts.region_centers(fig, spacing=8, method="random")
 
 
