@@ -67,6 +67,9 @@ def check_new_output(path, *, overwrite: bool = False) -> Path:
     path = Path(path)
     if not overwrite and path.exists() and not (path.is_dir() and not any(path.iterdir())):
         raise FileExistsError(f"--out: got {str(path)!r}, which exists, expected a new path (or --overwrite)")
+    ancestor = next(p for p in path.absolute().parents if p.exists())
+    if not ancestor.is_dir():
+        raise NotADirectoryError(f"--out: got {str(path)!r}, expected a path in a folder ({str(ancestor)!r} is a file)")
     return path
 
 
@@ -286,7 +289,7 @@ def read_range_image(path, *, depth_scale: float = 0.001) -> tuple[np.ndarray, C
             raise ValueError(msg) from None
         raise ValueError(f"input: got {str(path)!r}, expected a readable range image ({type(e).__name__}: {e})") from None
     depth = np.asarray(depth)
-    if depth.ndim != 2 or not np.issubdtype(depth.dtype, np.number):
+    if depth.ndim != 2 or not (np.issubdtype(depth.dtype, np.integer) or np.issubdtype(depth.dtype, np.floating)):
         raise ValueError(
             f"input: got {depth.dtype} with shape {depth.shape}, expected a 2-D numeric range image"
         )

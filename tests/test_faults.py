@@ -377,3 +377,19 @@ def test_a_legal_long_name_can_be_written(files):
     assert main(["render", str(files / "scene.json"), "--camera", str(files / "cam.json"), "--out", str(out),
                  "--quiet"]) == 0
     assert np.load(out).shape == (24, 32) and no_staging_left(files)
+
+
+def test_an_output_under_a_file_is_refused_before_any_work(files, capsys, monkeypatch):
+    import sqparts._recover
+
+    monkeypatch.setattr(sqparts._recover, "recover_scene", lambda *a, **k: pytest.fail("recovery ran"))
+    (files / "afile").write_text("")
+    err = one_line_error(capsys, ["recover", str(files / "x.npy"), "--camera", str(files / "cam.json"),
+                                  "--out", str(files / "afile" / "sub")])
+    assert "is a file" in err
+
+
+def test_a_complex_range_image_is_refused(files, capsys):
+    np.save(files / "c.npy", np.ones((24, 32), complex))
+    assert "expected a 2-D numeric range image" in one_line_error(capsys, ["show", str(files / "c.npy"), "--out",
+                                                                          str(files / "p.png")])
