@@ -191,7 +191,7 @@ def _cast_local_ray(part: Part, o, d, newton_steps):
         return (t_next, lo, hi, found, val), None
 
     init = (t_start_sg, t_start_sg, t_out_sg, jnp.zeros((), bool), jnp.zeros_like(t_start_sg))
-    (t_sg, _, _, found, _), _ = jax.lax.scan(newton, init, None, length=max(newton_steps - 1, 0))
+    (t_sg, _, _, found, _), _ = jax.lax.scan(newton, init, None, length=max(newton_steps - 1, 0), unroll=True)
     val_sg, slope_sg = _gauge_along_ray(k, o_sg, d_sg, t_sg)
     hit = box_hit & (found | (val_sg < HIT_TOLERANCE)) & (t_sg > 0)
     step_sg = -val_sg / jnp.where(slope_sg < 0, slope_sg, -1.0)
