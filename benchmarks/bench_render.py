@@ -4,13 +4,22 @@ Each configuration renders a batch of random parts (taper and bend included) ove
 window, chunked with ``jax.lax.map(batch_size=...)``. One warm-up call (compile time
 reported separately), then the median of ``--repeats`` timed calls.
 
-    python benchmarks/bench_render.py [--hypotheses 4096] [--repeats 5]
+With ``--baseline DIR`` the ``sqparts`` package of another checkout (for instance
+``git worktree add /tmp/base <commit>``) is timed in the same run, its calls interleaved
+with this checkout's, and the speed-up is the ratio of the two medians. Its rays are
+checked against this checkout's (hit masks' IoU, depth difference).
+
+    python benchmarks/bench_render.py [--hypotheses 4096] [--repeats 5] [--baseline DIR]
 """
 
 from __future__ import annotations
 
 import argparse
+import importlib.util
+import statistics
+import subprocess
 import sys
+import time
 from pathlib import Path
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
@@ -21,7 +30,7 @@ import numpy as np
 import sqparts
 from sqparts._render import cast_batch
 
-from _common import save, time_call
+from _common import save
 
 
 def random_parts(n: int, seed: int = 0) -> sqparts.Part:
@@ -36,36 +45,90 @@ def random_parts(n: int, seed: int = 0) -> sqparts.Part:
     )
 
 
+def load_baseline(path: Path):
+    """The ``sqparts`` package under ``path`` imported as ``sqparts_baseline``."""
+    init = path / "sqparts" / "__init__.py"
+    if not init.is_file():
+        raise SystemExit(f"--baseline: expected a checkout with sqparts/__init__.py, got {path}")
+    spec = importlib.util.spec_from_file_location("sqparts_baseline", init, submodule_search_locations=[str(init.parent)])
+    module = importlib.util.module_from_spec(spec)
+    sys.modules["sqparts_baseline"] = module
+    spec.loader.exec_module(module)
+    return module
+
+
+def git_revision(path: Path) -> str | None:
+    try:
+        out = subprocess.run(["git", "-C", str(path), "rev-parse", "--short", "HEAD"], capture_output=True, text=True, timeout=10)
+    except (OSError, subprocess.SubprocessError):
+        return None
+    return out.stdout.strip() or None
+
+
+def timed(fn, arg) -> float:
+    t0 = time.perf_counter()
+    jax.block_until_ready(fn(arg))
+    return time.perf_counter() - t0
+
+
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--hypotheses", type=int, default=4096)
     ap.add_argument("--repeats", type=int, default=5)
     ap.add_argument("--batch-size", type=int, default=128)
+    ap.add_argument("--baseline", type=Path, default=None, help="another checkout to time in the same run")
     args = ap.parse_args()
     parts = random_parts(args.hypotheses)
+    here = Path(__file__).resolve().parents[1]
+    codes = {"this": (cast_batch, parts, git_revision(here))}
+    if args.baseline is not None:
+        base = load_baseline(args.baseline.resolve())
+        base_parts = base.Part.from_vector(np.asarray(parts.to_vector()))
+        codes["baseline"] = (base._render.cast_batch, base_parts, git_revision(args.baseline))
     rows = []
     for window in (32, 64):
         cam = sqparts.PinholeCamera(window, window, window * 1.25, window * 1.25, (window - 1) / 2, (window - 1) / 2)
         o, d = cam.rays()
         for steps in (6, 8):
-            fn = jax.jit(lambda p, s=steps: cast_batch(p, o, d, batch_size=args.batch_size, newton_steps=s))
-            first, median, times = time_call(fn, parts, repeats=args.repeats)
+            fns, first, outputs = {}, {}, {}
+            for code, (cast, prt, _) in codes.items():
+                fns[code] = jax.jit(lambda p, s=steps, c=cast: c(p, o, d, batch_size=args.batch_size, newton_steps=s))
+                t0 = time.perf_counter()
+                outputs[code] = jax.block_until_ready(fns[code](prt))
+                first[code] = time.perf_counter() - t0
+            times = {code: [] for code in codes}
+            for _ in range(args.repeats):  # interleaved, so that other load hits both alike
+                for code, (_, prt, _) in codes.items():
+                    times[code].append(timed(fns[code], prt))
             rays = args.hypotheses * window * window
-            row = {
-                "window": window,
-                "newton_steps": steps,
-                "hypotheses": args.hypotheses,
-                "batch_size": args.batch_size,
-                "dtype": "float32",
-                "compile_s": first - median,
-                "median_s": median,
-                "times_s": times,
-                "rays_per_s": rays / median,
-                "hypotheses_per_s": args.hypotheses / median,
-            }
-            rows.append(row)
-            print(f"{window}x{window} steps={steps}: {row['rays_per_s'] / 1e6:.2f} M rays/s, "
-                  f"{row['hypotheses_per_s']:.0f} hyp/s, compile {row['compile_s']:.2f} s")
+            for code, (_, _, revision) in codes.items():
+                median = statistics.median(times[code])
+                row = {
+                    "code": code,
+                    "revision": revision,
+                    "window": window,
+                    "newton_steps": steps,
+                    "hypotheses": args.hypotheses,
+                    "batch_size": args.batch_size,
+                    "dtype": "float32",
+                    "compile_s": first[code] - median,
+                    "median_s": median,
+                    "times_s": times[code],
+                    "rays_per_s": rays / median,
+                    "hypotheses_per_s": args.hypotheses / median,
+                }
+                if code == "baseline":
+                    t_new, hit_new = map(np.asarray, outputs["this"])
+                    t_old, hit_old = map(np.asarray, outputs[code])
+                    both = hit_new & hit_old
+                    row["speedup_of_this"] = median / statistics.median(times["this"])
+                    row["hit_iou_with_this"] = float(both.sum() / max((hit_new | hit_old).sum(), 1))
+                    row["max_depth_difference_with_this"] = float(np.abs(t_new[both] - t_old[both]).max()) if both.any() else 0.0
+                rows.append(row)
+                print(f"{code:8s} {window}x{window} steps={steps}: {row['rays_per_s'] / 1e6:.2f} M rays/s, "
+                      f"{row['hypotheses_per_s']:.0f} hyp/s, compile {row['compile_s']:.2f} s"
+                      + (f", this is {row['speedup_of_this']:.2f}x faster, hit IoU {row['hit_iou_with_this']:.5f}, "
+                         f"max |dt| {row['max_depth_difference_with_this']:.1e}" if code == "baseline" else ""))
     save("render", {"rows": rows})
 
 
