@@ -36,6 +36,8 @@ bent parts. The hypothesis search uses fewer (see ``sqparts._search``)."""
 HIT_TOLERANCE = 1e-3
 """A ray hits when it found a point inside the part, or when the gauge at the final
 Newton iterate is below this (relative units; catches grazing rays)."""
+CPU_TILE = 8192
+"""Rays x parts per vectorised pass of :func:`cast_batch` on CPUs (see there)."""
 
 
 class _RayGauge(NamedTuple):
@@ -207,13 +209,22 @@ def cast_part(
     origins: Float[Array, "*pixels 3"],
     directions: Float[Array, "*pixels 3"],
     newton_steps: int = DEFAULT_NEWTON_STEPS,
+    *,
+    ray_batch_size: int | None = None,
 ) -> tuple[Float[Array, "*pixels"], Bool[Array, "*pixels"]]:
-    """One part against every ray (the pixel axis's one ``vmap``)."""
+    """One part against every ray (the pixel axis's one ``vmap``).
+
+    With ``ray_batch_size`` the rays are cast that many at a time
+    (``jax.lax.map(..., batch_size=ray_batch_size)``); the results are the same.
+    """
     shape = origins.shape[:-1]
     dtype = part.size.dtype
     o = origins.reshape(-1, 3).astype(dtype)
     d = directions.reshape(-1, 3).astype(dtype)
-    t, hit = jax.vmap(cast_ray, in_axes=(None, 0, 0, None))(part, o, d, newton_steps)
+    if ray_batch_size is None or ray_batch_size >= o.shape[0]:
+        t, hit = jax.vmap(cast_ray, in_axes=(None, 0, 0, None))(part, o, d, newton_steps)
+    else:
+        t, hit = jax.lax.map(lambda od: cast_ray(part, od[0], od[1], newton_steps), (o, d), batch_size=ray_batch_size)
     return t.reshape(shape), hit.reshape(shape)
 
 
@@ -245,9 +256,20 @@ def cast_batch(
     batch_size: int = 64,
     newton_steps: int = DEFAULT_NEWTON_STEPS,
 ) -> tuple[Float[Array, "n *pixels"], Bool[Array, "n *pixels"]]:
-    """Each part of a batch rendered alone, in chunks of ``batch_size`` parts."""
+    """Each part of a batch rendered alone, in chunks of ``batch_size`` parts.
+
+    On CPUs the rays of a chunk are cast in tiles of ``CPU_TILE // batch_size`` rays (at
+    least one; ``batch_size`` capped at the number of parts): XLA:CPU runs the Newton loop as a chain of element-wise passes, each
+    writing one array of rays x parts, and arrays of ``CPU_TILE`` elements stay in cache.
+    Other backends want every ray at once and get no tiles.
+    """
+    ray_batch_size = None
+    if jax.default_backend() == "cpu":
+        ray_batch_size = max(1, CPU_TILE // min(batch_size, parts.size.shape[0]))
     return jax.lax.map(
-        lambda p: cast_part(p, origins, directions, newton_steps), parts, batch_size=batch_size
+        lambda p: cast_part(p, origins, directions, newton_steps, ray_batch_size=ray_batch_size),
+        parts,
+        batch_size=batch_size,
     )
 
 

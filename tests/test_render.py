@@ -1,3 +1,5 @@
+from unittest import mock
+
 import jax
 import jax.numpy as jnp
 import numpy as np
@@ -130,6 +132,26 @@ def test_jit_equals_no_jit_and_chunked_equals_unchunked(rng):
         t, h = jax.jit(lambda p: cast_batch(p, o, d, batch_size=bs))(parts)
         np.testing.assert_array_equal(h, full_h)
         np.testing.assert_allclose(t, full_t, rtol=1e-6)
+
+
+def test_ray_tiles_equal_one_pass(rng):
+    # cast_part in tiles of rays (the last one short) and cast_batch's CPU tiles give the
+    # same rays as one vectorised pass, with the same gradients.
+    cam = sqparts.PinholeCamera(12, 12, 15.0, 15.0, 5.5, 5.5)
+    o, d = cam.rays()
+    parts = sqparts.stack_parts([sqparts.Part(**random_part_kwargs(rng)) for _ in range(5)])
+    t, h = jax.jit(cast_part)(parts[0], o, d)
+    t_tiled, h_tiled = jax.jit(lambda p: cast_part(p, o, d, ray_batch_size=10))(parts[0])
+    np.testing.assert_array_equal(h_tiled, h)
+    np.testing.assert_allclose(t_tiled, t, rtol=1e-6)
+    grad = jax.grad(lambda v: cast_part(sqparts.Part.from_vector(v), o, d)[0].sum())(parts[0].to_vector())
+    grad_tiled = jax.grad(lambda v: cast_part(sqparts.Part.from_vector(v), o, d, ray_batch_size=10)[0].sum())(parts[0].to_vector())
+    np.testing.assert_allclose(grad_tiled, grad, rtol=1e-5, atol=1e-6)
+    full_t, full_h = jax.vmap(cast_part, in_axes=(0, None, None))(parts, o, d)
+    with mock.patch("sqparts._render.CPU_TILE", 64):  # tiles of 64 // 3 = 21 rays
+        batch_t, batch_h = cast_batch(parts, o, d, batch_size=3)
+    np.testing.assert_array_equal(batch_h, full_h)
+    np.testing.assert_allclose(batch_t, full_t, rtol=1e-6)
 
 
 def _interior_rays(part, camera, n=6):
