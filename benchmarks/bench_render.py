@@ -28,7 +28,7 @@ import jax
 import numpy as np
 
 import sqparts
-from sqparts._render import cast_batch
+import sqparts._render
 
 from _common import save
 
@@ -82,61 +82,69 @@ def main() -> None:
     args = ap.parse_args()
     parts = random_parts(args.hypotheses)
     here = Path(__file__).resolve().parents[1]
-    codes = {"this": (cast_batch, parts, git_revision(here))}
+    codes = {"this": (sqparts._render, parts, git_revision(here))}
     if args.baseline is not None:
         base = load_baseline(args.baseline.resolve())
         base_parts = base.Part.from_vector(np.asarray(parts.to_vector()))
-        codes["baseline"] = (base._render.cast_batch, base_parts, git_revision(args.baseline))
+        codes["baseline"] = (base._render, base_parts, git_revision(args.baseline))
+    # cast_batch (render_each's kernel), and the search's pattern: lax.map over chunks of
+    # hypotheses of cast_part (sqparts._search._map_hypotheses), which gets no ray tiles.
+    configs = [(32, 6, "cast_batch"), (32, 8, "cast_batch"), (64, 6, "cast_batch"), (64, 8, "cast_batch"),
+               (32, 6, "lax.map(cast_part)")]
     rows = []
-    for window in (32, 64):
+    for window, steps, entry in configs:
         cam = sqparts.PinholeCamera(window, window, window * 1.25, window * 1.25, (window - 1) / 2, (window - 1) / 2)
         o, d = cam.rays()
-        for steps in (6, 8):
-            fns, first, outputs = {}, {}, {}
-            for code, (cast, prt, _) in codes.items():
-                fns[code] = jax.jit(lambda p, s=steps, c=cast: c(p, o, d, batch_size=args.batch_size, newton_steps=s))
-                t0 = time.perf_counter()
-                outputs[code] = jax.block_until_ready(fns[code](prt))
-                first[code] = time.perf_counter() - t0
-            times = {code: [] for code in codes}
-            cpu_times = {code: [] for code in codes}
-            for _ in range(args.repeats):  # interleaved, so that other load hits both alike
-                for code, (_, prt, _) in codes.items():
-                    wall, cpu = timed(fns[code], prt)
-                    times[code].append(wall)
-                    cpu_times[code].append(cpu)
-            rays = args.hypotheses * window * window
-            for code, (_, _, revision) in codes.items():
-                median = statistics.median(times[code])
-                row = {
-                    "code": code,
-                    "revision": revision,
-                    "window": window,
-                    "newton_steps": steps,
-                    "hypotheses": args.hypotheses,
-                    "batch_size": args.batch_size,
-                    "dtype": "float32",
-                    "compile_s": first[code] - median,
-                    "median_s": median,
-                    "times_s": times[code],
-                    "median_cpu_s": statistics.median(cpu_times[code]),
-                    "cpu_times_s": cpu_times[code],
-                    "rays_per_s": rays / median,
-                    "hypotheses_per_s": args.hypotheses / median,
-                }
-                if code == "baseline":
-                    t_new, hit_new = map(np.asarray, outputs["this"])
-                    t_old, hit_old = map(np.asarray, outputs[code])
-                    both = hit_new & hit_old
-                    row["speedup_of_this"] = median / statistics.median(times["this"])
-                    row["cpu_speedup_of_this"] = row["median_cpu_s"] / statistics.median(cpu_times["this"])
-                    row["hit_iou_with_this"] = float(both.sum() / max((hit_new | hit_old).sum(), 1))
-                    row["max_depth_difference_with_this"] = float(np.abs(t_new[both] - t_old[both]).max()) if both.any() else 0.0
-                rows.append(row)
-                print(f"{code:8s} {window}x{window} steps={steps}: {row['rays_per_s'] / 1e6:.2f} M rays/s, "
-                      f"{row['hypotheses_per_s']:.0f} hyp/s, compile {row['compile_s']:.2f} s"
-                      + (f", this is {row['speedup_of_this']:.2f}x faster ({row['cpu_speedup_of_this']:.2f}x in CPU time), hit IoU {row['hit_iou_with_this']:.5f}, "
-                         f"max |dt| {row['max_depth_difference_with_this']:.1e}" if code == "baseline" else ""))
+        fns, first, outputs = {}, {}, {}
+        for code, (render, prt, _) in codes.items():
+            if entry == "cast_batch":
+                fn = lambda p, s=steps, r=render: r.cast_batch(p, o, d, batch_size=args.batch_size, newton_steps=s)  # noqa: E731
+            else:
+                fn = lambda p, s=steps, r=render: jax.lax.map(lambda q: r.cast_part(q, o, d, s), p, batch_size=args.batch_size)  # noqa: E731
+            fns[code] = jax.jit(fn)
+            t0 = time.perf_counter()
+            outputs[code] = jax.block_until_ready(fns[code](prt))
+            first[code] = time.perf_counter() - t0
+        times = {code: [] for code in codes}
+        cpu_times = {code: [] for code in codes}
+        for _ in range(args.repeats):  # interleaved, so that other load hits both alike
+            for code, (_, prt, _) in codes.items():
+                wall, cpu = timed(fns[code], prt)
+                times[code].append(wall)
+                cpu_times[code].append(cpu)
+        rays = args.hypotheses * window * window
+        for code, (_, _, revision) in codes.items():
+            median = statistics.median(times[code])
+            row = {
+                "code": code,
+                "entry": entry,
+                "revision": revision,
+                "window": window,
+                "newton_steps": steps,
+                "hypotheses": args.hypotheses,
+                "batch_size": args.batch_size,
+                "dtype": "float32",
+                "compile_s": first[code] - median,
+                "median_s": median,
+                "times_s": times[code],
+                "median_cpu_s": statistics.median(cpu_times[code]),
+                "cpu_times_s": cpu_times[code],
+                "rays_per_s": rays / median,
+                "hypotheses_per_s": args.hypotheses / median,
+            }
+            if code == "baseline":
+                t_new, hit_new = map(np.asarray, outputs["this"])
+                t_old, hit_old = map(np.asarray, outputs[code])
+                both = hit_new & hit_old
+                row["speedup_of_this"] = median / statistics.median(times["this"])
+                row["cpu_speedup_of_this"] = row["median_cpu_s"] / statistics.median(cpu_times["this"])
+                row["hit_iou_with_this"] = float(both.sum() / max((hit_new | hit_old).sum(), 1))
+                row["max_depth_difference_with_this"] = float(np.abs(t_new[both] - t_old[both]).max()) if both.any() else 0.0
+            rows.append(row)
+            print(f"{code:8s} {entry} {window}x{window} steps={steps}: {row['rays_per_s'] / 1e6:.2f} M rays/s, "
+                  f"{row['hypotheses_per_s']:.0f} hyp/s, compile {row['compile_s']:.2f} s"
+                  + (f", this is {row['speedup_of_this']:.2f}x faster ({row['cpu_speedup_of_this']:.2f}x in CPU time), hit IoU {row['hit_iou_with_this']:.5f}, "
+                     f"max |dt| {row['max_depth_difference_with_this']:.1e}" if code == "baseline" else ""))
     save("render", {"rows": rows})
 
 
