@@ -12,9 +12,10 @@ under ``stop_gradient``): its custom JVP differentiates :func:`~sqparts._part.ga
 itself, which gives exactly the implicit derivative ``dt/dθ = -(∂g/∂θ) / (∂g/∂t)`` at the
 hit, while the forward pass reuses the loop's last value and slope.
 
-``vmap`` is applied in one place per axis: over pixels in :func:`cast_part`, over parts
-in :func:`cast_scene` and :func:`cast_batch` (the latter chunked with
-``jax.lax.map(..., batch_size=...)`` to bound memory).
+``vmap`` is applied in one place per axis: over pixels in :func:`cast_part` (optionally
+in tiles of rays, ``ray_batch_size``), over parts in :func:`cast_scene` and
+:func:`cast_batch` (the latter chunked with ``jax.lax.map(..., batch_size=...)`` to bound
+memory, and on CPUs casting each chunk's rays in cache-sized tiles, ``CPU_TILE``).
 """
 
 from __future__ import annotations
