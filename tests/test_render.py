@@ -221,6 +221,9 @@ def test_render_errors():
         sqparts.render_range_image(part, PINHOLE, window=(1, 2))
     with pytest.raises(ValueError, match=r"batch_size: expected a positive integer"):
         sqparts.render_each(part, PINHOLE, batch_size=0)
+    o, d = PINHOLE.rays()
+    with pytest.raises(ValueError, match=r"ray_batch_size: expected a positive integer or None, got 0"):
+        cast_part(part, o, d, ray_batch_size=0)
 
 
 @pytest.mark.parametrize("dtype", ["float32", "float64"])
