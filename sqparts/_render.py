@@ -219,7 +219,7 @@ def cast_part(
     (``jax.lax.map(..., batch_size=ray_batch_size)``); the results are the same.
     """
     if ray_batch_size is not None and (not isinstance(ray_batch_size, int) or ray_batch_size <= 0):
-        raise ValueError(f"ray_batch_size: expected a positive integer or None, got {ray_batch_size!r}")
+        raise ValueError(f"ray_batch_size: got {ray_batch_size!r}, expected a positive integer or None")
     shape = origins.shape[:-1]
     dtype = part.size.dtype
     o = origins.reshape(-1, 3).astype(dtype)

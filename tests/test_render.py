@@ -222,7 +222,7 @@ def test_render_errors():
     with pytest.raises(ValueError, match=r"batch_size: got .*, expected a positive integer"):
         sqparts.render_each(part, PINHOLE, batch_size=0)
     o, d = PINHOLE.rays()
-    with pytest.raises(ValueError, match=r"ray_batch_size: expected a positive integer or None, got 0"):
+    with pytest.raises(ValueError, match=r"ray_batch_size: got 0, expected a positive integer or None"):
         cast_part(part, o, d, ray_batch_size=0)
 
 
