@@ -496,3 +496,71 @@ def write_range_image(path, depth, *, depth_scale: float = 0.001) -> None:
             f.write(buffer.getvalue())
     else:
         raise ValueError(f"--out: got {str(path)!r}, expected a path ending in .npy, .png or .tif")
+
+
+# --- what the viewers read beside parts.json ---------------------------------------------
+
+VIEW_FILES = ("range.npy", "camera.json", "pixels.npz")
+"""Written by ``sqparts recover`` beside parts.json for ``sqparts view`` and ``--rerun``."""
+
+
+def save_view_data(folder, depth, camera: Camera, *, status, model, labels) -> None:
+    """Write :data:`VIEW_FILES` into ``folder`` (a staged output folder).
+
+    ``range.npy``: the float32 range image the parts were recovered from (after binning
+    and clean-up), NaN = no return; ``camera.json``: its camera; ``pixels.npz``: per pixel
+    ``status`` (uint8: 0 none, 1 explained, 2 omitted, 3 commission), ``model`` (float32,
+    the parts' range image) and ``labels`` (int16: the part seen, -1 none).
+    """
+    import io
+
+    folder = Path(folder)
+    write_range_image(folder / "range.npy", depth)
+    save_camera(folder / "camera.json", camera)
+    buffer = io.BytesIO()
+    np.savez_compressed(buffer, status=np.asarray(status, np.uint8), model=np.asarray(model, np.float32),
+                        labels=np.asarray(labels, np.int16))
+    with atomic_write(folder / "pixels.npz") as f:
+        f.write(buffer.getvalue())
+
+
+def load_view_data(folder) -> dict:
+    """What the viewers need from a ``sqparts recover`` (or ``demo``) output folder.
+
+    Returns a dict: ``parts`` (batched :class:`Part`), ``annotations``, ``meta`` (parts.json's
+    other keys), ``title``; and, when their files are there, ``depth`` and ``camera``
+    (``camera.json``, else parts.json's ``camera``), ``status``, ``model``, ``labels``
+    (``pixels.npz``) and ``report`` (report.png as an RGB array); ``folder`` is the path.
+    Only parts.json is required.
+    """
+    folder = Path(folder)
+    if not folder.is_dir():
+        raise FileNotFoundError(f"folder: got {str(folder)!r}, expected a sqparts recover output folder")
+    if not (folder / "parts.json").is_file():
+        raise FileNotFoundError(f"folder: got {str(folder)!r} without parts.json, expected a sqparts recover output folder")
+    parts, annotations, meta = scene_from_dict(_load_json(folder / "parts.json", "scene"))
+    data = {"parts": parts, "annotations": annotations, "meta": meta, "title": folder.resolve().name, "folder": folder}
+    if (folder / "camera.json").is_file():
+        data["camera"] = load_camera(folder / "camera.json")
+    elif isinstance(meta.get("camera"), dict):
+        data["camera"] = camera_from_json(meta["camera"])
+    if (folder / "range.npy").is_file():
+        data["depth"], _ = read_range_image(folder / "range.npy")
+        camera = data.get("camera")
+        if camera is not None and data["depth"].shape != (camera.height, camera.width):
+            raise ValueError(f"range.npy: got shape {data['depth'].shape}, expected {(camera.height, camera.width)} (camera.json's size)")
+    if (folder / "pixels.npz").is_file():
+        try:
+            with np.load(folder / "pixels.npz", allow_pickle=False) as z:
+                pixels = {k: np.asarray(z[k]) for k in ("status", "model", "labels")}
+        except (OSError, ValueError, KeyError, EOFError) as e:
+            raise ValueError(f"pixels.npz: got {str(folder / 'pixels.npz')!r}, expected status, model and labels arrays ({e})") from None
+        if "depth" in data and any(v.shape != data["depth"].shape for v in pixels.values()):
+            raise ValueError(f"pixels.npz: got shapes {[v.shape for v in pixels.values()]}, expected {data['depth'].shape} (range.npy's)")
+        data.update(pixels)
+    if (folder / "report.png").is_file():
+        from PIL import Image
+
+        with Image.open(folder / "report.png") as im:
+            data["report"] = np.asarray(im.convert("RGB"))
+    return data

@@ -220,3 +220,29 @@ def test_schema_rejects_no_parts():
     validator = _validator()
     assert not validator.is_valid({"parts": []})
     assert not validator.is_valid({"camera": {}})
+
+
+@pytest.mark.slow
+def test_recovery_meshes_and_schema(tmp_path):
+    import trimesh
+
+    camera = sqparts.PinholeCamera(32, 24, 40.0, 40.0, 15.5, 11.5)
+    (tmp_path / "scene.json").write_text(json.dumps(SCENE))
+    depth = np.asarray(sqparts.render_range_image(sqparts.load_scene(tmp_path / "scene.json"), camera))
+    scene = sqparts.recover_scene(depth, camera, resolution=None, refine_rounds=0)
+    n = len(scene.parts)
+    for result in (scene, scene.figures[0]):
+        meshes = result.to_trimesh(resolution=6)
+        assert isinstance(meshes, trimesh.Scene)
+        assert sorted(meshes.geometry) == sorted(f"part_{i}" for i in range(len(result.parts)))
+    glb = tmp_path / "model.glb"
+    sqparts.save_mesh(glb, scene.to_trimesh(resolution=6))
+    assert len(trimesh.load(glb).geometry) == n
+    try:
+        import open3d  # noqa: F401
+    except ImportError:
+        pass
+    else:
+        assert len(scene.to_open3d(resolution=6)) == n
+    _validator().validate(json.loads(json.dumps(scene.scene_dict())))
+    _validator().validate(json.loads(json.dumps(scene.figures[0].scene_dict())))
