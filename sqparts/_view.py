@@ -62,12 +62,13 @@ def view_layers(data: dict, *, resolution: int = 10) -> dict:
     n = len(parts)
     colors = part_colors(n)
     layers = {"points": {}, "parts": [], "point_size": 0.01}
+    several_figures = len({a.get("figure") for a in annotations}) > 1
     for i in range(n):
         mesh = part_mesh(parts[i], resolution=resolution)
         a = annotations[i]
         name = str(a.get("name") or f"part_{i}")
-        words = [name] + [f"figure {a['figure']}"] * ("figure" in a)
-        words += [f"{symbol} {a[k]:.0f}" for k, symbol in (("gamma", "Γ"), ("bits_saved", "bits saved"))
+        words = [name] + [f"figure {a['figure']}"] * several_figures
+        words += [f"{symbol} {a[k]:.0f}{unit}" for k, symbol, unit in (("gamma", "Γ ", ""), ("bits_saved", "", " bits"))
                   if isinstance(a.get(k), (int, float))]
         label = " · ".join(words)
         layers["parts"].append((name, np.asarray(mesh.vertices, np.float32), np.asarray(mesh.faces, np.uint32),
@@ -103,6 +104,12 @@ def _viser():
     return viser
 
 
+def _text(value, spec: str) -> str:
+    """A number from parts.json formatted, or blank where it is not one."""
+    ok = isinstance(value, (int, float)) and not isinstance(value, bool) and (spec != "d" or isinstance(value, int))
+    return format(value, spec) if ok else ""
+
+
 def build_view(server, data: dict) -> dict:
     """Fill a ``viser.ViserServer`` with a recovery: point layers and parts, each with a
     checkbox, the figures and the summary. Returns the scene handles by name."""
@@ -110,35 +117,36 @@ def build_view(server, data: dict) -> dict:
     server.scene.set_up_direction("-y")
     handles = {}
     meta = data["meta"]
-    server.gui.add_markdown(f"**{data['title']}**  \n{len(layers['parts'])} parts" + (
-        f", E = {meta['description_length_bits']:.0f} bits" if isinstance(meta.get("description_length_bits"), (int, float)) else "") + (
-        f", {meta['fraction_explained']:.1%} explained" if isinstance(meta.get("fraction_explained"), (int, float)) else ""))
+    bits, explained = _text(meta.get("description_length_bits"), ".0f"), _text(meta.get("fraction_explained"), ".1%")
+    server.gui.add_markdown(f"**{data['title']}**  \n{len(layers['parts'])} parts"
+                            + (f", E = {bits} bits" if bits else "") + (f", {explained} explained" if explained else ""))
 
     def toggle(checkbox, handle):
         @checkbox.on_update
         def _(_event):
             handle.visible = checkbox.value
 
-    with server.gui.add_folder("Parts"):
-        for name, vertices, faces, color, label in layers["parts"]:
-            handle = server.scene.add_mesh_simple(f"/parts/{name}", vertices, faces, color=tuple(int(c) for c in color[:3]),
-                                                  flat_shading=False, side="double")
-            handles[f"parts/{name}"] = handle
-            toggle(server.gui.add_checkbox(label, True), handle)
     with server.gui.add_folder("Points"):
         for name, (points, colors) in layers["points"].items():
             handle = server.scene.add_point_cloud(f"/points/{name}", points, colors, point_size=layers["point_size"],
                                                   point_shape="rounded", visible=name == "measured")
             handles[f"points/{name}"] = handle
             toggle(server.gui.add_checkbox(f"{name} ({len(points)})", name == "measured"), handle)
+    with server.gui.add_folder("Parts"):
+        for name, vertices, faces, color, label in layers["parts"]:
+            handle = server.scene.add_mesh_simple(f"/parts/{name}", vertices, faces, color=tuple(int(c) for c in color[:3]),
+                                                  flat_shading=False, side="double")
+            handles[f"parts/{name}"] = handle
+            toggle(server.gui.add_checkbox(label, True), handle)
     figures = meta.get("figures")
     if isinstance(figures, list) and figures:
         with server.gui.add_folder("Figures"):
             rows = ["| figure | pixels | parts | E (bits) | explained |", "|---|---|---|---|---|"]
             for k, f in enumerate(figures):
                 if isinstance(f, dict):
-                    rows.append(f"| {k} | {f.get('pixels', '')} | {f.get('parts', '')} | "
-                                f"{f.get('description_length_bits', 0):.0f} | {f.get('fraction_explained', 0):.0%} |")
+                    rows.append(f"| {k} | {_text(f.get('pixels'), 'd')} | {_text(f.get('parts'), 'd')} | "
+                                f"{_text(f.get('description_length_bits'), '.0f')} | "
+                                f"{_text(f.get('fraction_explained'), '.0%')} |")
             server.gui.add_markdown("\n".join(rows))
     if data.get("report") is not None:
         with server.gui.add_folder("Report", expand_by_default=False):
@@ -148,7 +156,7 @@ def build_view(server, data: dict) -> dict:
     low, high = vertices.min(0), vertices.max(0)
     centre, extent = (low + high) / 2, float(np.linalg.norm(high - low))
     server.initial_camera.look_at = tuple(float(x) for x in centre)
-    server.initial_camera.position = tuple(float(x) for x in centre + extent * np.array([0.45, -0.35, -1.1]))
+    server.initial_camera.position = tuple(float(x) for x in centre + extent * np.array([0.35, -0.3, -0.85]))
     server.initial_camera.up = (0.0, -1.0, 0.0)
     return handles
 
