@@ -125,6 +125,17 @@ def color_pixels(image: np.ndarray, color, tolerance: float = 0.03) -> int:
     return int((np.linalg.norm(unit - c / np.linalg.norm(c), axis=-1) < tolerance).sum())
 
 
+CLICK_CHECKBOX = """
+for (const box of document.querySelectorAll("input[type=checkbox]")) {
+    let row = box.parentElement;  // the smallest element around it holding the label
+    while (row && !(row.innerText || "").includes(arguments[0])) row = row.parentElement;
+    if (row && row.querySelectorAll("input[type=checkbox]").length === 1) { box.click(); return true; }
+}
+return false;
+"""
+"""Click the checkbox whose row's text contains ``arguments[0]``."""
+
+
 @pytest.mark.slow
 def test_viewer_in_headless_chromium(out_dir, tmp_path):
     from PIL import Image
@@ -155,9 +166,20 @@ def test_viewer_in_headless_chromium(out_dir, tmp_path):
                 if min(counts) >= 50 or time.monotonic() > deadline:
                     break
             page = " ".join(browser.find_element("tag name", "body").text.split())
+            # part_0's checkbox hides it
+            assert browser.execute_script(CLICK_CHECKBOX, "part_0 ·")
+            hidden = counts[0]
+            for _ in range(10):
+                time.sleep(1)
+                browser.save_screenshot(str(tmp_path / "hidden.png"))
+                shown = np.asarray(Image.open(tmp_path / "hidden.png").convert("RGB"))
+                hidden = color_pixels(shown[:, : int(shown.shape[1] * 0.6)], colors[0])
+                if hidden < counts[0] / 5:
+                    break
         finally:
             browser.quit()
         assert min(counts) >= 50, f"part colours' pixels in the screenshot: {counts}"
+        assert hidden < counts[0] / 5, f"part_0's pixels after hiding it: {hidden} of {counts[0]}"
         # the control panel lists the parts (toggles), the point layers and the figures
         for text in ("part_0 · figure 0 · Γ 40", "part_1 · figure 1", "measured", "commission", "Figures"):
             assert text in page, text
