@@ -271,3 +271,18 @@ def test_readme_export_example(tmp_path, monkeypatch, parts):
     exec(compile(block, "README.md", "exec"), namespace)
     assert (tmp_path / "model.glb").stat().st_size > 0
     assert sorted(namespace["meshes"].geometry) == ["part_0", "part_1"]
+
+
+def test_interop_errors(parts, monkeypatch):
+    with pytest.raises(ValueError, match=r"camera: got list, expected RealSense intrinsics with keys"):
+        sqparts.camera_from_realsense([1, 2])
+    monkeypatch.setitem(__import__("sys").modules, "open3d", None)
+    with pytest.raises(ImportError, match=r"open3d: got .*, expected open3d installed"):
+        sqparts.scene_open3d(parts)
+
+
+def test_exr_without_openexr(tmp_path, monkeypatch):
+    _write_exr(tmp_path / "d.exr", {"Z": np.ones((24, 32), np.float32)})
+    monkeypatch.setitem(__import__("sys").modules, "OpenEXR", None)
+    with pytest.raises(ValueError, match=r"input: got .*d.exr', expected the OpenEXR package to read it"):
+        sqparts.read_range_image(tmp_path / "d.exr")

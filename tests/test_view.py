@@ -231,3 +231,26 @@ def test_rerun_option_errors(tmp_path, capsys):
     assert main(["recover", str(tmp_path / "x.npy"), "--camera", str(tmp_path / "cam.json"),
                  "--out", str(tmp_path / "o"), "--rerun", str(tmp_path / "r.rrd")]) == 2
     assert "--rerun: got " in capsys.readouterr().err and (tmp_path / "r.rrd").read_bytes() == b"x"
+
+
+def test_view_files_errors(out_dir):
+    np.savez(out_dir / "pixels.npz", status=np.zeros((24, 32), np.uint8))
+    with pytest.raises(ValueError, match=r"pixels.npz: got .*, expected status, model and labels arrays"):
+        load_view_data(out_dir)
+    np.savez(out_dir / "pixels.npz", status=np.zeros((2, 2)), model=np.zeros((2, 2)), labels=np.zeros((2, 2)))
+    with pytest.raises(ValueError, match=r"pixels.npz: got shapes \[\(2, 2\), .*\], expected \(24, 32\)"):
+        load_view_data(out_dir)
+
+
+def test_missing_packages_are_one_line_errors(out_dir, tmp_path, monkeypatch, capsys):
+    (tmp_path / "cam.json").write_text(json.dumps(CAMERA))
+    np.save(tmp_path / "x.npy", np.ones((24, 32), np.float32))
+    recover = ["recover", str(tmp_path / "x.npy"), "--camera", str(tmp_path / "cam.json"), "--out", str(tmp_path / "o")]
+    assert main([*recover, "--rerun", str(tmp_path / "no" / "r.rrd")]) == 2
+    assert "--rerun: got " in capsys.readouterr().err and not (tmp_path / "o").exists()
+    monkeypatch.setitem(sys.modules, "rerun", None)
+    assert main([*recover, "--rerun", str(tmp_path / "r.rrd")]) == 2
+    assert "--rerun: got no rerun-sdk installed, expected pip install 'sqparts[view]'" in capsys.readouterr().err
+    monkeypatch.setitem(sys.modules, "viser", None)
+    assert main(["view", str(out_dir)]) == 2
+    assert "view: got no viser, expected it installed (pip install 'sqparts[view]')" in capsys.readouterr().err
