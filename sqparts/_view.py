@@ -53,8 +53,10 @@ def view_layers(data: dict, *, resolution: int = 10) -> dict:
     """What both viewers draw, from :func:`sqparts._io.load_view_data`'s dict.
 
     Returns ``{"points": {name: (points (n, 3), colors (n, 3) uint8)}, "parts": [(name,
-    vertices, faces, color (4,) uint8, label)], "point_size": float}``; ``points`` holds
-    ``measured`` and the :data:`STATUS` layers when the range image is there.
+    vertices, faces, color (4,) uint8, label)], "point_size": float}``; a part's name is
+    ``part_<i>`` (its index in parts.json; the label adds its annotated ``name``, figure,
+    Γ and bits saved); ``points`` holds ``measured`` and the :data:`STATUS` layers when the
+    range image is there.
     """
     from ._mesh import part_colors, part_mesh
 
@@ -66,9 +68,10 @@ def view_layers(data: dict, *, resolution: int = 10) -> dict:
     for i in range(n):
         mesh = part_mesh(parts[i], resolution=resolution)
         a = annotations[i]
-        name = str(a.get("name") or f"part_{i}")
-        words = [name] + [f"figure {a['figure']}"] * several_figures
-        words += [f"{symbol} {a[k]:.0f}{unit}" for k, symbol, unit in (("gamma", "Γ ", ""), ("bits_saved", "", " bits"))
+        name = f"part_{i}"  # the scene node's name; an annotated name goes in the label
+        words = [name] + ([str(a["name"])] if a.get("name") else []) + (
+            [f"figure {a.get('figure')}"] if several_figures else [])
+        words += [f"{symbol}{a[k]:.0f}{unit}" for k, symbol, unit in (("gamma", "Γ ", ""), ("bits_saved", "", " bits"))
                   if isinstance(a.get(k), (int, float))]
         label = " · ".join(words)
         layers["parts"].append((name, np.asarray(mesh.vertices, np.float32), np.asarray(mesh.faces, np.uint32),

@@ -22,7 +22,7 @@ from sqparts.cli import main
 ROOT = Path(__file__).resolve().parents[1]
 CAMERA = {"width": 32, "height": 24, "intrinsic_matrix": [40.0, 0, 0, 0, 40.0, 0, 15.5, 11.5, 1]}
 SCENE = {"parts": [{"size": [0.2, 0.15, 0.3], "squareness": [0.5, 1.0], "position": [-0.22, 0, 2.0],
-                    "rotation": [[1, 0, 0], [0, 0, -1], [0, 1, 0]], "gamma": 40.0, "figure": 0},
+                    "rotation": [[1, 0, 0], [0, 0, -1], [0, 1, 0]], "gamma": 40.0, "figure": 0, "name": "torso"},
                    {"size": [0.12, 0.12, 0.2], "squareness": [1.0, 1.0], "position": [0.22, 0.05, 2.0], "figure": 1}]}
 FAST = ["--resolution", "0", "--refine-rounds", "0", "--quiet"]
 
@@ -57,6 +57,7 @@ def test_view_data_round_trip(out_dir):
     assert data["depth"].shape == data["status"].shape == data["model"].shape == (24, 32)
     layers = view_layers(data, resolution=6)
     assert [name for name, *_ in layers["parts"]] == ["part_0", "part_1"]
+    assert [label for *_, label in layers["parts"]] == ["part_0 · torso · figure 0 · Γ 40", "part_1 · figure 1"]
     assert set(layers["points"]) == {"measured", *STATUS}
     measured, _ = layers["points"]["measured"]
     assert len(measured) == int(np.isfinite(data["depth"]).sum())
@@ -181,7 +182,7 @@ def test_viewer_in_headless_chromium(out_dir, tmp_path):
         assert min(counts) >= 50, f"part colours' pixels in the screenshot: {counts}"
         assert hidden < counts[0] / 5, f"part_0's pixels after hiding it: {hidden} of {counts[0]}"
         # the control panel lists the parts (toggles), the point layers and the figures
-        for text in ("part_0 · figure 0 · Γ 40", "part_1 · figure 1", "measured", "commission", "Figures"):
+        for text in ("part_0 · torso · figure 0 · Γ 40", "part_1 · figure 1", "measured", "commission", "Figures"):
             assert text in page, text
     finally:
         server.terminate()
@@ -193,7 +194,7 @@ def test_recover_writes_view_files_and_rerun(tmp_path):
     rerun = pytest.importorskip("rerun")
     (tmp_path / "cam.json").write_text(json.dumps(CAMERA))
     (tmp_path / "scene.json").write_text(json.dumps({"parts": [{k: v for k, v in SCENE["parts"][0].items()
-                                                                 if k not in ("gamma", "figure")}]}))
+                                                                 if k not in ("gamma", "figure", "name")}]}))
     depth = np.asarray(sqparts.render_range_image(sqparts.load_scene(tmp_path / "scene.json"),
                                                   sqparts.load_camera(tmp_path / "cam.json")))
     np.save(tmp_path / "x.npy", depth)
