@@ -255,3 +255,10 @@ def test_missing_packages_are_one_line_errors(out_dir, tmp_path, monkeypatch, ca
     monkeypatch.setitem(sys.modules, "viser", None)
     assert main(["view", str(out_dir)]) == 2
     assert "view: got no viser, expected it installed (pip install 'sqparts[view]')" in capsys.readouterr().err
+
+
+def test_parts_only_folder(tmp_path):
+    """A folder with parts.json alone (``sqparts demo``'s has no camera): parts, no points."""
+    (tmp_path / "parts.json").write_text(json.dumps(SCENE))
+    layers = view_layers(load_view_data(tmp_path), resolution=6)
+    assert len(layers["parts"]) == 2 and layers["points"] == {}
