@@ -58,11 +58,13 @@ _EXPORTS = {
         "BUILTIN_SCENES", "BuiltinScene", "builtin_scene",
     ),
     "_io": (
-        "load_camera", "load_scene", "read_range_image", "save_camera", "save_scene",
-        "scene_from_dict", "scene_to_dict", "write_range_image",
+        "PARTS_SCHEMA_PATH", "camera_from_realsense", "load_camera", "load_scene", "parts_schema",
+        "read_range_image", "save_camera", "save_scene", "scene_from_dict", "scene_to_dict",
+        "write_range_image",
     ),
     "_mesh": (
-        "load_mesh", "part_mesh", "render_mesh", "save_mesh", "scene_mesh",
+        "load_mesh", "part_colors", "part_mesh", "render_mesh", "save_mesh", "scene_mesh",
+        "scene_open3d", "scene_trimesh",
     ),
 }
 """Each module's public names, in pipeline order."""

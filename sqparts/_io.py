@@ -1,4 +1,4 @@
-"""Files at the edge: scenes and cameras (JSON), range images (.npy/.png/.tif/.pcd).
+"""Files at the edge: scenes and cameras (JSON), range images (.npy/.png/.tif/.pcd/.exr).
 
 Scene JSON (also what recovery writes)::
 
@@ -28,7 +28,9 @@ from ._part import Part, rotation_vector, stack_parts
 
 PART_KEYS = {"size", "squareness", "position", "rotation", "bend", "taper"}
 ANNOTATION_KEYS = {"name", "gamma", "bits_saved", "fraction_explained", "pixels", "level", "figure", "prettify", "parent"}
-RANGE_IMAGE_SUFFIXES = (".npy", ".png", ".tif", ".tiff", ".pcd")
+RANGE_IMAGE_SUFFIXES = (".npy", ".png", ".tif", ".tiff", ".pcd", ".exr")
+EXR_DEPTH_CHANNELS = ("Z", "depth", "Y", "R")
+"""Channels of an OpenEXR file read as depth, in order of preference."""
 
 
 MAX_JSON_BYTES = 64 * 2**20
@@ -210,6 +212,17 @@ def scene_to_dict(parts: Part, annotations=None, **metadata) -> dict:
     }
 
 
+PARTS_SCHEMA_PATH = Path(__file__).with_name("schema") / "parts.schema.json"
+"""JSON Schema (draft 2020-12) of scene JSON and of a recovery's ``parts.json``."""
+
+
+def parts_schema() -> dict:
+    """The JSON Schema (draft 2020-12) of scene JSON / ``parts.json``, as a dict; the
+    file is :data:`PARTS_SCHEMA_PATH`, shipped with the package. Validate with e.g.
+    ``jsonschema.validate(data, sqparts.parts_schema())``."""
+    return json.loads(PARTS_SCHEMA_PATH.read_text(encoding="utf-8"))
+
+
 def load_scene(path) -> Part:
     """Read a scene JSON file into a batched :class:`Part`."""
     parts, _, _ = scene_from_dict(_load_json(path, "scene"))
@@ -227,8 +240,59 @@ def save_scene(path, parts: Part, annotations=None, **metadata) -> None:
 
 
 def load_camera(path) -> Camera:
-    """Read a camera JSON file (Open3D pinhole intrinsics, orthographic or scanner)."""
-    return camera_from_json(_load_json(path, "camera"))
+    """Read a camera JSON file: Open3D pinhole intrinsics, orthographic, scanner, or
+    RealSense intrinsics (see :func:`camera_from_realsense`)."""
+    data = _load_json(path, "camera")
+    if isinstance(data, dict) and _realsense_intrinsics(data) is not None:
+        return camera_from_realsense(data)
+    return camera_from_json(data)
+
+
+REALSENSE_KEYS = {"width", "height", "fx", "fy", "ppx", "ppy"}
+
+
+def _realsense_intrinsics(data: dict) -> dict | None:
+    """The RealSense intrinsics in ``data``: at the top level or under one of
+    ``intrinsics``, ``depth`` (as a dump of several streams); None if there are none."""
+    if REALSENSE_KEYS <= set(data):
+        return data
+    for key in ("intrinsics", "depth"):
+        inner = data.get(key)
+        if isinstance(inner, dict):
+            found = _realsense_intrinsics(inner)
+            if found is not None:
+                return found
+    return None
+
+
+def camera_from_realsense(data: dict) -> PinholeCamera:
+    """A :class:`PinholeCamera` from Intel RealSense intrinsics as JSON.
+
+    The fields are those of ``pyrealsense2.intrinsics`` (and of ``rs-enumerate-devices
+    -c``'s listing): ``width``, ``height``, ``fx``, ``fy``, ``ppx``, ``ppy`` in pixels, and
+    optionally ``model`` (the distortion model's name) and ``coeffs`` (5 numbers), flat or
+    under ``"intrinsics"`` or ``"depth"``. The depth stream of a D400 camera has no
+    distortion; non-zero ``coeffs`` are an error, since the renderer casts ideal pinhole
+    rays (undistort the image first).
+    """
+    intr = _realsense_intrinsics(data) if isinstance(data, dict) else None
+    if intr is None:
+        raise ValueError(f"camera: got {type(data).__name__}, expected RealSense intrinsics with keys {sorted(REALSENSE_KEYS)}")
+    unknown = sorted(set(intr) - REALSENSE_KEYS - {"model", "coeffs"})
+    if unknown:
+        raise ValueError(f"camera: got unknown key(s) {unknown}, expected only {sorted(REALSENSE_KEYS | {'model', 'coeffs'})} for RealSense intrinsics")
+    coeffs = intr.get("coeffs", [0.0] * 5)
+    try:
+        coeffs = np.asarray(coeffs, dtype=float)
+    except (TypeError, ValueError):
+        raise ValueError(f"camera.coeffs: got {intr['coeffs']!r:.60}, expected 5 numbers") from None
+    if coeffs.ndim != 1 or not np.all(np.isfinite(coeffs)) or np.any(coeffs != 0):
+        raise ValueError(f"camera.coeffs: got {coeffs.tolist()!r:.80}, expected zero distortion (an undistorted depth stream)")
+    for key in ("fx", "fy", "ppx", "ppy"):
+        if not isinstance(intr[key], (int, float)) or isinstance(intr[key], bool):
+            raise ValueError(f"camera.{key}: got {intr[key]!r:.40}, expected a number")
+    return PinholeCamera(intr["width"], intr["height"], float(intr["fx"]), float(intr["fy"]),
+                         float(intr["ppx"]), float(intr["ppy"]))
 
 
 def save_camera(path, camera: Camera) -> None:
@@ -248,6 +312,13 @@ def read_range_image(path, *, depth_scale: float = 0.001) -> tuple[np.ndarray, C
     * ``.tif``/``.tiff``: 2-D float (or integer, scaled by ``depth_scale``).
     * ``.pcd``: an organized point cloud (x, y, z in the camera frame); the depth is z and
       the pinhole camera is recovered from the points by least squares.
+    * ``.exr``: OpenEXR (through the ``OpenEXR`` package: ``pip install sqparts[interop]``),
+      the first of the channels ``Z``, ``depth``, ``Y``, ``R`` (or the only one), float in
+      scene units (an integer channel is scaled by ``depth_scale``).
+
+    Datasets: TUM RGB-D depth PNGs hold 5000 units per metre (``depth_scale=0.0002``);
+    RealSense PNGs hold the device's depth scale (usually 0.001), its intrinsics read by
+    :func:`load_camera`.
     """
     path = Path(path)
     suffix = path.suffix.lower()
@@ -281,6 +352,8 @@ def read_range_image(path, *, depth_scale: float = 0.001) -> tuple[np.ndarray, C
 
             raw = tifffile.imread(path)
             depth = raw if np.issubdtype(raw.dtype, np.floating) else raw * depth_scale
+        elif suffix == ".exr":
+            depth = _read_exr(path, depth_scale)
         else:
             depth, camera = _read_pcd(path)
     except (OSError, ValueError, EOFError, MemoryError) as e:
@@ -312,6 +385,10 @@ def _declared_shape(path: Path, suffix: str) -> tuple[int, ...]:
                 return (im.size[1], im.size[0])
         finally:
             Image.MAX_IMAGE_PIXELS = limit
+    if suffix == ".exr":
+        exr = _open_exr(path, header_only=True)
+        (x0, y0), (x1, y1) = (np.asarray(c, np.int64) for c in exr.header()["dataWindow"])
+        return (int(y1 - y0 + 1), int(x1 - x0 + 1))
     if suffix in (".tif", ".tiff"):
         import tifffile
 
@@ -329,6 +406,28 @@ def _declared_shape(path: Path, suffix: str) -> tuple[int, ...]:
         return (int(header["HEIGHT"][0]), int(header["WIDTH"][0]))
     except (KeyError, IndexError, ValueError):
         raise ValueError(f"input: got {str(path)!r}, expected a .pcd header with WIDTH and HEIGHT") from None
+
+
+def _open_exr(path: Path, *, header_only: bool = False):
+    try:
+        import OpenEXR
+    except ImportError:
+        raise ValueError(f"input: got {str(path)!r}, expected the OpenEXR package to read it (pip install 'sqparts[interop]')") from None
+    try:
+        return OpenEXR.File(str(path), separate_channels=True, header_only=header_only)
+    except RuntimeError as e:  # OpenEXR's error for a file it cannot parse
+        raise ValueError(f"input: got {str(path)!r}, expected a readable OpenEXR file ({e})") from None
+
+
+def _read_exr(path: Path, depth_scale: float) -> np.ndarray:
+    channels = {name: c.pixels for name, c in _open_exr(path).channels().items()}
+    name = next((n for n in EXR_DEPTH_CHANNELS if n in channels), None)
+    if name is None and len(channels) == 1:
+        name = next(iter(channels))
+    if name is None:
+        raise ValueError(f"input: got channels {sorted(channels)} in {str(path)!r}, expected one of {list(EXR_DEPTH_CHANNELS)} or a single channel")
+    raw = np.asarray(channels[name])
+    return raw if np.issubdtype(raw.dtype, np.floating) else raw * depth_scale
 
 
 def _check_image_size(path: Path, shape: tuple[int, ...]) -> None:
@@ -400,3 +499,71 @@ def write_range_image(path, depth, *, depth_scale: float = 0.001) -> None:
             f.write(buffer.getvalue())
     else:
         raise ValueError(f"--out: got {str(path)!r}, expected a path ending in .npy, .png or .tif")
+
+
+# --- what the viewers read beside parts.json ---------------------------------------------
+
+VIEW_FILES = ("range.npy", "camera.json", "pixels.npz")
+"""Written by ``sqparts recover`` beside parts.json for ``sqparts view`` and ``--rerun``."""
+
+
+def save_view_data(folder, depth, camera: Camera, *, status, model, labels) -> None:
+    """Write :data:`VIEW_FILES` into ``folder`` (a staged output folder).
+
+    ``range.npy``: the float32 range image the parts were recovered from (after binning
+    and clean-up), NaN = no return; ``camera.json``: its camera; ``pixels.npz``: per pixel
+    ``status`` (uint8: 0 none, 1 explained, 2 omitted, 3 commission), ``model`` (float32,
+    the parts' range image) and ``labels`` (int16: the part seen, -1 none).
+    """
+    import io
+
+    folder = Path(folder)
+    write_range_image(folder / "range.npy", depth)
+    save_camera(folder / "camera.json", camera)
+    buffer = io.BytesIO()
+    np.savez_compressed(buffer, status=np.asarray(status, np.uint8), model=np.asarray(model, np.float32),
+                        labels=np.asarray(labels, np.int16))
+    with atomic_write(folder / "pixels.npz") as f:
+        f.write(buffer.getvalue())
+
+
+def load_view_data(folder) -> dict:
+    """What the viewers need from a ``sqparts recover`` (or ``demo``) output folder.
+
+    Returns a dict: ``parts`` (batched :class:`Part`), ``annotations``, ``meta`` (parts.json's
+    other keys), ``title``; and, when their files are there, ``depth`` and ``camera``
+    (``camera.json``, else parts.json's ``camera``), ``status``, ``model``, ``labels``
+    (``pixels.npz``) and ``report`` (report.png as an RGB array); ``folder`` is the path.
+    Only parts.json is required.
+    """
+    folder = Path(folder)
+    if not folder.is_dir():
+        raise FileNotFoundError(f"folder: got {str(folder)!r}, expected a sqparts recover output folder")
+    if not (folder / "parts.json").is_file():
+        raise FileNotFoundError(f"folder: got {str(folder)!r} without parts.json, expected a sqparts recover output folder")
+    parts, annotations, meta = scene_from_dict(_load_json(folder / "parts.json", "scene"))
+    data = {"parts": parts, "annotations": annotations, "meta": meta, "title": folder.resolve().name, "folder": folder}
+    if (folder / "camera.json").is_file():
+        data["camera"] = load_camera(folder / "camera.json")
+    elif isinstance(meta.get("camera"), dict):
+        data["camera"] = camera_from_json(meta["camera"])
+    if (folder / "range.npy").is_file():
+        data["depth"], _ = read_range_image(folder / "range.npy")
+        camera = data.get("camera")
+        if camera is not None and data["depth"].shape != (camera.height, camera.width):
+            raise ValueError(f"range.npy: got shape {data['depth'].shape}, expected {(camera.height, camera.width)} (camera.json's size)")
+    if (folder / "pixels.npz").is_file():
+        try:
+            with np.load(folder / "pixels.npz", allow_pickle=False) as z:
+                pixels = {k: np.asarray(z[k]) for k in ("status", "model", "labels")}
+        except (OSError, ValueError, KeyError, EOFError) as e:
+            raise ValueError(f"pixels.npz: got {str(folder / 'pixels.npz')!r}, expected status, model and labels arrays ({e})") from None
+        if "depth" in data and any(v.shape != data["depth"].shape for v in pixels.values()):
+            raise ValueError(f"pixels.npz: got shapes {[v.shape for v in pixels.values()]}, expected {data['depth'].shape} (range.npy's)")
+        data.update(pixels)
+    if (folder / "report.png").is_file():
+        from PIL import Image
+
+        with Image.open(folder / "report.png") as im:
+            data["report"] = np.asarray(im.convert("RGB"))
+    return data

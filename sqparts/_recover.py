@@ -43,8 +43,26 @@ class _Fractions:
         return self.cost.commission / max(int(self.figure.sum()), 1)
 
 
+class _Meshes:
+    """The parts as meshes for other tools (for any result with ``parts``); trimesh and
+    Open3D are imported only here, at the edge (:mod:`sqparts._mesh`)."""
+
+    def to_trimesh(self, *, resolution: int = 32):
+        """A ``trimesh.Scene``, one geometry ``part_<i>`` per part in ``report.png``'s
+        colours; ``.export("model.glb")`` writes glTF for Blender and three.js."""
+        from ._mesh import scene_trimesh
+
+        return scene_trimesh(self.parts, resolution=resolution)
+
+    def to_open3d(self, *, resolution: int = 32) -> list:
+        """A list of coloured ``open3d.geometry.TriangleMesh``, one per part."""
+        from ._mesh import scene_open3d
+
+        return scene_open3d(self.parts, resolution=resolution)
+
+
 @dataclasses.dataclass
-class Recovery(_Fractions):
+class Recovery(_Fractions, _Meshes):
     """What :func:`recover` found.
 
     Attributes
@@ -294,7 +312,7 @@ def _composite_cost(recoveries, shape) -> EncodingCost:
 
 
 @dataclasses.dataclass
-class SceneRecovery(_Fractions):
+class SceneRecovery(_Fractions, _Meshes):
     """What :func:`recover_scene` found: one :class:`Recovery` per figure.
 
     Attributes

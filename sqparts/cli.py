@@ -1,4 +1,4 @@
-"""The ``sqparts`` command line: render, mesh, show, recover, demo.
+"""The ``sqparts`` command line: render, mesh, show, recover, demo, view.
 
 What it promises (README, "Errors and guarantees"):
 
@@ -261,7 +261,55 @@ def cmd_recover(args) -> int:
         recovery = recover_scene(depth, camera, encoding=enc, progress=progress, **opts)
         with staged_folder(target, overwrite=args.overwrite) as folder:
             _write_recovery(folder, recovery, title=path.name)
+            _after_recovery(args, folder, recovery, target)
         _say(args, f"{path.name}: {recovery.summary()}\n  wrote {target}/parts.json, model.ply, report.png")
+    return 0
+
+
+def _recover_command(args) -> int:
+    """``recover``: ``--rerun`` checked before any work, then :func:`cmd_recover`."""
+    if args.rerun is not None:
+        if Path(args.rerun).suffix.lower() != ".rrd":
+            raise ValueError(f"--rerun: got {args.rerun!r}, expected a path ending in .rrd")
+        rrd = Path(args.rerun)
+        if rrd.is_dir() or (rrd.exists() and not args.overwrite):
+            raise FileExistsError(f"--rerun: got {args.rerun!r}, which exists, expected a new file (or --overwrite)")
+        if not rrd.parent.is_dir():
+            raise FileNotFoundError(f"--rerun: got {args.rerun!r}, expected a path in an existing directory")
+        try:
+            import rerun  # noqa: F401
+        except ImportError:
+            raise ValueError("--rerun: got no rerun-sdk installed, expected pip install 'sqparts[view]'") from None
+        args.rerun_entries = []
+    return cmd_recover(args)
+
+
+def _after_recovery(args, folder: Path, recovery, target: Path) -> None:
+    """One recovery's extra outputs, in its staged folder: what ``sqparts view`` reads
+    (range.npy, camera.json, pixels.npz), and the ``--rerun`` recording, rewritten
+    (atomically) with every input finished so far, each under its own entity path."""
+    from ._io import atomic_write, load_view_data, save_view_data
+    from ._view import entity_name, pixel_status, rerun_bytes, rerun_entries
+
+    camera = getattr(recovery, "camera", None)
+    if camera is None:
+        return
+    save_view_data(folder, recovery.depth, camera, status=pixel_status(recovery),
+                   model=recovery.cost.rendered, labels=recovery.cost.labels)
+    if getattr(args, "rerun", None) is None:
+        return
+    name = Path(target).resolve().relative_to(Path(args.out).resolve()).as_posix()
+    prefix = "/".join(entity_name(x) for x in (Path(args.out).name if name == "." else name).split("/"))
+    args.rerun_entries.extend(rerun_entries(load_view_data(folder), prefix))
+    data = rerun_bytes(args.rerun_entries)
+    with atomic_write(args.rerun) as f:
+        f.write(data)
+
+
+def cmd_view(args) -> int:
+    from ._view import serve
+
+    serve(args.folder, port=args.port, announce=lambda message: print(message, flush=True))
     return 0
 
 
@@ -355,7 +403,9 @@ def build_parser() -> argparse.ArgumentParser:
                    help="prettify parts within this many degrees")
     g.add_argument("--max-bits", type=_number("a finite number >= 0", low=0), default=56.0,
                    help="prettify only if E rises at most this (and every part still pays)")
-    p.set_defaults(func=cmd_recover)
+    p.add_argument("--rerun", default=None, metavar="FILE.rrd",
+                   help="also log the points, parts and pixel classes to a Rerun recording")
+    p.set_defaults(func=_recover_command)
 
     p = sub.add_parser("demo", help="recover the built-in articulated human (Figure 7)")
     p.add_argument("--out", default="sqparts-demo", help="output directory (default sqparts-demo)")
@@ -366,6 +416,12 @@ def build_parser() -> argparse.ArgumentParser:
     for p in sub.choices.values():
         p.add_argument("--overwrite", action="store_true", help="replace an existing output (default: refuse)")
         p.add_argument("--quiet", action="store_true", help="print nothing on success")
+
+    p = sub.add_parser("view", help="view a recover output folder in 3-D in the browser (viser)")
+    p.add_argument("folder", help="a sqparts recover output folder (parts.json, range.npy, camera.json, ...)")
+    p.add_argument("--port", type=_number("an integer in [1, 65535]", low=1, high=65535, integer=True),
+                   default=8080, help="serve on http://127.0.0.1:PORT (default 8080)")
+    p.set_defaults(func=cmd_view)
     return parser
 
 

@@ -28,7 +28,7 @@ SCENE = {"parts": [{"size": [0.2, 0.15, 0.3], "squareness": [0.5, 1.0], "positio
                     "rotation": [[1, 0, 0], [0, 0, -1], [0, 1, 0]], "taper": 0.2}]}
 STYLE = re.compile(r"^sqparts: error: \S.*?: got .+, expected .+$")
 FAST = ["--resolution", "0", "--refine-rounds", "0", "--quiet"]
-OUTPUTS = {"parts.json", "model.ply", "report.png"}
+OUTPUTS = {"parts.json", "model.ply", "report.png", "range.npy", "camera.json", "pixels.npz"}  # the last three for the viewers
 
 
 @pytest.fixture
