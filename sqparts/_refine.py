@@ -32,6 +32,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+from ._compile import persistent_jit
 from ._fit import commission_mask
 from ._part import Part, from_unconstrained, surface_distance, to_unconstrained
 from ._render import DEFAULT_NEWTON_STEPS, cast_part
@@ -66,7 +67,7 @@ def _pad_parts(parts: Part) -> tuple[Part, int]:
     return _host_parts(np.concatenate([_vectors(parts), np.broadcast_to(dummy, (m - n, 14))])), n
 
 
-@functools.partial(jax.jit, static_argnames=("camera", "newton_steps"))
+@persistent_jit(static_argnames=("camera", "newton_steps"))
 def _render_each(parts, camera, newton_steps=DEFAULT_NEWTON_STEPS):
     o, d = camera.rays()
     t, hit = jax.vmap(cast_part, in_axes=(0, None, None, None))(parts, o, d, newton_steps)
@@ -234,7 +235,7 @@ _POINTS = 512
 _RAYS = 256
 
 
-@functools.partial(jax.jit, static_argnames=("steps",))
+@persistent_jit(static_argnames=("steps",))
 def _polish_bucket(parts, points, weights, origins, directions, ray_weights, steps):
     def one(p, x, w, o, d, wr):
         return polish_part(p, x, w, rays=(o, d, wr), steps=steps)
@@ -559,7 +560,7 @@ _CROP = 32
 _RANDOM_TRIALS = 35
 
 
-@functools.partial(jax.jit, static_argnames=("camera",))
+@persistent_jit(static_argnames=("camera",))
 def _crop_trials(u, steps, key, corner, rest, measured, figure, sigma, camera):
     """The part with unconstrained vector ``u`` and 63 neighbours (each parameter a step
     ``steps_i`` up and down, and ``_RANDOM_TRIALS`` random moves of the same scale)
@@ -726,7 +727,7 @@ def _part_groups(adjacent: np.ndarray) -> list[tuple]:
     return sorted(g for g in groups if len(g) >= 2)
 
 
-@jax.jit
+@persistent_jit
 def _surface_distance(parts, points):
     return jax.vmap(lambda p: jax.vmap(lambda x: surface_distance(p, x))(points))(parts)
 

@@ -33,6 +33,7 @@ import optimistix as optx
 from jax.sharding import Mesh, PartitionSpec as P
 
 from ._camera import Camera, check_range_image
+from ._compile import persistent_jit
 from ._fit import Encoding, commission_mask, encoding_for, gamma_terms
 from ._grid import Grid, grid_preset
 from ._part import (
@@ -280,7 +281,7 @@ def _map_hypotheses(fn, batched, replicated, batch_size: int):
     )(batched, *replicated)
 
 
-@functools.partial(jax.jit, static_argnames=("camera", "pad", "window", "stride", "batch_size", "newton_steps"))
+@persistent_jit(static_argnames=("camera", "pad", "window", "stride", "batch_size", "newton_steps"))
 def _score_hypotheses(arrays, orientation_rel, shape, corner, centre, max_size, *, camera, pad, window, stride, batch_size, newton_steps):
     """Γ and depth offset p for every hypothesis at one region (the one parallel operation)."""
     depth, fig, sigma, lam = arrays
@@ -397,7 +398,7 @@ def _restart_starts(part: Part, levels: int) -> Part:
     return jax.tree_util.tree_map(lambda *x: jnp.concatenate(x), *starts)
 
 
-@functools.partial(jax.jit, static_argnames=("camera", "pad", "window", "newton_steps", "polish_steps", "polish_rounds", "restarts"))
+@persistent_jit(static_argnames=("camera", "pad", "window", "newton_steps", "polish_steps", "polish_rounds", "restarts"))
 def _finish(arrays, orientation_rel, shape, offsets, corner, centre, max_size, *, camera, pad, window, newton_steps, polish_steps, polish_rounds, restarts):
     """Pose the chosen hypotheses, shift them by -p in depth, polish, restart the best
     polished part (:func:`_restart_starts`) and score at full resolution over the window.

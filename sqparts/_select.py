@@ -34,6 +34,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+from ._compile import persistent_jit
 from ._fit import Encoding
 
 
@@ -129,7 +130,7 @@ def description_length(explained, commission, costs: Costs) -> float:
     return costs.total(n, e, c)
 
 
-@jax.jit
+@persistent_jit
 def _best_first(linear, pairwise, max_iter):
     n = linear.shape[0]
 
