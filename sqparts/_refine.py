@@ -36,7 +36,7 @@ from ._compile import persistent_jit
 from ._fit import commission_mask
 from ._part import Part, from_unconstrained, surface_distance, to_unconstrained
 from ._render import DEFAULT_NEWTON_STEPS, cast_part
-from ._search import RangeData, polish_part
+from ._search import RangeData, camera_points, camera_rays, polish_part
 from ._select import Costs
 
 _BUCKET = 8
@@ -277,7 +277,7 @@ def _polish_all(parts: Part, points, weights, steps: int, rays, ray_weights) -> 
         rays = (np.zeros((1, 3), np.float32), np.float32([[0.0, 0.0, 1.0]]))
     o, d = (np.asarray(a, np.float32)[ri] for a in rays)
     d[rw == 0] = (0.0, 0.0, 1.0)  # padding rays stay finite
-    out = [_polish_bucket(padded[k : k + _BUCKET], *(jnp.asarray(a[k : k + _BUCKET]) for a in (x, pw, o, d, rw)), steps)
+    out = [_polish_bucket(padded[k : k + _BUCKET], *(a[k : k + _BUCKET] for a in (x, pw, o, d, rw)), steps)
            for k in range(0, m, _BUCKET)]
     return _host_parts(np.concatenate([_vectors(p) for p in out])[:n])
 
@@ -309,7 +309,7 @@ def _figure_points(data: RangeData):
     idx = np.flatnonzero(figure)
     if len(idx) > max_points:
         idx = np.sort(np.random.default_rng(seed).choice(idx, max_points, replace=False))
-    pts = data.camera.points(data.image).reshape(-1, 3)[idx]
+    pts = camera_points(data.camera, data.image).reshape(-1, 3)[idx]
     m = int(math.ceil(len(idx) / 1024) * 1024)
     return _pad_rows(pts.astype(np.float32), m), np.concatenate([idx, np.full(m - len(idx), -1)])
 
@@ -323,7 +323,7 @@ def _background_rays(data: RangeData):
 
     figure = data.figure_region
     idx = np.flatnonzero(binary_dilation(figure, iterations=3) & ~figure & ~np.isfinite(data.image))
-    o, d = (np.asarray(a).reshape(-1, 3)[idx].astype(np.float32) for a in data.camera.rays())
+    o, d = (np.asarray(a).reshape(-1, 3)[idx].astype(np.float32) for a in camera_rays(camera=data.camera))
     return (o, d), idx
 
 
@@ -736,7 +736,7 @@ def _distances(parts: Part, points) -> np.ndarray:
     """(n, m) radial distance (:func:`~sqparts.surface_distance`) of every point to every
     part, ``_BUCKET`` parts per compiled call."""
     padded, n = _pad_parts(parts)
-    pts = jnp.asarray(points)
+    pts = np.asarray(points)
     return np.concatenate([np.asarray(_surface_distance(padded[k : k + _BUCKET], pts))
                            for k in range(0, len(padded), _BUCKET)])[:n]
 

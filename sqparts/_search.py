@@ -118,7 +118,7 @@ class RangeData:
     def arrays(self):
         """(depth, figure, σ, λ): what the compiled stages take."""
         enc = self.encoding
-        return (self.depth, self.figure, jnp.float32(enc.sigma), jnp.float32(enc.commission_weight))
+        return (self.depth, self.figure, np.float32(enc.sigma), np.float32(enc.commission_weight))
 
     @property
     def image(self) -> np.ndarray:
@@ -153,18 +153,33 @@ def prepare(depth, camera: Camera, *, figure=None, encoding: Encoding | None = N
     if (fig & np.isfinite(d)).sum() < 4:
         raise ValueError(f"depth: expected a figure of at least 4 pixels with returns, got {int((fig & np.isfinite(d)).sum())}")
     enc = encoding or encoding_for(d[fig & np.isfinite(d)])
+    # device_put, not jnp.asarray: a transfer, not a compiled program per shape.
     return RangeData(
-        jnp.asarray(np.pad(d, pad, constant_values=np.nan)),
-        jnp.asarray(np.pad(fig, pad, constant_values=False)),
+        jax.device_put(np.pad(d, pad, constant_values=np.nan)),
+        jax.device_put(np.pad(fig, pad, constant_values=False)),
         pad,
         camera,
         enc,
     )
 
 
+@functools.partial(jax.jit, static_argnames=("camera",))
+def camera_rays(camera: Camera):
+    """``camera.rays()`` as one compiled program per camera (the eager computation
+    dispatches about ten)."""
+    return camera.rays()
+
+
+def camera_points(camera: Camera, range_image) -> np.ndarray:
+    """``camera.points(range_image)`` (float64, (h, w, 3), NaN = none) from one compiled
+    program per camera, where the eager ray computation dispatches about ten."""
+    o, d = (np.asarray(a, np.float64) for a in camera_rays(camera=camera))
+    return o + np.asarray(range_image, np.float64)[..., None] * d
+
+
 def default_max_size(data: RangeData) -> float:
     """Largest semi-axis searched: a quarter of the figure's largest metric extent."""
-    pts = data.camera.points(data.image)[data.figure_mask]
+    pts = camera_points(data.camera, data.image)[data.figure_mask]
     extent = float(np.max(np.ptp(pts, axis=0)))
     return max(extent / 4.0, 1e-6)
 
@@ -172,7 +187,7 @@ def default_max_size(data: RangeData) -> float:
 def window_for(data: RangeData, max_size: float, *, multiple: int = 8) -> int:
     """Window side (pixels) covering the projected diameter of the largest part."""
     depth = float(np.nanmedian(data.image[data.figure_mask]))
-    pixel = float(np.asarray(data.camera.pixel_size_at(jnp.asarray(depth))))
+    pixel = float(np.asarray(data.camera.pixel_size_at(np.float32(depth))))
     side = 2.0 * max_size / pixel * 1.1
     side = int(math.ceil(side / multiple) * multiple)
     return int(min(max(side, 16), 2 * data.pad, max(data.camera.width, data.camera.height) + multiple))
@@ -346,11 +361,11 @@ def score_region(data: RangeData, settings: SearchSettings, centre, *, hypothese
     s = np.tile(hyp["shape"][:1], (padded, 1))
     s[:n] = hyp["shape"]
     gam, off, c_d = _score_hypotheses(
-        data.arrays, jnp.asarray(o), jnp.asarray(s), corner, centre, jnp.float32(settings.max_size),
+        data.arrays, o, s, corner, centre, np.float32(settings.max_size),
         camera=data.camera, pad=data.pad, window=settings.window, stride=stride, batch_size=batch_size,
         newton_steps=settings.newton_steps,
     )
-    return gam[:n], off[:n]
+    return jax.device_put(np.asarray(gam)[:n]), jax.device_put(np.asarray(off)[:n])
 
 
 @functools.lru_cache(maxsize=8)
@@ -374,8 +389,8 @@ def _by_window(grid: Grid, window: int, *, multiple: int = 8) -> list[tuple[int,
 
 
 def _corner(settings, centre):
-    centre = jnp.asarray(np.asarray(centre, np.int32))
-    corner = centre - settings.window // 2
+    centre = np.asarray(centre, np.int32)  # numpy: passed to compiled programs as is
+    corner = centre - np.int32(settings.window // 2)
     return corner, centre
 
 
@@ -569,10 +584,10 @@ def fit_region(data: RangeData, settings: SearchSettings, centre, *, prune: bool
     chosen = index[best_i]
     parts, gam, explained, hit, commission, anchored = _finish(
         data.arrays,
-        jnp.asarray(hyp["orientation"][chosen]),
-        jnp.asarray(hyp["shape"][chosen]),
-        jnp.asarray(np.asarray(off_full)[best_i]),
-        corner, centre_j, jnp.float32(settings.max_size),
+        hyp["orientation"][chosen],
+        hyp["shape"][chosen],
+        np.asarray(off_full)[best_i],
+        corner, centre_j, np.float32(settings.max_size),
         camera=data.camera, pad=data.pad, window=settings.window, newton_steps=SEARCH_NEWTON_STEPS + 2,
         polish_steps=settings.polish_steps, polish_rounds=settings.polish_rounds, restarts=settings.restarts,
     )
@@ -584,11 +599,11 @@ def fit_region(data: RangeData, settings: SearchSettings, centre, *, prune: bool
     gam = np.asarray(gam)[order]
     return RegionFit(
         parts=parts[order],
-        gamma=jnp.asarray(gam),
-        bits_saved=jnp.asarray(data.encoding.bits_saved(gam)),
-        explained=jnp.asarray(full_e),
-        rendered=jnp.asarray(full_h),
-        commission=jnp.asarray(full_c),
+        gamma=jax.device_put(gam),
+        bits_saved=jax.device_put(np.asarray(data.encoding.bits_saved(gam))),
+        explained=jax.device_put(full_e),
+        rendered=jax.device_put(full_h),
+        commission=jax.device_put(full_c),
         ratio=ratio,
         centre=tuple(int(x) for x in np.asarray(centre)),
         corner=tuple(int(x) for x in np.asarray(corner)),

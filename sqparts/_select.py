@@ -162,7 +162,7 @@ def select_best_first(problem: SelectionProblem, *, max_iter: int | None = None)
     n = problem.size
     if n == 0:
         return np.zeros(0, bool)
-    x = _best_first(jnp.asarray(problem.linear), jnp.asarray(problem.pairwise), jnp.asarray(max_iter or 4 * n + 10))
+    x = _best_first(np.asarray(problem.linear), np.asarray(problem.pairwise), np.asarray(max_iter or 4 * n + 10))
     return np.asarray(x) > 0.5
 
 
