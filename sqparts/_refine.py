@@ -36,7 +36,7 @@ from ._compile import persistent_jit
 from ._fit import commission_mask
 from ._part import Part, from_unconstrained, surface_distance, to_unconstrained
 from ._render import DEFAULT_NEWTON_STEPS, cast_part
-from ._search import RangeData, camera_points, camera_rays, polish_part
+from ._search import RangeData, bucket_camera, camera_points, camera_rays, polish_part
 from ._select import Costs
 
 _BUCKET = 8
@@ -80,9 +80,13 @@ def render_each(vectors, camera) -> np.ndarray:
     (:func:`_compose`), so a trial that adds, replaces or removes parts re-renders only
     the parts it changes."""
     padded, k = _pad_parts(_host_parts(vectors))
+    h, w = camera.height, camera.width
     if k == 0:
-        return np.full((0, camera.height, camera.width), np.inf, np.float32)
-    return np.concatenate([np.asarray(_render_each(padded[j : j + _BUCKET], camera)) for j in range(0, len(padded), _BUCKET)])[:k]
+        return np.full((0, h, w), np.inf, np.float32)
+    # Rendered on the bucketed image (the same rays, a few more of them), then cropped.
+    big = bucket_camera(camera)
+    return np.concatenate([np.asarray(_render_each(padded[j : j + _BUCKET], big))[:, :h, :w]
+                           for j in range(0, len(padded), _BUCKET)])[:k]
 
 
 def _compose(layers: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -323,7 +327,7 @@ def _background_rays(data: RangeData):
 
     figure = data.figure_region
     idx = np.flatnonzero(binary_dilation(figure, iterations=3) & ~figure & ~np.isfinite(data.image))
-    o, d = (np.asarray(a).reshape(-1, 3)[idx].astype(np.float32) for a in camera_rays(camera=data.camera))
+    o, d = (np.asarray(a).reshape(-1, 3)[idx].astype(np.float32) for a in camera_rays(data.camera))
     return (o, d), idx
 
 
@@ -597,8 +601,8 @@ def settle_part(vector, layer, rest, data: RangeData, costs: Costs, *, iteration
     r0 = int(np.clip((rows.min() + rows.max() + 1 - _CROP) // 2, 0, h - _CROP))
     c0 = int(np.clip((cols.min() + cols.max() + 1 - _CROP) // 2, 0, w - _CROP))
     crop = (slice(r0, r0 + _CROP), slice(c0, c0 + _CROP))
-    args = (jnp.asarray(rest[crop], jnp.float32), jnp.asarray(data.image[crop]), jnp.asarray(data.figure_region[crop]),
-            jnp.float32(data.encoding.sigma))
+    args = (np.asarray(rest[crop], np.float32), np.ascontiguousarray(data.image[crop]),
+            np.ascontiguousarray(data.figure_region[crop]), np.float32(data.encoding.sigma))
     pixel = float(data.camera.pixel_size_at(float(vector[2])))
     # Steps: a pixel in position, 0.1 rad, 10% in size, 0.4 in logit squareness, 0.2 in bend and taper.
     base = np.array([pixel] * 3 + [0.1] * 6 + [0.4] * 2 + [0.2] * 3, np.float32)
@@ -606,7 +610,7 @@ def settle_part(vector, layer, rest, data: RangeData, costs: Costs, *, iteration
     key = jax.random.key(seed)
     for i in range(iterations):
         trials, e, c, border = (np.asarray(a) for a in _crop_trials(
-            u, base * scale, jax.random.fold_in(key, i), (r0, c0), *args, camera=data.camera))
+            u, base * scale, jax.random.fold_in(key, i), (r0, c0), *args, camera=data.compiled_camera))
         f = np.where(border, np.inf, costs.total(0, e, c))  # E up to the pixels outside the crop
         k = int(np.argmin(f))
         if f[k] < f[0] - 1e-9:  # trial 0 is the current part

@@ -53,6 +53,10 @@ SEARCH_NEWTON_STEPS = 6
 NUM_BINS = 1024
 """Histogram bins of width σ/2 (offsets of ±256 σ around the anchor pixel's own)."""
 CHUNK_RAYS = 2**16
+IMAGE_BUCKET = 32
+"""Compiled programs see images padded to a multiple of this many rows and columns (and
+the camera of the padded image, :func:`bucket_camera`), so images of other sizes with
+the same intrinsics share them."""
 """Rays per chunk of hypotheses: ``batch_size`` is capped at CHUNK_RAYS / window pixels."""
 POLISH_SCALE = 0.05
 """Width of the polishing's Cauchy weights, as a fraction of the hypothesis' largest
@@ -108,8 +112,8 @@ class RangeData:
     encoding. Only its arrays enter compiled code (σ and λ as runtime scalars), so a new
     image never triggers a recompile."""
 
-    depth: jax.Array  # (H + 2 pad, W + 2 pad) float32, NaN = no return
-    figure: jax.Array  # same shape, bool
+    depth: jax.Array  # (Hb + 2 pad, Wb + 2 pad) float32, NaN = no return; Hb, Wb: H, W
+    figure: jax.Array  # same shape, bool        # rounded up to IMAGE_BUCKET (NaN, False)
     pad: int
     camera: Camera
     encoding: Encoding
@@ -121,16 +125,21 @@ class RangeData:
         return (self.depth, self.figure, np.float32(enc.sigma), np.float32(enc.commission_weight))
 
     @property
+    def compiled_camera(self) -> Camera:
+        """The camera the compiled stages see (:func:`bucket_camera`)."""
+        return bucket_camera(self.camera)
+
+    @property
     def image(self) -> np.ndarray:
         p = self.pad
-        return np.asarray(self.depth)[p:-p, p:-p]
+        return np.asarray(self.depth)[p : p + self.camera.height, p : p + self.camera.width]
 
     @property
     def figure_region(self) -> np.ndarray:
         """The figure's pixels, including those without a return inside its outline
         (neither explained nor commission)."""
         p = self.pad
-        return np.asarray(self.figure)[p:-p, p:-p]
+        return np.asarray(self.figure)[p : p + self.camera.height, p : p + self.camera.width]
 
     @property
     def figure_mask(self) -> np.ndarray:
@@ -153,27 +162,48 @@ def prepare(depth, camera: Camera, *, figure=None, encoding: Encoding | None = N
     if (fig & np.isfinite(d)).sum() < 4:
         raise ValueError(f"depth: expected a figure of at least 4 pixels with returns, got {int((fig & np.isfinite(d)).sum())}")
     enc = encoding or encoding_for(d[fig & np.isfinite(d)])
+    h, w = d.shape
+    grow = ((pad, pad + _bucket(h) - h), (pad, pad + _bucket(w) - w))
     # device_put, not jnp.asarray: a transfer, not a compiled program per shape.
     return RangeData(
-        jax.device_put(np.pad(d, pad, constant_values=np.nan)),
-        jax.device_put(np.pad(fig, pad, constant_values=False)),
+        jax.device_put(np.pad(d, grow, constant_values=np.nan)),
+        jax.device_put(np.pad(fig, grow, constant_values=False)),
         pad,
         camera,
         enc,
     )
 
 
+def _bucket(n: int) -> int:
+    return -(-int(n) // IMAGE_BUCKET) * IMAGE_BUCKET
+
+
+def bucket_camera(camera: Camera) -> Camera:
+    """``camera`` for an image padded at the bottom and right to a multiple of
+    ``IMAGE_BUCKET`` pixels: a pixel's ray does not depend on the image size, so the
+    compiled stages, which take the camera as a static argument, are shared by images
+    of other sizes whose rays agree (a crop's camera keeps its cx, cy only if the crop
+    starts at the top left)."""
+    return dataclasses.replace(camera, width=_bucket(camera.width), height=_bucket(camera.height))
+
+
 @functools.partial(jax.jit, static_argnames=("camera",))
-def camera_rays(camera: Camera):
-    """``camera.rays()`` as one compiled program per camera (the eager computation
-    dispatches about ten)."""
+def _rays(camera: Camera):
     return camera.rays()
+
+
+def camera_rays(camera: Camera) -> tuple[np.ndarray, np.ndarray]:
+    """``camera.rays()`` (host copies, (h, w, 3) each) from one compiled program per
+    bucketed camera, where the eager computation dispatches about ten."""
+    o, d = _rays(camera=bucket_camera(camera))
+    h, w = camera.height, camera.width
+    return np.asarray(o)[:h, :w], np.asarray(d)[:h, :w]
 
 
 def camera_points(camera: Camera, range_image) -> np.ndarray:
     """``camera.points(range_image)`` (float64, (h, w, 3), NaN = none) from one compiled
     program per camera, where the eager ray computation dispatches about ten."""
-    o, d = (np.asarray(a, np.float64) for a in camera_rays(camera=camera))
+    o, d = (np.asarray(a, np.float64) for a in camera_rays(camera))
     return o + np.asarray(range_image, np.float64)[..., None] * d
 
 
@@ -362,7 +392,7 @@ def score_region(data: RangeData, settings: SearchSettings, centre, *, hypothese
     s[:n] = hyp["shape"]
     gam, off, c_d = _score_hypotheses(
         data.arrays, o, s, corner, centre, np.float32(settings.max_size),
-        camera=data.camera, pad=data.pad, window=settings.window, stride=stride, batch_size=batch_size,
+        camera=data.compiled_camera, pad=data.pad, window=settings.window, stride=stride, batch_size=batch_size,
         newton_steps=settings.newton_steps,
     )
     return jax.device_put(np.asarray(gam)[:n]), jax.device_put(np.asarray(off)[:n])
@@ -588,7 +618,7 @@ def fit_region(data: RangeData, settings: SearchSettings, centre, *, prune: bool
         hyp["shape"][chosen],
         np.asarray(off_full)[best_i],
         corner, centre_j, np.float32(settings.max_size),
-        camera=data.camera, pad=data.pad, window=settings.window, newton_steps=SEARCH_NEWTON_STEPS + 2,
+        camera=data.compiled_camera, pad=data.pad, window=settings.window, newton_steps=SEARCH_NEWTON_STEPS + 2,
         polish_steps=settings.polish_steps, polish_rounds=settings.polish_rounds, restarts=settings.restarts,
     )
     order = np.lexsort((-np.asarray(gam), ~np.asarray(anchored)))[:k]  # anchored first, then by Γ
@@ -694,7 +724,8 @@ def gamma_profile(data: RangeData, part: Part, parameter: int, offsets, *, num_b
     ``part`` moves by each of ``offsets`` (Figure 6c). Invalid parts get -inf."""
     o, d = data.camera.rays()
     p = data.pad
-    measured, figure = data.depth[p:-p, p:-p], data.figure[p:-p, p:-p]
+    h, w = data.camera.height, data.camera.width
+    measured, figure = data.depth[p : p + h, p : p + w], data.figure[p : p + h, p : p + w]
     nb = num_bins or NUM_BINS
     enc = data.encoding
     base = part.to_vector()
