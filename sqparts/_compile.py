@@ -39,11 +39,12 @@ from pathlib import Path
 
 import jax
 
-__all__ = ["persistent_jit", "set_export_dir", "export_dir"]
+__all__ = ["persistent_jit", "set_export_dir", "export_dir", "forget_loaded"]
 
 _log = logging.getLogger(__name__)
 _MAGIC = b"sqparts-export-1\n"
 _state = {"dir": None}
+_loaded_tables: list[dict] = []  # every persistent_jit's loaded programs (see forget_loaded)
 
 
 def set_export_dir(directory) -> None:
@@ -54,6 +55,13 @@ def set_export_dir(directory) -> None:
     path = Path(directory)
     path.mkdir(parents=True, exist_ok=True)
     _state["dir"] = path
+
+
+def forget_loaded() -> None:
+    """Forget the exported programs loaded in this process (as a new process would
+    start); the next call of each looks in :func:`export_dir` again. For tests."""
+    for table in _loaded_tables:
+        table.clear()
 
 
 def export_dir() -> Path | None:
@@ -107,6 +115,7 @@ def persistent_jit(fun=None, *, static_argnames=()):
     jitted = jax.jit(fun, static_argnames=static_argnames)
     signature = inspect.signature(fun)
     loaded: dict[str, object] = {}  # key -> callable on the flat leaves, or None (use jitted)
+    _loaded_tables.append(loaded)
     name = getattr(fun, "__qualname__", getattr(fun, "__name__", "fun"))
 
     @functools.wraps(fun)
@@ -137,7 +146,6 @@ def persistent_jit(fun=None, *, static_argnames=()):
         return runner(leaves)
 
     call.jitted = jitted
-    call.clear_loaded = loaded.clear  # forget the programs loaded in this process (tests)
     return call
 
 
