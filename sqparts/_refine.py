@@ -565,12 +565,13 @@ _RANDOM_TRIALS = 35
 
 
 @persistent_jit(static_argnames=("camera",))
-def _crop_trials(u, steps, key, corner, rest, measured, figure, sigma, camera):
+def _crop_trials(u, steps, seed, step, corner, rest, measured, figure, sigma, camera):
     """The part with unconstrained vector ``u`` and 63 neighbours (each parameter a step
     ``steps_i`` up and down, and ``_RANDOM_TRIALS`` random moves of the same scale)
     rendered in a ``_CROP``² crop at ``corner`` over the other parts' nearest depth
     ``rest``: per trial its unconstrained vector, explained and commission pixel counts
     in the crop, and whether it reaches the crop's border."""
+    key = jax.random.fold_in(jax.random.key(seed), step)  # inside: no eager key programs
     eye = jnp.diag(steps)
     moves = jax.random.normal(key, (_RANDOM_TRIALS, len(u))) * steps / jnp.sqrt(len(u) / 2.0)
     trials = jnp.concatenate([u[None], u + eye, u - eye, u + moves])
@@ -606,11 +607,10 @@ def settle_part(vector, layer, rest, data: RangeData, costs: Costs, *, iteration
     pixel = float(data.camera.pixel_size_at(float(vector[2])))
     # Steps: a pixel in position, 0.1 rad, 10% in size, 0.4 in logit squareness, 0.2 in bend and taper.
     base = np.array([pixel] * 3 + [0.1] * 6 + [0.4] * 2 + [0.2] * 3, np.float32)
-    u, scale, failures = np.asarray(to_unconstrained(_host_parts(vector[None]))[0]), 1.0, 0
-    key = jax.random.key(seed)
+    u, scale, failures = np.asarray(to_unconstrained(_host_parts(vector[None])))[0], 1.0, 0
     for i in range(iterations):
         trials, e, c, border = (np.asarray(a) for a in _crop_trials(
-            u, base * scale, jax.random.fold_in(key, i), (r0, c0), *args, camera=data.compiled_camera))
+            u, base * scale, np.int32(seed), np.uint32(i), np.int32([r0, c0]), *args, camera=data.compiled_camera))
         f = np.where(border, np.inf, costs.total(0, e, c))  # E up to the pixels outside the crop
         k = int(np.argmin(f))
         if f[k] < f[0] - 1e-9:  # trial 0 is the current part
