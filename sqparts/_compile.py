@@ -21,7 +21,8 @@ static arguments and its arguments' tree, shapes and dtypes, so a stale entry is
 looked up. An entry holds a SHA-256 of its payload; an unreadable, truncated, corrupt or
 mismatched one is ignored (logged at WARNING) and replaced by a fresh export, and any
 failure of the export itself falls back to the plain ``jit``: results never depend on
-the cache. Exporting is skipped (plain ``jit``) inside an outer trace, with more than
+the cache. Entries are unpickled: the folder is trusted like the installed package.
+Exporting is skipped (plain ``jit``) inside an outer trace, with more than
 one device (sharded programs are not exported) and for static arguments whose ``repr``
 is not stable across processes.
 """
@@ -143,7 +144,12 @@ def persistent_jit(fun=None, *, static_argnames=()):
             loaded[key] = runner
         if runner is None:
             return jitted(*args, **kwargs)
-        return runner(leaves)
+        try:
+            return runner(leaves)
+        except Exception as e:  # noqa: BLE001 - e.g. an entry this JAX cannot compile: jit it
+            _log.warning("sqparts: exported %s failed (%s: %s); using jit", name, type(e).__name__, e)
+            loaded[key] = None
+            return jitted(*args, **kwargs)
 
     call.jitted = jitted
     return call

@@ -111,6 +111,19 @@ def test_entry_for_other_shapes_is_not_used(export_dir, caplog):
     assert "argument shapes or dtypes differ" in caplog.text
 
 
+def test_failing_exported_call_falls_back(export_dir, monkeypatch, caplog):
+    def broken(exported, skeleton):
+        def run(leaves):
+            raise RuntimeError("cannot run this entry")
+        return run
+
+    monkeypatch.setattr(_compile, "_make_runner", broken)
+    with caplog.at_level(logging.WARNING, logger="sqparts._compile"):
+        _check(scaled(PART, POINTS, factor=2.0))
+        _check(scaled(PART, POINTS, factor=2.0))  # the plain jit from now on, warned once
+    assert caplog.text.count("using jit") == 1
+
+
 def test_off_by_default_and_by_environment(tmp_path, monkeypatch):
     _compile.set_export_dir(None)
     _check(scaled(PART, POINTS, factor=2.0))
