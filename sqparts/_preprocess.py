@@ -31,6 +31,7 @@ from scipy.sparse import coo_matrix
 from scipy.sparse.csgraph import connected_components
 
 from ._camera import Camera, check_range_image as _check_depth
+from ._search import camera_points
 
 DEFAULT_TEAR = 8.0
 """Depth jump, in pixel footprints, that tears the rubber sheet."""
@@ -419,7 +420,7 @@ def figure_ground(
     _check_positive("min_pixels", min_pixels, integer=True)
     if not (isinstance(max_border_fraction, (int, float, np.integer, np.floating)) and 0 <= max_border_fraction <= 1):
         raise ValueError(f"max_border_fraction: got {max_border_fraction!r}, expected a number in [0, 1]")
-    pts = camera.points(d)
+    pts = camera_points(camera, d)
     frame = _outer_frame(valid)
     background = np.zeros(d.shape, bool)
     found = []

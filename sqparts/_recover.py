@@ -26,7 +26,7 @@ from ._fit import Encoding
 from ._part import Part, stack_parts
 from ._refine import EncodingCost, encoding_cost, layer_errors, part_statistics, refine_parts, render_each, select_rendered
 from ._render import render_range_image
-from ._search import RangeData, fit_image
+from ._search import RangeData, camera_points, fit_image
 from ._select import Costs, SelectionProblem, select_parts
 
 
@@ -274,7 +274,7 @@ def _candidates(fits, data: RangeData):
     commission masks by the joint encoding's rule (:func:`~sqparts._refine.layer_errors`):
     a polished part may outgrow the window it was searched in, and its commission
     outside the window counts in E all the same."""
-    parts = [f.parts[i] for f in fits for i in range(len(f.gamma)) if float(f.gamma[i]) > 0]
+    parts = [f.parts[i] for f in fits for i, g in enumerate(np.asarray(f.gamma)) if g > 0]
     if not parts:
         return None, None, None, None
     parts = stack_parts(parts)
@@ -584,7 +584,7 @@ def recover_multiscale(depth, camera: Camera, *, levels: int = 3, figure=None, m
     d0 = np.asarray(depth, np.float32)
     data0 = prepare(d0, camera, figure=figure)
     if max_size is None:
-        pts = camera.points(data0.image)[data0.figure_mask]
+        pts = camera_points(camera, data0.image)[data0.figure_mask]
         max_size = float(np.max(np.ptp(pts, axis=0))) / 2.0
     fig0 = data0.figure_region
     out_levels, factors, cameras, sizes, parents = [], [], [], [], []

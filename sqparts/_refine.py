@@ -32,10 +32,11 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+from ._compile import persistent_jit
 from ._fit import commission_mask
 from ._part import Part, from_unconstrained, surface_distance, to_unconstrained
 from ._render import DEFAULT_NEWTON_STEPS, cast_part
-from ._search import RangeData, polish_part
+from ._search import RangeData, bucket_camera, camera_points, camera_rays, polish_part
 from ._select import Costs
 
 _BUCKET = 8
@@ -66,7 +67,7 @@ def _pad_parts(parts: Part) -> tuple[Part, int]:
     return _host_parts(np.concatenate([_vectors(parts), np.broadcast_to(dummy, (m - n, 14))])), n
 
 
-@functools.partial(jax.jit, static_argnames=("camera", "newton_steps"))
+@persistent_jit(static_argnames=("camera", "newton_steps"))
 def _render_each(parts, camera, newton_steps=DEFAULT_NEWTON_STEPS):
     o, d = camera.rays()
     t, hit = jax.vmap(cast_part, in_axes=(0, None, None, None))(parts, o, d, newton_steps)
@@ -79,9 +80,13 @@ def render_each(vectors, camera) -> np.ndarray:
     (:func:`_compose`), so a trial that adds, replaces or removes parts re-renders only
     the parts it changes."""
     padded, k = _pad_parts(_host_parts(vectors))
+    h, w = camera.height, camera.width
     if k == 0:
-        return np.full((0, camera.height, camera.width), np.inf, np.float32)
-    return np.concatenate([np.asarray(_render_each(padded[j : j + _BUCKET], camera)) for j in range(0, len(padded), _BUCKET)])[:k]
+        return np.full((0, h, w), np.inf, np.float32)
+    # Rendered on the bucketed image (the same rays, a few more of them), then cropped.
+    big = bucket_camera(camera)
+    return np.concatenate([np.asarray(_render_each(padded[j : j + _BUCKET], big))[:, :h, :w]
+                           for j in range(0, len(padded), _BUCKET)])[:k]
 
 
 def _compose(layers: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -234,7 +239,7 @@ _POINTS = 512
 _RAYS = 256
 
 
-@functools.partial(jax.jit, static_argnames=("steps",))
+@persistent_jit(static_argnames=("steps",))
 def _polish_bucket(parts, points, weights, origins, directions, ray_weights, steps):
     def one(p, x, w, o, d, wr):
         return polish_part(p, x, w, rays=(o, d, wr), steps=steps)
@@ -276,7 +281,7 @@ def _polish_all(parts: Part, points, weights, steps: int, rays, ray_weights) -> 
         rays = (np.zeros((1, 3), np.float32), np.float32([[0.0, 0.0, 1.0]]))
     o, d = (np.asarray(a, np.float32)[ri] for a in rays)
     d[rw == 0] = (0.0, 0.0, 1.0)  # padding rays stay finite
-    out = [_polish_bucket(padded[k : k + _BUCKET], *(jnp.asarray(a[k : k + _BUCKET]) for a in (x, pw, o, d, rw)), steps)
+    out = [_polish_bucket(padded[k : k + _BUCKET], *(a[k : k + _BUCKET] for a in (x, pw, o, d, rw)), steps)
            for k in range(0, m, _BUCKET)]
     return _host_parts(np.concatenate([_vectors(p) for p in out])[:n])
 
@@ -308,7 +313,7 @@ def _figure_points(data: RangeData):
     idx = np.flatnonzero(figure)
     if len(idx) > max_points:
         idx = np.sort(np.random.default_rng(seed).choice(idx, max_points, replace=False))
-    pts = data.camera.points(data.image).reshape(-1, 3)[idx]
+    pts = camera_points(data.camera, data.image).reshape(-1, 3)[idx]
     m = int(math.ceil(len(idx) / 1024) * 1024)
     return _pad_rows(pts.astype(np.float32), m), np.concatenate([idx, np.full(m - len(idx), -1)])
 
@@ -322,7 +327,7 @@ def _background_rays(data: RangeData):
 
     figure = data.figure_region
     idx = np.flatnonzero(binary_dilation(figure, iterations=3) & ~figure & ~np.isfinite(data.image))
-    o, d = (np.asarray(a).reshape(-1, 3)[idx].astype(np.float32) for a in data.camera.rays())
+    o, d = (np.asarray(a).reshape(-1, 3)[idx].astype(np.float32) for a in camera_rays(data.camera))
     return (o, d), idx
 
 
@@ -559,13 +564,14 @@ _CROP = 32
 _RANDOM_TRIALS = 35
 
 
-@functools.partial(jax.jit, static_argnames=("camera",))
-def _crop_trials(u, steps, key, corner, rest, measured, figure, sigma, camera):
+@persistent_jit(static_argnames=("camera",))
+def _crop_trials(u, steps, seed, step, corner, rest, measured, figure, sigma, camera):
     """The part with unconstrained vector ``u`` and 63 neighbours (each parameter a step
     ``steps_i`` up and down, and ``_RANDOM_TRIALS`` random moves of the same scale)
     rendered in a ``_CROP``² crop at ``corner`` over the other parts' nearest depth
     ``rest``: per trial its unconstrained vector, explained and commission pixel counts
     in the crop, and whether it reaches the crop's border."""
+    key = jax.random.fold_in(jax.random.key(seed), step)  # inside: no eager key programs
     eye = jnp.diag(steps)
     moves = jax.random.normal(key, (_RANDOM_TRIALS, len(u))) * steps / jnp.sqrt(len(u) / 2.0)
     trials = jnp.concatenate([u[None], u + eye, u - eye, u + moves])
@@ -596,16 +602,15 @@ def settle_part(vector, layer, rest, data: RangeData, costs: Costs, *, iteration
     r0 = int(np.clip((rows.min() + rows.max() + 1 - _CROP) // 2, 0, h - _CROP))
     c0 = int(np.clip((cols.min() + cols.max() + 1 - _CROP) // 2, 0, w - _CROP))
     crop = (slice(r0, r0 + _CROP), slice(c0, c0 + _CROP))
-    args = (jnp.asarray(rest[crop], jnp.float32), jnp.asarray(data.image[crop]), jnp.asarray(data.figure_region[crop]),
-            jnp.float32(data.encoding.sigma))
+    args = (np.asarray(rest[crop], np.float32), np.ascontiguousarray(data.image[crop]),
+            np.ascontiguousarray(data.figure_region[crop]), np.float32(data.encoding.sigma))
     pixel = float(data.camera.pixel_size_at(float(vector[2])))
     # Steps: a pixel in position, 0.1 rad, 10% in size, 0.4 in logit squareness, 0.2 in bend and taper.
     base = np.array([pixel] * 3 + [0.1] * 6 + [0.4] * 2 + [0.2] * 3, np.float32)
-    u, scale, failures = np.asarray(to_unconstrained(_host_parts(vector[None]))[0]), 1.0, 0
-    key = jax.random.key(seed)
+    u, scale, failures = np.asarray(to_unconstrained(_host_parts(vector[None])))[0], 1.0, 0
     for i in range(iterations):
         trials, e, c, border = (np.asarray(a) for a in _crop_trials(
-            u, base * scale, jax.random.fold_in(key, i), (r0, c0), *args, camera=data.camera))
+            u, base * scale, np.int32(seed), np.uint32(i), np.int32([r0, c0]), *args, camera=data.compiled_camera))
         f = np.where(border, np.inf, costs.total(0, e, c))  # E up to the pixels outside the crop
         k = int(np.argmin(f))
         if f[k] < f[0] - 1e-9:  # trial 0 is the current part
@@ -726,7 +731,7 @@ def _part_groups(adjacent: np.ndarray) -> list[tuple]:
     return sorted(g for g in groups if len(g) >= 2)
 
 
-@jax.jit
+@persistent_jit
 def _surface_distance(parts, points):
     return jax.vmap(lambda p: jax.vmap(lambda x: surface_distance(p, x))(points))(parts)
 
@@ -735,7 +740,7 @@ def _distances(parts: Part, points) -> np.ndarray:
     """(n, m) radial distance (:func:`~sqparts.surface_distance`) of every point to every
     part, ``_BUCKET`` parts per compiled call."""
     padded, n = _pad_parts(parts)
-    pts = jnp.asarray(points)
+    pts = np.asarray(points)
     return np.concatenate([np.asarray(_surface_distance(padded[k : k + _BUCKET], pts))
                            for k in range(0, len(padded), _BUCKET)])[:n]
 

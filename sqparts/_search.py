@@ -33,6 +33,7 @@ import optimistix as optx
 from jax.sharding import Mesh, PartitionSpec as P
 
 from ._camera import Camera, check_range_image
+from ._compile import persistent_jit
 from ._fit import Encoding, commission_mask, encoding_for, gamma_terms
 from ._grid import Grid, grid_preset
 from ._part import (
@@ -52,6 +53,10 @@ SEARCH_NEWTON_STEPS = 6
 NUM_BINS = 1024
 """Histogram bins of width σ/2 (offsets of ±256 σ around the anchor pixel's own)."""
 CHUNK_RAYS = 2**16
+IMAGE_BUCKET = 32
+"""Compiled programs see images padded to a multiple of this many rows and columns (and
+the camera of the padded image, :func:`bucket_camera`), so images of other sizes with
+the same intrinsics share them."""
 """Rays per chunk of hypotheses: ``batch_size`` is capped at CHUNK_RAYS / window pixels."""
 POLISH_SCALE = 0.05
 """Width of the polishing's Cauchy weights, as a fraction of the hypothesis' largest
@@ -107,8 +112,8 @@ class RangeData:
     encoding. Only its arrays enter compiled code (σ and λ as runtime scalars), so a new
     image never triggers a recompile."""
 
-    depth: jax.Array  # (H + 2 pad, W + 2 pad) float32, NaN = no return
-    figure: jax.Array  # same shape, bool
+    depth: jax.Array  # (Hb + 2 pad, Wb + 2 pad) float32, NaN = no return; Hb, Wb: H, W
+    figure: jax.Array  # same shape, bool        # rounded up to IMAGE_BUCKET (NaN, False)
     pad: int
     camera: Camera
     encoding: Encoding
@@ -117,19 +122,24 @@ class RangeData:
     def arrays(self):
         """(depth, figure, σ, λ): what the compiled stages take."""
         enc = self.encoding
-        return (self.depth, self.figure, jnp.float32(enc.sigma), jnp.float32(enc.commission_weight))
+        return (self.depth, self.figure, np.float32(enc.sigma), np.float32(enc.commission_weight))
+
+    @property
+    def compiled_camera(self) -> Camera:
+        """The camera the compiled stages see (:func:`bucket_camera`)."""
+        return bucket_camera(self.camera)
 
     @property
     def image(self) -> np.ndarray:
         p = self.pad
-        return np.asarray(self.depth)[p:-p, p:-p]
+        return np.asarray(self.depth)[p : p + self.camera.height, p : p + self.camera.width]
 
     @property
     def figure_region(self) -> np.ndarray:
         """The figure's pixels, including those without a return inside its outline
         (neither explained nor commission)."""
         p = self.pad
-        return np.asarray(self.figure)[p:-p, p:-p]
+        return np.asarray(self.figure)[p : p + self.camera.height, p : p + self.camera.width]
 
     @property
     def figure_mask(self) -> np.ndarray:
@@ -154,18 +164,54 @@ def prepare(depth, camera: Camera, *, figure=None, encoding: Encoding | None = N
     if encoding is not None and not isinstance(encoding, Encoding):
         raise TypeError(f"encoding: got {encoding!r:.60} ({type(encoding).__name__}), expected a sqparts.Encoding or None")
     enc = encoding or encoding_for(d[fig & np.isfinite(d)])
+    h, w = d.shape
+    grow = ((pad, pad + _bucket(h) - h), (pad, pad + _bucket(w) - w))
+    # device_put, not jnp.asarray: a transfer, not a compiled program per shape.
     return RangeData(
-        jnp.asarray(np.pad(d, pad, constant_values=np.nan)),
-        jnp.asarray(np.pad(fig, pad, constant_values=False)),
+        jax.device_put(np.pad(d, grow, constant_values=np.nan)),
+        jax.device_put(np.pad(fig, grow, constant_values=False)),
         pad,
         camera,
         enc,
     )
 
 
+def _bucket(n: int) -> int:
+    return -(-int(n) // IMAGE_BUCKET) * IMAGE_BUCKET
+
+
+def bucket_camera(camera: Camera) -> Camera:
+    """``camera`` for an image padded at the bottom and right to a multiple of
+    ``IMAGE_BUCKET`` pixels: a pixel's ray does not depend on the image size, so the
+    compiled stages, which take the camera as a static argument, are shared by images
+    of other sizes whose rays agree (a crop's camera keeps its cx, cy only if the crop
+    starts at the top left)."""
+    return dataclasses.replace(camera, width=_bucket(camera.width), height=_bucket(camera.height))
+
+
+@functools.partial(jax.jit, static_argnames=("camera",))
+def _rays(camera: Camera):
+    return camera.rays()
+
+
+def camera_rays(camera: Camera) -> tuple[np.ndarray, np.ndarray]:
+    """``camera.rays()`` (host copies, (h, w, 3) each) from one compiled program per
+    bucketed camera, where the eager computation dispatches about ten."""
+    o, d = _rays(camera=bucket_camera(camera))
+    h, w = camera.height, camera.width
+    return np.asarray(o)[:h, :w], np.asarray(d)[:h, :w]
+
+
+def camera_points(camera: Camera, range_image) -> np.ndarray:
+    """``camera.points(range_image)`` (float64, (h, w, 3), NaN = none) from one compiled
+    program per camera, where the eager ray computation dispatches about ten."""
+    o, d = (np.asarray(a, np.float64) for a in camera_rays(camera))
+    return o + np.asarray(range_image, np.float64)[..., None] * d
+
+
 def default_max_size(data: RangeData) -> float:
     """Largest semi-axis searched: a quarter of the figure's largest metric extent."""
-    pts = data.camera.points(data.image)[data.figure_mask]
+    pts = camera_points(data.camera, data.image)[data.figure_mask]
     extent = float(np.max(np.ptp(pts, axis=0)))
     return max(extent / 4.0, 1e-6)
 
@@ -185,7 +231,7 @@ def window_for(data: RangeData, max_size: float, *, multiple: int = 8) -> int:
     """Window side (pixels) covering the projected diameter of the largest part."""
     max_size = check_max_size(max_size)
     depth = float(np.nanmedian(data.image[data.figure_mask]))
-    pixel = float(np.asarray(data.camera.pixel_size_at(jnp.asarray(depth))))
+    pixel = float(np.asarray(data.camera.pixel_size_at(np.float32(depth))))
     side = 2.0 * max_size / pixel * 1.1
     side = int(math.ceil(side / multiple) * multiple)
     return int(min(max(side, 16), 2 * data.pad, max(data.camera.width, data.camera.height) + multiple))
@@ -294,7 +340,7 @@ def _map_hypotheses(fn, batched, replicated, batch_size: int):
     )(batched, *replicated)
 
 
-@functools.partial(jax.jit, static_argnames=("camera", "pad", "window", "stride", "batch_size", "newton_steps"))
+@persistent_jit(static_argnames=("camera", "pad", "window", "stride", "batch_size", "newton_steps"))
 def _score_hypotheses(arrays, orientation_rel, shape, corner, centre, max_size, *, camera, pad, window, stride, batch_size, newton_steps):
     """Γ and depth offset p for every hypothesis at one region (the one parallel operation)."""
     depth, fig, sigma, lam = arrays
@@ -359,11 +405,11 @@ def score_region(data: RangeData, settings: SearchSettings, centre, *, hypothese
     s = np.tile(hyp["shape"][:1], (padded, 1))
     s[:n] = hyp["shape"]
     gam, off, c_d = _score_hypotheses(
-        data.arrays, jnp.asarray(o), jnp.asarray(s), corner, centre, jnp.float32(settings.max_size),
-        camera=data.camera, pad=data.pad, window=settings.window, stride=stride, batch_size=batch_size,
+        data.arrays, o, s, corner, centre, np.float32(settings.max_size),
+        camera=data.compiled_camera, pad=data.pad, window=settings.window, stride=stride, batch_size=batch_size,
         newton_steps=settings.newton_steps,
     )
-    return gam[:n], off[:n]
+    return jax.device_put(np.asarray(gam)[:n]), jax.device_put(np.asarray(off)[:n])
 
 
 @functools.lru_cache(maxsize=8)
@@ -387,8 +433,8 @@ def _by_window(grid: Grid, window: int, *, multiple: int = 8) -> list[tuple[int,
 
 
 def _corner(settings, centre):
-    centre = jnp.asarray(np.asarray(centre, np.int32))
-    corner = centre - settings.window // 2
+    centre = np.asarray(centre, np.int32)  # numpy: passed to compiled programs as is
+    corner = centre - np.int32(settings.window // 2)
     return corner, centre
 
 
@@ -411,7 +457,7 @@ def _restart_starts(part: Part, levels: int) -> Part:
     return jax.tree_util.tree_map(lambda *x: jnp.concatenate(x), *starts)
 
 
-@functools.partial(jax.jit, static_argnames=("camera", "pad", "window", "newton_steps", "polish_steps", "polish_rounds", "restarts"))
+@persistent_jit(static_argnames=("camera", "pad", "window", "newton_steps", "polish_steps", "polish_rounds", "restarts"))
 def _finish(arrays, orientation_rel, shape, offsets, corner, centre, max_size, *, camera, pad, window, newton_steps, polish_steps, polish_rounds, restarts):
     """Pose the chosen hypotheses, shift them by -p in depth, polish, restart the best
     polished part (:func:`_restart_starts`) and score at full resolution over the window.
@@ -582,11 +628,11 @@ def fit_region(data: RangeData, settings: SearchSettings, centre, *, prune: bool
     chosen = index[best_i]
     parts, gam, explained, hit, commission, anchored = _finish(
         data.arrays,
-        jnp.asarray(hyp["orientation"][chosen]),
-        jnp.asarray(hyp["shape"][chosen]),
-        jnp.asarray(np.asarray(off_full)[best_i]),
-        corner, centre_j, jnp.float32(settings.max_size),
-        camera=data.camera, pad=data.pad, window=settings.window, newton_steps=SEARCH_NEWTON_STEPS + 2,
+        hyp["orientation"][chosen],
+        hyp["shape"][chosen],
+        np.asarray(off_full)[best_i],
+        corner, centre_j, np.float32(settings.max_size),
+        camera=data.compiled_camera, pad=data.pad, window=settings.window, newton_steps=SEARCH_NEWTON_STEPS + 2,
         polish_steps=settings.polish_steps, polish_rounds=settings.polish_rounds, restarts=settings.restarts,
     )
     order = np.lexsort((-np.asarray(gam), ~np.asarray(anchored)))[:k]  # anchored first, then by Γ
@@ -597,11 +643,11 @@ def fit_region(data: RangeData, settings: SearchSettings, centre, *, prune: bool
     gam = np.asarray(gam)[order]
     return RegionFit(
         parts=parts[order],
-        gamma=jnp.asarray(gam),
-        bits_saved=jnp.asarray(data.encoding.bits_saved(gam)),
-        explained=jnp.asarray(full_e),
-        rendered=jnp.asarray(full_h),
-        commission=jnp.asarray(full_c),
+        gamma=jax.device_put(gam),
+        bits_saved=jax.device_put(np.asarray(data.encoding.bits_saved(gam))),
+        explained=jax.device_put(full_e),
+        rendered=jax.device_put(full_h),
+        commission=jax.device_put(full_c),
         ratio=ratio,
         centre=tuple(int(x) for x in np.asarray(centre)),
         corner=tuple(int(x) for x in np.asarray(corner)),
@@ -692,7 +738,8 @@ def gamma_profile(data: RangeData, part: Part, parameter: int, offsets, *, num_b
     ``part`` moves by each of ``offsets`` (Figure 6c). Invalid parts get -inf."""
     o, d = data.camera.rays()
     p = data.pad
-    measured, figure = data.depth[p:-p, p:-p], data.figure[p:-p, p:-p]
+    h, w = data.camera.height, data.camera.width
+    measured, figure = data.depth[p : p + h, p : p + w], data.figure[p : p + h, p : p + w]
     nb = num_bins or NUM_BINS
     enc = data.encoding
     base = part.to_vector()

@@ -34,6 +34,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+from ._compile import persistent_jit
 from ._fit import Encoding
 
 
@@ -129,7 +130,11 @@ def description_length(explained, commission, costs: Costs) -> float:
     return costs.total(n, e, c)
 
 
-@jax.jit
+_BUCKET = 16
+"""Best-first selection is compiled for multiples of this many candidates."""
+
+
+@persistent_jit
 def _best_first(linear, pairwise, max_iter):
     n = linear.shape[0]
 
@@ -161,8 +166,15 @@ def select_best_first(problem: SelectionProblem, *, max_iter: int | None = None)
     n = problem.size
     if n == 0:
         return np.zeros(0, bool)
-    x = _best_first(jnp.asarray(problem.linear), jnp.asarray(problem.pairwise), jnp.asarray(max_iter or 4 * n + 10))
-    return np.asarray(x) > 0.5
+    # Padded to a multiple of _BUCKET with parts that never pay (the largest cost, no
+    # overlaps): one compiled program serves every candidate count up to it.
+    m = -(-n // _BUCKET) * _BUCKET
+    linear = np.full(m, np.finfo(np.float32).max, np.float32)
+    linear[:n] = problem.linear
+    pairwise = np.zeros((m, m), np.float32)
+    pairwise[:n, :n] = problem.pairwise
+    x = _best_first(linear, pairwise, np.int32(max_iter or 4 * n + 10))
+    return np.asarray(x)[:n] > 0.5
 
 
 @contextlib.contextmanager

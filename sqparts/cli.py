@@ -514,6 +514,10 @@ def _enable_compilation_cache() -> None:
         jax.config.update("jax_compilation_cache_dir", cache)
         # Every program, however small: a later run then compiles nothing.
         jax.config.update("jax_persistent_cache_min_compile_time_secs", 0.0)
+        # And the big programs exported, so a later run does not trace them either.
+        from ._compile import set_export_dir
+
+        set_export_dir(Path(cache) / "exported")
     except OSError:
         pass
 

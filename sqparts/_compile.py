@@ -1,0 +1,217 @@
+"""Start-up: ahead-of-time exported programs, kept on disk between processes.
+
+A new process that calls a ``jax.jit`` function traces and lowers it again even when
+JAX's persistent compilation cache holds the compiled program; for the search's and the
+refinement's big programs (the renderer inlined into an optimistix solver inside
+``lax.map``) tracing and lowering cost seconds. :func:`persistent_jit` is ``jax.jit``
+plus one more cache: the first call with a given signature exports the program with
+``jax.export`` and stores it; a later process deserializes it and calls it, which needs
+neither tracing nor (with JAX's persistent compilation cache, set by the CLI) compiling.
+
+This module is the only place the JAX core touches files for compilation. Its interface:
+
+* :func:`persistent_jit` (a decorator, used in place of ``jax.jit`` on entry points);
+* :func:`set_export_dir` (``None`` turns exporting off: every call is a plain ``jit``).
+  Off by default in the library; the CLI turns it on in its cache folder. The
+  environment variable ``SQPARTS_EXPORT=0`` turns it off whatever is set.
+
+An entry is ``<dir>/<name>-<key>.jaxexport``; the key hashes the JAX and jaxlib
+versions, the package's source files, the backend and device count, the function, its
+static arguments and its arguments' tree, shapes and dtypes, so a stale entry is never
+looked up. An entry holds a SHA-256 of its payload; an unreadable, truncated, corrupt or
+mismatched one is ignored (logged at WARNING) and replaced by a fresh export, and any
+failure of the export itself falls back to the plain ``jit``: results never depend on
+the cache. Entries are unpickled: the folder is trusted like the installed package.
+Exporting is skipped (plain ``jit``) inside an outer trace, with more than
+one device (sharded programs are not exported) and for static arguments whose ``repr``
+is not stable across processes.
+"""
+
+from __future__ import annotations
+
+import functools
+import hashlib
+import inspect
+import logging
+import os
+import pickle
+import tempfile
+from pathlib import Path
+
+import jax
+
+__all__ = ["persistent_jit", "set_export_dir", "export_dir", "forget_loaded"]
+
+_log = logging.getLogger(__name__)
+_MAGIC = b"sqparts-export-1\n"
+_state = {"dir": None}
+_loaded_tables: list[dict] = []  # every persistent_jit's loaded programs (see forget_loaded)
+
+
+def set_export_dir(directory) -> None:
+    """Store exported programs under ``directory`` (created if needed); ``None``: off."""
+    if directory is None:
+        _state["dir"] = None
+        return
+    path = Path(directory)
+    path.mkdir(parents=True, exist_ok=True)
+    _state["dir"] = path
+
+
+def forget_loaded() -> None:
+    """Forget the exported programs loaded in this process (as a new process would
+    start); the next call of each looks in :func:`export_dir` again. For tests."""
+    for table in _loaded_tables:
+        table.clear()
+
+
+def export_dir() -> Path | None:
+    """The folder exported programs go to, or ``None`` when exporting is off."""
+    if os.environ.get("SQPARTS_EXPORT", "1").strip().lower() in ("0", "false", "no", "off"):
+        return None
+    return _state["dir"] if _serializable() else None
+
+
+@functools.lru_cache(maxsize=1)
+def _serializable() -> bool:
+    """Whether ``jax.export`` can serialize here (it needs the ``flatbuffers`` package)."""
+    try:
+        import flatbuffers  # noqa: F401
+    except ImportError:
+        _log.warning("sqparts: the flatbuffers package is missing; programs are not exported")
+        return False
+    return True
+
+
+@functools.lru_cache(maxsize=1)
+def _environment_key() -> str:
+    """JAX/jaxlib versions, backend, device count and a hash of this package's source."""
+    import jaxlib
+
+    h = hashlib.sha256()
+    for f in sorted(Path(__file__).resolve().parent.rglob("*.py")):
+        h.update(f.name.encode())
+        h.update(f.read_bytes())
+    dev = jax.devices()
+    return "|".join([jax.__version__, jaxlib.__version__, jax.default_backend(), dev[0].device_kind,
+                     str(len(dev)), str(jax.config.jax_enable_x64), h.hexdigest()])
+
+
+def _aval(x) -> jax.ShapeDtypeStruct:
+    a = jax.typeof(x)
+    return jax.ShapeDtypeStruct(a.shape, a.dtype, weak_type=a.weak_type)
+
+
+class _Skeleton:
+    """Stands for a leaf in a pickled output tree (pickles of PyTreeDefs of equinox
+    Modules do not unflatten)."""
+
+
+def persistent_jit(fun=None, *, static_argnames=()):
+    """``jax.jit(fun, static_argnames=...)`` whose programs are exported to, and loaded
+    from, :func:`export_dir` (see the module docstring). Same arguments, same results."""
+    if fun is None:
+        return functools.partial(persistent_jit, static_argnames=static_argnames)
+    static_argnames = (static_argnames,) if isinstance(static_argnames, str) else tuple(static_argnames)
+    jitted = jax.jit(fun, static_argnames=static_argnames)
+    signature = inspect.signature(fun)
+    loaded: dict[str, object] = {}  # key -> callable on the flat leaves, or None (use jitted)
+    _loaded_tables.append(loaded)
+    name = getattr(fun, "__qualname__", getattr(fun, "__name__", "fun"))
+
+    @functools.wraps(fun)
+    def call(*args, **kwargs):
+        directory = export_dir()
+        if directory is None or jax.device_count() != 1:
+            return jitted(*args, **kwargs)
+        bound = signature.bind(*args, **kwargs)
+        bound.apply_defaults()
+        static = {k: v for k, v in bound.arguments.items() if k in static_argnames}
+        dynamic = {k: v for k, v in bound.arguments.items() if k not in static_argnames}
+        leaves, tree = jax.tree_util.tree_flatten(dynamic)
+        if any(isinstance(x, jax.core.Tracer) for x in leaves):
+            return jitted(*args, **kwargs)
+        avals = [_aval(x) for x in leaves]
+        text = "\n".join([_environment_key(), fun.__module__, name, repr(sorted(static.items())), str(tree),
+                          repr([(a.shape, str(a.dtype), a.weak_type) for a in avals])])
+        if " at 0x" in text:  # an object's default repr: not the same in another process
+            return jitted(*args, **kwargs)
+        key = hashlib.sha256(text.encode()).hexdigest()[:32]
+        runner = loaded.get(key)
+        if runner is None and key not in loaded:
+            path = directory / f"{fun.__module__.rsplit('.', 1)[-1]}.{name}-{key}.jaxexport"
+            runner = _load(path, avals) or _export(path, fun, static, tree, avals)
+            loaded[key] = runner
+        if runner is None:
+            return jitted(*args, **kwargs)
+        try:
+            return runner(leaves)
+        except Exception as e:  # noqa: BLE001 - e.g. an entry this JAX cannot compile: jit it
+            _log.warning("sqparts: exported %s failed (%s: %s); using jit", name, type(e).__name__, e)
+            loaded[key] = None
+            return jitted(*args, **kwargs)
+
+    call.jitted = jitted
+    return call
+
+
+def _make_runner(exported, out_skeleton):
+    out_tree = jax.tree_util.tree_structure(out_skeleton, is_leaf=lambda x: isinstance(x, _Skeleton))
+    if out_tree.num_leaves != len(exported.out_avals):
+        raise ValueError("output tree does not match the exported program")
+    run = jax.jit(exported.call)
+    return lambda leaves: jax.tree_util.tree_unflatten(out_tree, run(*leaves))
+
+
+def _load(path: Path, avals):
+    """The runner stored at ``path``, or ``None`` (missing, corrupt or stale entry)."""
+    try:
+        blob = path.read_bytes()
+    except FileNotFoundError:
+        return None
+    except OSError as e:
+        _log.warning("sqparts: cannot read exported program %s (%s); tracing instead", path, e)
+        return None
+    try:
+        if not blob.startswith(_MAGIC):
+            raise ValueError("not an sqparts export")
+        digest, payload = blob[len(_MAGIC) : len(_MAGIC) + 32], blob[len(_MAGIC) + 32 :]
+        if hashlib.sha256(payload).digest() != digest:
+            raise ValueError("checksum mismatch")
+        serialized, out_skeleton = pickle.loads(payload)
+        exported = jax.export.deserialize(bytearray(serialized))
+        want = [(a.shape, a.dtype) for a in avals]
+        if [(a.shape, a.dtype) for a in exported.in_avals] != want:
+            raise ValueError("argument shapes or dtypes differ")
+        return _make_runner(exported, out_skeleton)
+    except Exception as e:  # noqa: BLE001 - any bad entry: trace again, never fail
+        _log.warning("sqparts: ignoring exported program %s (%s: %s); tracing instead", path, type(e).__name__, e)
+        return None
+
+
+def _export(path: Path, fun, static, tree, avals):
+    """Export ``fun`` for these arguments, store it at ``path`` and return its runner;
+    ``None`` (use the plain jit) if it cannot be exported."""
+    out = {}
+
+    def flat(*leaves):
+        result = fun(**jax.tree_util.tree_unflatten(tree, leaves), **static)
+        out_leaves, out["tree"] = jax.tree_util.tree_flatten(result)
+        return out_leaves
+
+    try:
+        exported = jax.export.export(jax.jit(flat))(*avals)
+        skeleton = jax.tree_util.tree_unflatten(out["tree"], [_Skeleton() for _ in range(out["tree"].num_leaves)])
+        payload = pickle.dumps((bytes(exported.serialize()), skeleton), protocol=pickle.HIGHEST_PROTOCOL)
+        runner = _make_runner(exported, skeleton)
+    except Exception as e:  # noqa: BLE001 - not exportable: plain jit
+        _log.warning("sqparts: cannot export %s (%s: %s); using jit", path.name, type(e).__name__, e)
+        return None
+    try:
+        fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=".tmp-", suffix=".jaxexport")
+        with os.fdopen(fd, "wb") as f:
+            f.write(_MAGIC + hashlib.sha256(payload).digest() + payload)
+        os.replace(tmp, path)
+    except OSError as e:
+        _log.warning("sqparts: cannot store exported program %s (%s)", path, e)
+    return runner
