@@ -64,6 +64,9 @@ _EXPORTS = {
     "_mesh": (
         "load_mesh", "part_mesh", "render_mesh", "save_mesh", "scene_mesh",
     ),
+    "_batch": (
+        "recover_many",
+    ),
 }
 """Each module's public names, in pipeline order."""
 
