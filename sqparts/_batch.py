@@ -41,19 +41,19 @@ _PATTERN_CHARACTERS = frozenset("*?[")
 # --- inputs and names ----------------------------------------------------------------
 
 
-def expand_inputs(paths, *, recursive: bool = False, exclude=None) -> list[Path]:
+def expand_inputs(paths, *, recursive: bool = False) -> list[Path]:
     """Range image files from files, folders and glob patterns, in order.
 
     A folder gives the range images in it (sorted; with ``recursive``, also in its
     sub-folders, skipping hidden ones); a path that does not exist but holds ``*``,
     ``?`` or ``[`` is a glob pattern (``**`` matches any depth) giving the range images
-    it matches, sorted. Files under ``exclude`` (the output folder) are left out. Raises
+    it matches, sorted. The ``report.png`` of an sqparts output folder (one holding
+    ``parts.json``) is never an input. Raises
     ``FileNotFoundError`` for a missing path, ``ValueError`` for a folder or pattern
     without range images or an input given twice.
     """
     from ._io import RANGE_IMAGE_SUFFIXES
 
-    exclude = None if exclude is None else Path(exclude).resolve()
     wanted = ", ".join(RANGE_IMAGE_SUFFIXES)
 
     def images(found, root=None):
@@ -63,7 +63,7 @@ def expand_inputs(paths, *, recursive: bool = False, exclude=None) -> list[Path]
                 continue
             if root is not None and any(part.startswith(".") for part in q.relative_to(root).parts):
                 continue
-            if exclude is not None and q.resolve().is_relative_to(exclude):
+            if q.name == "report.png" and (q.parent / "parts.json").is_file():
                 continue
             keep.append(q)
         return sorted(keep)
@@ -304,7 +304,7 @@ def plan_batch(inputs, *, out, camera=None, recursive: bool = False, overwrite: 
         raise FileExistsError(f"--out: got {str(out)!r}, which is a file, expected a folder")
     if isinstance(camera, (str, os.PathLike)):
         camera = load_camera(camera)
-    paths = expand_inputs(inputs, recursive=recursive, exclude=out)
+    paths = expand_inputs(inputs, recursive=recursive)
     if not paths:
         raise ValueError("input: got no inputs, expected at least one range image")
     names = output_names(paths)

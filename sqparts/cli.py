@@ -176,10 +176,10 @@ def _recover_options(args) -> dict:
     return opts
 
 
-def _inputs(paths, *, recursive: bool = False, exclude=None) -> list[Path]:
+def _inputs(paths, *, recursive: bool = False) -> list[Path]:
     from ._batch import expand_inputs
 
-    return expand_inputs(paths, recursive=recursive, exclude=exclude)
+    return expand_inputs(paths, recursive=recursive)
 
 
 def output_names(paths) -> list[str]:

@@ -133,7 +133,9 @@ def test_glob_patterns_folders_and_recursive(batch, tmp_path):
     assert names(expand([batch / "in"], recursive=True)) == ["deeper/more/g.npy", "f0.npy", "f1.npy", "f2.npy"]
     assert names(expand([str(batch / "in" / "f[12].npy")])) == ["f1.npy", "f2.npy"]
     assert names(expand([str(batch / "in" / "**" / "*.npy")])) == ["deeper/more/g.npy", "f0.npy", "f1.npy", "f2.npy"]
-    assert names(expand([batch / "in"], recursive=True, exclude=batch / "in" / "deeper")) == ["f0.npy", "f1.npy", "f2.npy"]
+    (sub / "parts.json").write_text("{}")  # an output folder inside the inputs: its report is no input
+    (sub / "report.png").write_bytes(b"")
+    assert names(expand([batch / "in"], recursive=True)) == ["deeper/more/g.npy", "f0.npy", "f1.npy", "f2.npy"]
     with pytest.raises(ValueError, match="input: got pattern .*, which matches no range images"):
         expand([str(batch / "in" / "*.tif")])
     with pytest.raises(ValueError, match="input: got .* twice"):
