@@ -9,7 +9,7 @@ the frames per minute are of the timed batch alone, whose outputs and results.js
 written as by ``sqparts recover``. A ratio is measured in the same run.
 
 Resume (``--resume-check``): ``sqparts recover`` over a folder of ``--inputs`` tiny frames
-(24x24), one of them a broken file: exit 1, results.jsonl with a whole line per input
+(24x24, each part covering at least 64 pixels), one of them a broken file: exit 1, results.jsonl with a whole line per input
 and the failure recorded; then ``--resume`` (redoes the failed one only: the others'
 outputs untouched), the broken file repaired and ``--resume`` again (exit 0), and a last
 ``--resume`` that redoes nothing. Each command's wall time is recorded.
@@ -40,18 +40,23 @@ from _common import save
 OPTIONS = dict(resolution=0)
 
 
-def make_frames(folder: Path, n: int, side: int, *, seed: int = 0) -> sqparts.PinholeCamera:
-    """``n`` renders of random single parts (sizes 0.08-0.3 m at 2 m) into ``folder``."""
+def make_frames(folder: Path, n: int, side: int, *, seed: int = 0, min_returns: int = 0) -> sqparts.PinholeCamera:
+    """``n`` renders of random single parts (sizes 0.08-0.3 m at 2 m) into ``folder``;
+    a part covering fewer than ``min_returns`` pixels is drawn again."""
     rng = np.random.default_rng(seed)
     focal = side * 5 / 3  # a 0.6 m part at 2 m spans half the image
     camera = sqparts.PinholeCamera(side, side, focal, focal, (side - 1) / 2, (side - 1) / 2)
     folder.mkdir(parents=True, exist_ok=True)
     (folder.parent / "cam.json").write_text(json.dumps(camera.to_json()))
-    for i in range(n):
+    i = 0
+    while i < n:
         part = sqparts.Part(size=rng.uniform(0.08, 0.3, 3), squareness=rng.uniform(0.2, 1.8, 2),
                             position=np.r_[rng.uniform(-0.1, 0.1, 2), 2.0], orientation=rng.normal(size=3),
                             bend=rng.uniform(-0.3, 0.3, 2), taper=rng.uniform(-0.4, 0.4))
-        np.save(folder / f"frame{i:04d}.npy", np.asarray(sqparts.render_range_image(part, camera)))
+        depth = np.asarray(sqparts.render_range_image(part, camera))
+        if np.isfinite(depth).sum() >= min_returns:
+            np.save(folder / f"frame{i:04d}.npy", depth)
+            i += 1
     return camera
 
 
@@ -123,7 +128,7 @@ def _cli(args, cwd) -> tuple[int, float, str]:
 def resume_check(n: int) -> dict:
     with tempfile.TemporaryDirectory(prefix="sqparts-bench-") as tmp:
         tmp = Path(tmp)
-        make_frames(tmp / "frames", n - 1, 24)
+        make_frames(tmp / "frames", n - 1, 24, min_returns=64)  # recovery wants >= 16 returns
         broken = tmp / "frames" / "frame_broken.npy"
         broken.write_bytes(b"not a range image")
         base = ["frames", "--camera", "cam.json", "--out", "out", "--resolution", "0", "--refine-rounds", "0", "--quiet"]
