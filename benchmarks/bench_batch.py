@@ -9,7 +9,8 @@ the frames per minute are of the timed batch alone, whose outputs and results.js
 written as by ``sqparts recover``. A ratio is measured in the same run.
 
 Resume (``--resume-check``): ``sqparts recover`` over a folder of ``--inputs`` tiny frames
-(24x24, each part covering at least 64 pixels), one of them a broken file: exit 1, results.jsonl with a whole line per input
+(24x24, each part covering at least 64 pixels; ``--resolution 0 --refine-rounds 0
+--no-figure-ground``), one of them a broken file: exit 1, results.jsonl with a whole line per input
 and the failure recorded; then ``--resume`` (redoes the failed one only: the others'
 outputs untouched), the broken file repaired and ``--resume`` again (exit 0), and a last
 ``--resume`` that redoes nothing. Each command's wall time is recorded.
@@ -131,7 +132,10 @@ def resume_check(n: int) -> dict:
         make_frames(tmp / "frames", n - 1, 24, min_returns=64)  # recovery wants >= 16 returns
         broken = tmp / "frames" / "frame_broken.npy"
         broken.write_bytes(b"not a range image")
-        base = ["frames", "--camera", "cam.json", "--out", "out", "--resolution", "0", "--refine-rounds", "0", "--quiet"]
+        # Synthetic frames have no background: figure/ground (which may take a flat part
+        # for a background plane and leave no figure) is off.
+        base = ["frames", "--camera", "cam.json", "--out", "out", "--resolution", "0", "--refine-rounds", "0",
+                "--no-figure-ground", "--quiet"]
         results = tmp / "out" / "results.jsonl"
         steps = []
 
@@ -147,6 +151,7 @@ def resume_check(n: int) -> dict:
             row = {"step": name, "exit": code, "expected_exit": want, "seconds": seconds, "lines": len(lines),
                    "ok": sum(r["status"] == "ok" for r in records),
                    "errors": [r["input"] for r in records if r["status"] != "ok"],
+                   "messages": [r["error"] for r in records if r["status"] != "ok"],
                    "outputs_rewritten": sum(after.get(p) != t for p, t in before.items()),
                    "outputs_new": len(set(after) - set(before)), "stderr_last_line": err}
             steps.append(row)
@@ -164,7 +169,8 @@ def resume_check(n: int) -> dict:
         assert fixed["outputs_rewritten"] == 0 and fixed["outputs_new"] == 1 and fixed["ok"] == n
         nothing = step("--resume (complete)", ["--resume"], 0)
         assert nothing["outputs_rewritten"] == 0 and nothing["outputs_new"] == 0 and nothing["lines"] == n
-        return {"inputs": n, "image": "24x24", "options": {"resolution": 0, "refine_rounds": 0}, "steps": steps}
+        return {"inputs": n, "image": "24x24", "options": {"resolution": 0, "refine_rounds": 0, "figure_ground": False},
+                "steps": steps}
 
 
 def main() -> None:
