@@ -323,8 +323,8 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("input", nargs="+", help="range images (.npy .png .tif .pcd), folders of them, or glob "
                    "patterns ('scans/**/*.png'; quote them)")
     p.add_argument("--camera", help="camera JSON (a .pcd carries its own)")
-    p.add_argument("--out", required=True, help="output directory (one sub-folder per input and results.jsonl "
-                   "if several, a folder or a pattern)")
+    p.add_argument("--out", required=True, help="output directory (for several inputs, a folder or a pattern: "
+                   "one sub-folder per input and results.jsonl)")
     b = p.add_argument_group("batches (many inputs)")
     b.add_argument("--recursive", action="store_true", help="folders include their sub-folders")
     b.add_argument("--resume", action="store_true",
