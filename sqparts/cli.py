@@ -329,7 +329,7 @@ def build_parser() -> argparse.ArgumentParser:
     b.add_argument("--recursive", action="store_true", help="folders include their sub-folders")
     b.add_argument("--resume", action="store_true",
                    help="skip inputs already recovered (complete folder, ok line in results.jsonl); redo the rest")
-    b.add_argument("--jobs", type=_POSITIVE_INT, default=None,
+    b.add_argument("--jobs", type=_POSITIVE_INT, default=None, metavar="N",
                    help="recover on N local worker processes (Dask LocalCluster, one thread each)")
     b.add_argument("--scheduler", default=None, metavar="ADDRESS",
                    help="recover on the workers of a running Dask scheduler (tcp://HOST:8786)")
