@@ -66,6 +66,9 @@ _EXPORTS = {
         "load_mesh", "part_colors", "part_mesh", "render_mesh", "save_mesh", "scene_mesh",
         "scene_open3d", "scene_trimesh",
     ),
+    "_batch": (
+        "recover_many",
+    ),
 }
 """Each module's public names, in pipeline order."""
 

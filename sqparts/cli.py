@@ -145,17 +145,9 @@ def cmd_show(args) -> int:
 
 def _write_recovery(folder: Path, recovery, *, title: str, names=None) -> None:
     """parts.json, model.ply and report.png into ``folder`` (a staged folder)."""
-    import json
+    from ._batch import write_recovery
 
-    from ._io import atomic_write
-    from ._mesh import save_mesh, scene_mesh
-    from ._plot import save_report
-
-    text = json.dumps(recovery.scene_dict(names), indent=2)
-    with atomic_write(folder / "parts.json", "w") as f:
-        f.write(text + "\n")
-    save_mesh(folder / "model.ply", scene_mesh(recovery.parts, resolution=24))
-    save_report(folder / "report.png", recovery, title=title)
+    write_recovery(folder, recovery, title=title, names=names)
 
 
 def _recover_options(args) -> dict:
@@ -184,42 +176,17 @@ def _recover_options(args) -> dict:
     return opts
 
 
-def _inputs(paths) -> list[Path]:
-    from ._io import RANGE_IMAGE_SUFFIXES
+def _inputs(paths, *, recursive: bool = False) -> list[Path]:
+    from ._batch import expand_inputs
 
-    out = []
-    for p in map(Path, paths):
-        if p.is_dir():
-            found = sorted(q for q in p.iterdir() if q.suffix.lower() in RANGE_IMAGE_SUFFIXES and q.is_file())
-            if not found:
-                raise ValueError(f"input: got folder {str(p)!r}, expected range images in it ({', '.join(RANGE_IMAGE_SUFFIXES)})")
-            out.extend(found)
-        elif not p.exists():
-            raise FileNotFoundError(f"input: got {str(p)!r}, expected an existing file or folder")
-        else:
-            out.append(p)
-    seen = {}
-    for p in out:
-        key = p.resolve()
-        if key in seen:
-            raise ValueError(f"input: got {str(p)!r} twice (also as {str(seen[key])!r}), expected each input once")
-        seen[key] = p
-    return out
+    return expand_inputs(paths, recursive=recursive)
 
 
 def output_names(paths) -> list[str]:
-    """One sub-folder name per input: its stem where no other input shares it, else its
-    path relative to the inputs' common folder (without the suffix where that is
-    enough: ``a/x.npy b/x.npy`` -> ``a/x``, ``b/x``; ``a.npy a.png`` -> ``a.npy``, ``a.png``)."""
-    resolved = [Path(p).resolve() for p in paths]
-    root = Path(os.path.commonpath([str(r.parent) for r in resolved]))
-    relative = [r.relative_to(root) for r in resolved]
-    stems = [r.stem for r in relative]
-    bare = [str(r.with_suffix("")) for r in relative]
-    return [
-        stem if stems.count(stem) == 1 else name if bare.count(name) == 1 else str(r)
-        for stem, name, r in zip(stems, bare, relative)
-    ]
+    """One sub-folder name per input (see :func:`sqparts._batch.output_names`)."""
+    from ._batch import output_names
+
+    return output_names(paths)
 
 
 def _progress(args, desc: str, unit: str):
@@ -230,39 +197,72 @@ def _progress(args, desc: str, unit: str):
     return lambda it: tqdm(it, desc=desc, unit=unit, leave=False)
 
 
-def cmd_recover(args) -> int:
-    from ._fit import encoding_for
-    from ._io import check_new_output, load_camera, read_range_image, staged_folder
-    from ._recover import recover_scene
+def _is_batch(args) -> bool:
+    """Several inputs, a folder or a pattern, or a batch option: one sub-folder per input
+    and ``results.jsonl``; else one input, whose outputs go into ``--out`` itself."""
+    one = len(args.input) == 1 and Path(args.input[0]).is_file()
+    return not one or args.resume or args.jobs is not None or args.scheduler is not None
 
-    inputs = _inputs(args.input)
-    out = Path(args.out)
-    targets = [out] if len(inputs) == 1 else [out / name for name in output_names(inputs)]
-    for target in targets:  # before any work: never overwrite silently
-        check_new_output(target, overwrite=args.overwrite)
-    camera_arg = load_camera(args.camera) if args.camera else None
+
+def _cluster(args):
+    """The Dask client for ``--jobs``/``--scheduler`` (a context manager), or no client."""
+    if args.jobs is not None and args.scheduler is not None:
+        raise ValueError(f"--jobs: got {args.jobs} with --scheduler, expected one of them")
+    if args.jobs is None and args.scheduler is None:
+        return contextlib.nullcontext(None)
+    try:
+        from . import _dask
+    except ImportError as e:
+        flag = "--jobs" if args.jobs is not None else "--scheduler"
+        raise ValueError(f"{flag}: got it without Dask ({e}), expected dask.distributed installed "
+                         "(pip install 'sqparts[distributed]')") from None
+    return _dask.local_cluster(args.jobs) if args.jobs is not None else _dask.connect(args.scheduler)
+
+
+def cmd_recover(args) -> int:
+    from ._batch import plan_batch, recover_file, remove_staging, run_batch
+    from ._io import check_new_output, load_camera
+
+    if not _is_batch(args):
+        path = _inputs(args.input)[0]
+        out = check_new_output(args.out, overwrite=args.overwrite)  # before any work
+        camera = load_camera(args.camera) if args.camera else None
+        opts = _recover_options(args)
+        recovery = recover_file(path, out, camera=camera, depth_scale=args.depth_scale, sigma=args.sigma,
+                                overwrite=args.overwrite, progress=_progress(args, "regions", "region"), **opts)
+        _after_recovery(args, out)
+        _say(args, f"{path.name}: {recovery.summary()}\n  wrote {out}/parts.json, model.ply, report.png")
+        return 0
+    # Everything cheap is checked before any work; each input is read when it is recovered.
+    camera = load_camera(args.camera) if args.camera else None
     opts = _recover_options(args)
-    # Read and check every input before any work, so a bad one fails fast.
-    loaded = []
-    for path in inputs:
-        depth, camera = read_range_image(path, depth_scale=args.depth_scale)
-        camera = camera_arg or camera
-        if camera is None:
-            raise ValueError(f"--camera: got nothing for {str(path)!r}, which carries no camera, expected --camera CAM.json")
-        if depth.shape != (camera.height, camera.width):
-            raise ValueError(
-                f"--camera: got a {camera.width}x{camera.height} camera for {str(path)!r}, expected "
-                f"{depth.shape[1]}x{depth.shape[0]} (the image's size)"
-            )
-        loaded.append((path, depth, camera))
-    progress = _progress(args, "regions", "region")
-    for (path, depth, camera), target in zip(loaded, targets):
-        enc = encoding_for(depth[np.isfinite(depth)], sigma=args.sigma) if args.sigma else None
-        recovery = recover_scene(depth, camera, encoding=enc, progress=progress, **opts)
-        with staged_folder(target, overwrite=args.overwrite) as folder:
-            _write_recovery(folder, recovery, title=path.name)
-            _after_recovery(args, folder, recovery, target)
-        _say(args, f"{path.name}: {recovery.summary()}\n  wrote {target}/parts.json, model.ply, report.png")
+    plan = plan_batch(args.input, out=args.out, camera=camera, recursive=args.recursive,
+                      overwrite=args.overwrite, resume=args.resume, depth_scale=args.depth_scale,
+                      sigma=args.sigma, **opts)
+    cluster = _cluster(args)
+    since, failed, done = time.time(), [], 0
+    try:
+        with cluster as client:
+            for record in run_batch(plan, client=client, progress=not args.quiet):
+                done += 1
+                if record["status"] == "ok":
+                    _after_recovery(args, plan.out / record["output"])
+                if record["status"] != "ok":
+                    failed.append(record)
+                    if not args.quiet:
+                        from tqdm import tqdm
+
+                        tqdm.write(f"{record['input']}: {record['error']}", file=sys.stderr)
+    finally:
+        if args.jobs is not None:  # workers stopped mid-write leave their staging folders
+            remove_staging(plan, since=since)
+    _say(args, f"{done - len(failed)} of {done} inputs recovered, {len(failed)} failed, {len(plan.skipped)} "
+               f"already complete (skipped); records in {plan.results}")
+    if failed:
+        first = failed[0]
+        print(f"sqparts: error: input: got {len(failed)} of {done} inputs failing (first {first['input']!r}: "
+              f"{first['error']}), expected each to recover; see {plan.results}", file=sys.stderr)
+        return 1
     return 0
 
 
@@ -284,21 +284,15 @@ def _recover_command(args) -> int:
     return cmd_recover(args)
 
 
-def _after_recovery(args, folder: Path, recovery, target: Path) -> None:
-    """One recovery's extra outputs, in its staged folder: what ``sqparts view`` reads
-    (range.npy, camera.json, pixels.npz), and the ``--rerun`` recording, rewritten
-    (atomically) with every input finished so far, each under its own entity path."""
-    from ._io import atomic_write, load_view_data, save_view_data
-    from ._view import entity_name, pixel_status, rerun_bytes, rerun_entries
-
-    camera = getattr(recovery, "camera", None)
-    if camera is None:
-        return
-    save_view_data(folder, recovery.depth, camera, status=pixel_status(recovery),
-                   model=recovery.cost.rendered, labels=recovery.cost.labels)
+def _after_recovery(args, folder: Path) -> None:
+    """The ``--rerun`` recording, rewritten (atomically) with every input finished so
+    far, each under its own entity path, from the view files in its output folder."""
     if getattr(args, "rerun", None) is None:
         return
-    name = Path(target).resolve().relative_to(Path(args.out).resolve()).as_posix()
+    from ._io import atomic_write, load_view_data
+    from ._view import entity_name, rerun_bytes, rerun_entries
+
+    name = Path(folder).resolve().relative_to(Path(args.out).resolve()).as_posix()
     prefix = "/".join(entity_name(x) for x in (Path(args.out).name if name == "." else name).split("/"))
     args.rerun_entries.extend(rerun_entries(load_view_data(folder), prefix))
     data = rerun_bytes(args.rerun_entries)
@@ -370,9 +364,19 @@ def build_parser() -> argparse.ArgumentParser:
     p.set_defaults(func=cmd_show)
 
     p = sub.add_parser("recover", help="recover parts from range images")
-    p.add_argument("input", nargs="+", help="range images (.npy .png .tif .pcd) or folders of them")
+    p.add_argument("input", nargs="+", help="range images (.npy .png .tif .pcd), folders of them, or glob "
+                   "patterns ('scans/**/*.png'; quote them)")
     p.add_argument("--camera", help="camera JSON (a .pcd carries its own)")
-    p.add_argument("--out", required=True, help="output directory (one sub-folder per input if several)")
+    p.add_argument("--out", required=True, help="output directory (for several inputs, a folder or a pattern: "
+                   "one sub-folder per input and results.jsonl)")
+    b = p.add_argument_group("batches (many inputs)")
+    b.add_argument("--recursive", action="store_true", help="folders include their sub-folders")
+    b.add_argument("--resume", action="store_true",
+                   help="skip inputs already recovered (complete folder, ok line in results.jsonl); redo the rest")
+    b.add_argument("--jobs", type=_POSITIVE_INT, default=None, metavar="N",
+                   help="recover on N local worker processes (Dask LocalCluster, one thread each)")
+    b.add_argument("--scheduler", default=None, metavar="ADDRESS",
+                   help="recover on the workers of a running Dask scheduler (tcp://HOST:8786)")
     p.add_argument("--grid", default="coarse", choices=["coarse", "default", "fine"], help="hypothesis grid")
     p.add_argument("--max-size", type=_POSITIVE, default=None, help="largest semi-axis searched (scene units)")
     p.add_argument("--sigma", type=_POSITIVE, default=None, help="match tolerance σ (scene units)")
