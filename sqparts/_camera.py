@@ -20,6 +20,7 @@ return.
 from __future__ import annotations
 
 import dataclasses
+from typing import TYPE_CHECKING
 
 import jax.numpy as jnp
 import numpy as np
@@ -67,6 +68,18 @@ class _Camera:
     measures_range = False
     """True when the image stores range along the ray rather than z-depth."""
 
+    if TYPE_CHECKING:  # every subclass has a principal point; not a field of the base
+        cx: float
+        cy: float
+
+    def _rays(self, uu, vv) -> tuple[Float[Array, "h w 3"], Float[Array, "h w 3"]]:
+        """Origins and directions of the rays through pixel centres ``uu``, ``vv``."""
+        raise NotImplementedError
+
+    def _scaled_fields(self, f: int) -> dict:
+        """The model-specific fields of :meth:`downsampled` (``cx``, ``cy`` excluded)."""
+        raise NotImplementedError
+
     def _pixel_grid(self, window):
         """Pixel centres (u, v) of the window (row0, col0, rows, cols) or the full image."""
         if window is None:
@@ -87,7 +100,7 @@ class _Camera:
         uu, vv = self._pixel_grid(window)
         return self._rays(uu, vv)
 
-    def pixel_size_at(self, depth: Float[Array, "..."]) -> Float[Array, "..."]:
+    def pixel_size_at(self, depth: Float[Array, "..."] | Float[np.ndarray, "..."] | float | np.floating) -> Float[Array, "..."]:
         """Metric width of one pixel at the given depth (for pixel-equivalent errors)."""
         raise NotImplementedError
 

@@ -37,14 +37,16 @@ import os
 import pickle
 import tempfile
 from pathlib import Path
+from typing import Callable
 
 import jax
+import jax.core
 
 __all__ = ["persistent_jit", "set_export_dir", "export_dir", "forget_loaded"]
 
 _log = logging.getLogger(__name__)
 _MAGIC = b"sqparts-export-1\n"
-_state = {"dir": None}
+_state: dict[str, Path | None] = {"dir": None}
 _loaded_tables: list[dict] = []  # every persistent_jit's loaded programs (see forget_loaded)
 
 
@@ -86,15 +88,15 @@ def _serializable() -> bool:
 @functools.lru_cache(maxsize=1)
 def _environment_key() -> str:
     """JAX/jaxlib versions, backend, device count and a hash of this package's source."""
-    import jaxlib
+    import jaxlib.version
 
     h = hashlib.sha256()
     for f in sorted(Path(__file__).resolve().parent.rglob("*.py")):
         h.update(f.name.encode())
         h.update(f.read_bytes())
     dev = jax.devices()
-    return "|".join([jax.__version__, jaxlib.__version__, jax.default_backend(), dev[0].device_kind,
-                     str(len(dev)), str(jax.config.jax_enable_x64), h.hexdigest()])
+    return "|".join([jax.__version__, jaxlib.version.__version__, jax.default_backend(), dev[0].device_kind,
+                     str(len(dev)), str(jax.config.read("jax_enable_x64")), h.hexdigest()])
 
 
 def _aval(x) -> jax.ShapeDtypeStruct:
@@ -115,7 +117,7 @@ def persistent_jit(fun=None, *, static_argnames=()):
     static_argnames = (static_argnames,) if isinstance(static_argnames, str) else tuple(static_argnames)
     jitted = jax.jit(fun, static_argnames=static_argnames)
     signature = inspect.signature(fun)
-    loaded: dict[str, object] = {}  # key -> callable on the flat leaves, or None (use jitted)
+    loaded: dict[str, Callable | None] = {}  # key -> callable on the flat leaves, or None (use jitted)
     _loaded_tables.append(loaded)
     name = getattr(fun, "__qualname__", getattr(fun, "__name__", "fun"))
 
@@ -151,7 +153,7 @@ def persistent_jit(fun=None, *, static_argnames=()):
             loaded[key] = None
             return jitted(*args, **kwargs)
 
-    call.jitted = jitted
+    setattr(call, "jitted", jitted)
     return call
 
 

@@ -440,7 +440,7 @@ def _check_image_size(path: Path, shape: tuple[int, ...]) -> None:
 
 
 def _read_pcd(path) -> tuple[np.ndarray, PinholeCamera]:
-    from pypcd4 import PointCloud
+    from pypcd4 import PointCloud  # pyright: ignore[reportPrivateImportUsage]  # pypcd4 re-exports it without `as` or __all__
 
     pc = PointCloud.from_path(path)
     w, h = int(pc.metadata.width), int(pc.metadata.height)

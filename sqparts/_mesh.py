@@ -14,6 +14,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 import trimesh
+import trimesh.visual
 
 from ._camera import Camera
 from ._part import Part, surface_point
@@ -82,8 +83,8 @@ def scene_mesh(parts: Part, *, resolution: int = 48, union: bool = False) -> tri
     meshes = [part_mesh(parts if single else parts[i], resolution=resolution)
               for i in range(1 if single else len(parts))]
     if union and len(meshes) > 1:
-        return trimesh.boolean.union(meshes, engine="manifold")
-    return trimesh.util.concatenate(meshes)
+        return trimesh.boolean.union(meshes, engine="manifold")  # pyright: ignore[reportReturnType]  # trimesh annotates Geometry; manifold gives a Trimesh
+    return trimesh.util.concatenate(meshes)  # pyright: ignore[reportReturnType]  # trimesh annotates Geometry; meshes give a Trimesh
 
 
 def save_mesh(path, mesh: trimesh.Trimesh | trimesh.Scene) -> None:
@@ -97,7 +98,7 @@ def save_mesh(path, mesh: trimesh.Trimesh | trimesh.Scene) -> None:
         )
     data = mesh.export(file_type=suffix[1:])
     with atomic_write(path, "wb") as f:
-        f.write(data if isinstance(data, bytes) else data.encode())
+        f.write(data if isinstance(data, bytes) else data.encode())  # pyright: ignore[reportAttributeAccessIssue]  # trimesh's export may be a dict, but not for a mesh suffix
 
 
 def load_mesh(path) -> trimesh.Trimesh:
@@ -171,7 +172,7 @@ def scene_trimesh(parts: Part, *, names=None, resolution: int = 32) -> trimesh.S
         material = trimesh.visual.material.PBRMaterial(name=name, baseColorFactor=color, roughnessFactor=0.8,
                                                        metallicFactor=0.0)
         mesh.visual = trimesh.visual.ColorVisuals(mesh, vertex_colors=np.tile(color, (len(mesh.vertices), 1)))
-        mesh.visual.material = material
+        mesh.visual.material = material  # pyright: ignore[reportAttributeAccessIssue]  # not declared on ColorVisuals; the glTF export reads it
         mesh.metadata["name"] = name
         scene.add_geometry(mesh, geom_name=name, node_name=name)
     return scene

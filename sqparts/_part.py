@@ -38,8 +38,11 @@ inside-outside function of the deformed part is ``F(D^{-1}(p))`` in closed form
 from __future__ import annotations
 
 
+from typing import Any, cast
+
 import equinox as eqx
 import jax
+import jax.core
 import jax.numpy as jnp
 import numpy as np
 
@@ -190,7 +193,7 @@ class Part(eqx.Module):
     def from_vector(cls, vector: Float[ArrayLike, "*batch 14"]) -> "Part":
         """Inverse of :meth:`to_vector`; validated when concrete."""
         # Concrete vectors are sliced on the host (see _host_op).
-        v = vector if _traced(vector) else np.asarray(vector)
+        v = cast(Array, vector) if _traced(vector) else np.asarray(vector)
         if v.shape[-1:] != (14,):
             raise ValueError(f"vector: got shape {v.shape}, expected a trailing axis of 14")
         return cls(
@@ -287,7 +290,7 @@ def bounding_half_extent(part: Part) -> Float[Array, "3"]:
     return jnp.stack([hx, hy, hz])
 
 
-def deform(part: Part, q: Float[ArrayLike, "3"]) -> Float[Array, "3"]:
+def deform(part: Part, q: Float[Array, "3"]) -> Float[Array, "3"]:
     """Apply taper, then bend[0], then bend[1] to an undeformed local point ``q``."""
     a1, a3 = part.size[0], part.size[2]
     x, y, z = q[0], q[1], q[2]
@@ -298,7 +301,7 @@ def deform(part: Part, q: Float[ArrayLike, "3"]) -> Float[Array, "3"]:
     return jnp.stack([x, y, z])
 
 
-def undeform(part: Part, p: Float[ArrayLike, "3"]) -> Float[Array, "3"]:
+def undeform(part: Part, p: Float[Array, "3"]) -> Float[Array, "3"]:
     """Exact inverse of :func:`deform` (bend[1], then bend[0], then taper)."""
     a1, a3 = part.size[0], part.size[2]
     x, y, z = p[0], p[1], p[2]
@@ -309,7 +312,7 @@ def undeform(part: Part, p: Float[ArrayLike, "3"]) -> Float[Array, "3"]:
     return jnp.stack([x / scale, y / scale, z])
 
 
-def superquadric_function(part: Part, q: Float[ArrayLike, "3"]) -> Float[Array, ""]:
+def superquadric_function(part: Part, q: Float[Array, "3"]) -> Float[Array, ""]:
     """The undeformed inside-outside function F(q) of Eq. (1): < 1 inside, 1 on the surface.
 
     F = ((|x/a1|^(2/ε2) + |y/a2|^(2/ε2))^(ε2/ε1) + |z/a3|^(2/ε1)
@@ -335,7 +338,7 @@ def inside_outside(part: Part, point: Float[ArrayLike, "3"]) -> Float[Array, ""]
     return superquadric_function(part, undeform(part, to_local(part, point)))
 
 
-def gauge(part: Part, local_point: Float[ArrayLike, "3"]) -> Float[Array, ""]:
+def gauge(part: Part, local_point: Float[Array, "3"]) -> Float[Array, ""]:
     """``F(D^{-1}(p))^(ε1/2) - 1`` at a local point: 0 on the surface, degree-1 homogeneous.
 
     For an undeformed part this is a norm minus one (convex for ε <= 2), the form the ray
@@ -383,7 +386,7 @@ def stack_parts(parts) -> Part:
     return jax.tree_util.tree_map(lambda *xs: _host_op(lambda xp, *a: xp.stack(a), *xs), *parts)
 
 
-def _host_op(fn, *arrays):
+def _host_op(fn, *arrays) -> Any:
     """``fn(xp, *arrays)`` with ``xp = numpy`` on host copies of concrete ``arrays``
     (placed on the device with ``jax.device_put``), or ``xp = jax.numpy`` when any is
     traced. Building, indexing and stacking parts outside ``jit`` with ``jax.numpy`` would

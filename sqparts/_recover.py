@@ -17,6 +17,7 @@ from __future__ import annotations
 
 import dataclasses
 import time
+from typing import TYPE_CHECKING
 
 import jax
 import numpy as np
@@ -29,10 +30,17 @@ from ._render import render_range_image
 from ._search import RangeData, camera_points, fit_image
 from ._select import Costs, SelectionProblem, select_parts
 
+if TYPE_CHECKING:
+    from ._preprocess import CleanedRange, FigureGround
+
 
 class _Fractions:
     """Explained and commission pixels as fractions of the figure's pixels with a return
     (for any result with ``cost`` and ``figure``)."""
+
+    if TYPE_CHECKING:
+        cost: EncodingCost
+        figure: np.ndarray
 
     @property
     def fraction_explained(self) -> float:
@@ -46,6 +54,9 @@ class _Fractions:
 class _Meshes:
     """The parts as meshes for other tools (for any result with ``parts``); trimesh and
     Open3D are imported only here, at the edge (:mod:`sqparts._mesh`)."""
+
+    if TYPE_CHECKING:
+        parts: Part
 
     def to_trimesh(self, *, resolution: int = 32):
         """A ``trimesh.Scene``, one geometry ``part_<i>`` per part in ``report.png``'s
@@ -216,6 +227,7 @@ def recover(
     parts, layers, explained, commission = _candidates(fits, data)
     if parts is None:
         raise ValueError("depth: got an image where the search found no part that explains any pixel, expected a figure the grid can fit")
+    assert layers is not None and explained is not None  # None only together with parts
     problem = SelectionProblem.from_masks(explained, commission, costs)
     chosen, method = select_parts(problem, method=selection)
     chosen = select_rendered(layers, data, costs, start=chosen)
@@ -331,8 +343,8 @@ class SceneRecovery(_Fractions, _Meshes):
     camera: Camera
     depth: np.ndarray
     factor: int
-    cleaned: object
-    figure_ground: object
+    cleaned: CleanedRange | None
+    figure_ground: FigureGround | None
     prettify: list | None
     timings: dict
 

@@ -138,14 +138,14 @@ def costs_adding(cost: EncodingCost, extra, data: RangeData, costs: Costs) -> li
     """E of the parts behind ``cost`` plus each one of the (k, 14) vectors ``extra`` in
     turn; only the extra parts are rendered (:func:`render_each`)."""
     new = render_each(extra, data.camera)
-    return [layers_cost(np.concatenate([cost.layers, t[None]]), data, costs) for t in new]
+    return [layers_cost(np.concatenate([_layers(cost), t[None]]), data, costs) for t in new]
 
 
 def costs_removing(cost: EncodingCost, which, data: RangeData, costs: Costs) -> list[EncodingCost]:
     """E of the parts behind ``cost`` less each part in ``which`` in turn (nothing is
     rendered: the remaining layers are composed again)."""
-    n = len(cost.layers)
-    return [layers_cost(cost.layers[np.arange(n) != i], data, costs) for i in which]
+    n = len(_layers(cost))
+    return [layers_cost(_layers(cost)[np.arange(n) != i], data, costs) for i in which]
 
 
 def _least_pixels(costs: Costs) -> float:
@@ -158,6 +158,13 @@ def _pixel_errors(hit, rendered, measured, figure, sigma):
     (rendered off the figure and not hidden by data in front: :func:`~sqparts.commission_mask`)
     masks of rendered pixels ``hit``; numpy or jnp arrays."""
     return hit & figure & (abs(rendered - measured) <= sigma / 2), commission_mask(hit, rendered, measured, figure, sigma / 2)
+
+
+def _layers(cost: EncodingCost) -> np.ndarray:
+    """``cost.layers``, which every cost from :func:`layers_cost` has."""
+    if cost.layers is None:
+        raise ValueError("cost: got an EncodingCost without per-part layers, expected one from encoding_cost or layers_cost")
+    return cost.layers
 
 
 def _count(n: int, rendered, labels, data: RangeData, costs: Costs, layers=None) -> EncodingCost:
@@ -214,6 +221,7 @@ def select_rendered(layers: np.ndarray, data: RangeData, costs: Costs, *, start=
                 break
         if e_now < best_e:
             best, best_e = x, e_now
+    assert best is not None  # E is finite, so the first seed always sets it
     return best
 
 
@@ -278,10 +286,10 @@ def _polish_all(parts: Part, points, weights, steps: int, rays, ray_weights) -> 
     pi, pw, ri, rw = (np.concatenate([a, np.zeros((m - n,) + a.shape[1:], a.dtype)]) for a in (pi, pw, ri, rw))
     x = np.asarray(points, np.float32)[pi]
     if len(rays[0]) == 0:  # no background in view: nothing to miss
-        rays = (np.zeros((1, 3), np.float32), np.float32([[0.0, 0.0, 1.0]]))
+        rays = (np.zeros((1, 3), np.float32), np.array([[0.0, 0.0, 1.0]], np.float32))
     o, d = (np.asarray(a, np.float32)[ri] for a in rays)
     d[rw == 0] = (0.0, 0.0, 1.0)  # padding rays stay finite
-    out = [_polish_bucket(padded[k : k + _BUCKET], *(a[k : k + _BUCKET] for a in (x, pw, o, d, rw)), steps)
+    out = [_polish_bucket(padded[k : k + _BUCKET], *(a[k : k + _BUCKET] for a in (x, pw, o, d, rw)), steps=steps)
            for k in range(0, m, _BUCKET)]
     return _host_parts(np.concatenate([_vectors(p) for p in out])[:n])
 
@@ -367,7 +375,7 @@ def _grow_inputs(parts: Part, data: RangeData, cost: EncodingCost, which, *, tol
     for k, i in enumerate(which):
         mine = cost.labels == i
         near = binary_dilation(mine, iterations=grow).reshape(-1)[at]
-        support = ((flat_labels == i) & close & valid) | (free & near & (dist[k] < 3 * scale[k]))
+        support = ((flat_labels == i) & close & valid) | (free & near & (dist[k] < 3 * scale[k]))  # pyright: ignore[reportOperatorIssue]  # scipy is untyped: binary_dilation's inferred return includes float arrays
         weights.append(np.where(support, 1.0 / np.sqrt(1.0 + (dist[k] / scale[k]) ** 2), 0.0))
         ray_weights.append(_rays_near(mine, ray_index, grow + 3))
     return vec, np.stack(weights), np.stack(ray_weights)
@@ -392,7 +400,7 @@ def polish_jointly(parts: Part, data: RangeData, costs: Costs, *, steps: int = 2
     new_layers = render_each(new, data.camera)
     order = np.argsort([-(cost.labels == i).sum() for i in range(len(parts))])
     for i in order:
-        layers = cost.layers.copy()
+        layers = _layers(cost).copy()
         layers[i] = new_layers[i]
         c = layers_cost(layers, data, costs)
         if c.total < cost.total - 1e-9:
@@ -417,7 +425,7 @@ def split_parts(
     cost = encoding_cost(parts, data, costs) if cost is None else cost
     least = _least_pixels(costs)
     omitted = data.figure_mask & ~cost.explained_mask
-    beside = np.array([(binary_dilation(cost.labels == i, iterations=2) & omitted).sum() for i in range(len(parts))])
+    beside = np.array([(binary_dilation(cost.labels == i, iterations=2) & omitted).sum() for i in range(len(parts))])  # pyright: ignore[reportOperatorIssue]  # scipy is untyped: binary_dilation returns a bool array
     vec = _vectors(parts)
     trials, kept = [], []
     for i in [int(i) for i in np.argsort(-beside)[:tries] if beside[i] >= least]:
@@ -428,7 +436,7 @@ def split_parts(
         halves[:, 8] = v[8] / 2
         halves[:, 11:14] = 0.0
         trials.append(np.concatenate([np.delete(vec, i, 0), halves]).astype(np.float32))
-        kept.append(np.delete(cost.layers, i, 0))
+        kept.append(np.delete(_layers(cost), i, 0))
     if not trials:
         return parts, cost
     n = len(parts) + 1
@@ -459,7 +467,7 @@ def omitted_blobs(omitted: np.ndarray) -> tuple[np.ndarray, int]:
 
     omitted = np.asarray(omitted, bool)
     square = np.ones((3, 3), bool)
-    cores, count = label(binary_erosion(omitted, structure=square), structure=square)
+    cores, count = label(binary_erosion(omitted, structure=square), structure=square)  # pyright: ignore[reportGeneralTypeIssues]  # scipy is untyped: label returns (labels, count) without output=
     return np.where(omitted, grey_dilation(cores, footprint=square), 0), count
 
 
@@ -499,19 +507,19 @@ def fill_gaps(
     sizes = np.bincount(blob_labels.ravel(), minlength=count + 1)[1:]
     inner = distance_transform_edt(omitted)
     vec = _vectors(parts)
-    found, seed, innermost = [], [], set()
+    additions, seed, innermost = [], [], set()
 
     def search(centre, max_size):
         fit = fit_region(data, dataclasses.replace(settings, max_size=float(np.clip(max_size, 1e-6, settings.max_size))), centre)
         good = _vectors(fit.parts)[np.asarray(fit.gamma) > 0]
-        found.extend(good)
+        additions.extend(good)
         seed.extend([centre] * len(good))
 
     for b in np.argsort(-sizes, kind="stable")[:blobs]:
         blob = blob_labels == b + 1
         if sizes[b] < least:
             continue
-        radius = np.where(blob, inner, 0.0)
+        radius = np.where(blob, inner, 0.0)  # pyright: ignore[reportCallIssue, reportArgumentType]  # scipy is untyped: distance_transform_edt returns the distances array here
         centre = tuple(int(i) for i in np.unravel_index(int(np.argmax(radius)), blob.shape))
         rows, cols = np.nonzero(blob)
         pixel = float(data.camera.pixel_size_at(float(np.nanmedian(data.image[blob]))))
@@ -524,10 +532,10 @@ def fill_gaps(
                       if (r - centre[0]) ** 2 + (c - centre[1]) ** 2 >= spacing**2]
             for r, c in points[:seeds]:
                 search((r, c), 4 * pixel * float(radius[r, c]))
-    if not found:
+    if not additions:
         return [(parts, cost)]
     n = len(parts)
-    found = np.stack(found)
+    found = np.stack(additions)
     scores = costs_adding(cost, found, data, costs)
     for _ in range(rounds):
         trials = [_host_parts(np.concatenate([vec, f[None]])) for f in found]
@@ -539,15 +547,15 @@ def fill_gaps(
     for k, (s, c) in enumerate(zip(seed, scores)):
         if s not in best or c.total < scores[best[s]].total:
             best[s] = k
-    rest = cost.layers.min(0) if n else np.full(data.image.shape, np.inf, np.float32)
+    rest = _layers(cost).min(0) if n else np.full(data.image.shape, np.inf, np.float32)
     for k in best.values():
-        found[k] = settle_part(found[k], scores[k].layers[n], rest, data, costs)
+        found[k] = settle_part(found[k], _layers(scores[k])[n], rest, data, costs)
     settled = dict(zip(best.values(), costs_adding(cost, found[list(best.values())], data, costs)))
 
     def add(keys):
         v, e = vec, cost
         for k in sorted(keys, key=lambda k: settled[k].total):
-            c = layers_cost(np.concatenate([e.layers, settled[k].layers[n:]]), data, costs)
+            c = layers_cost(np.concatenate([_layers(e), _layers(settled[k])[n:]]), data, costs)
             if c.total < e.total - 1e-9:
                 v, e = np.concatenate([v, found[k : k + 1]]), c
         return v, e
@@ -610,7 +618,7 @@ def settle_part(vector, layer, rest, data: RangeData, costs: Costs, *, iteration
     u, scale, failures = np.asarray(to_unconstrained(_host_parts(vector[None])))[0], 1.0, 0
     for i in range(iterations):
         trials, e, c, border = (np.asarray(a) for a in _crop_trials(
-            u, base * scale, np.int32(seed), np.uint32(i), np.int32([r0, c0]), *args, camera=data.compiled_camera))
+            u, base * scale, np.int32(seed), np.uint32(i), np.array([r0, c0], np.int32), *args, camera=data.compiled_camera))
         f = np.where(border, np.inf, costs.total(0, e, c))  # E up to the pixels outside the crop
         k = int(np.argmin(f))
         if f[k] < f[0] - 1e-9:  # trial 0 is the current part
@@ -776,6 +784,7 @@ def merge_adjacent(
         inits, weights, ray_weights, members = [], [], [], []
 
         def add(group, starts):
+            assert cost is not None  # set above; pyright does not narrow it in this closure
             union = np.isin(cost.labels, group) & cost.explained_mask
             w = np.where(idx >= 0, union.reshape(-1)[at], False).astype(np.float32)
             if w.sum() < 8:
@@ -806,7 +815,7 @@ def merge_adjacent(
         base = cost
         for vector, group, layer in zip(trials, groups, render_each(trials, data.camera)):
             keep = [q for q in range(n) if q not in group]
-            c = layers_cost(np.concatenate([base.layers[keep], layer[None]]), data, costs)
+            c = layers_cost(np.concatenate([_layers(base)[keep], layer[None]]), data, costs)
             if c.total < cost.total - 1e-9:
                 parts, cost, merged = _host_parts(np.concatenate([vec[keep], vector[None]])), c, True
     return parts, cost

@@ -47,6 +47,7 @@ from ._part import (
     to_unconstrained,
 )
 from ._render import cast_part
+from ._typing import ArrayLike, Float
 
 SEARCH_NEWTON_STEPS = 6
 """Newton steps when scoring hypotheses (grazing silhouette pixels barely move Γ)."""
@@ -515,7 +516,7 @@ def _finish(arrays, orientation_rel, shape, offsets, corner, centre, max_size, *
     return parts, gam, explained, hit, commission, anchored
 
 
-def ray_penetration(part: Part, origin, direction, far=jnp.inf):
+def ray_penetration(part: Part, origin, direction, far: Float[ArrayLike, ""] = jnp.inf):
     """Signed radial distance (:func:`~sqparts.surface_distance`) of the ray's point
     deepest inside the part's ellipsoid of semi-axes ``size``, among the points
     ``origin + t direction`` with t <= ``far`` (the free segment in front of a return):

@@ -14,6 +14,7 @@ from __future__ import annotations
 
 import re
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 
@@ -187,13 +188,20 @@ def entity_name(text: str) -> str:
     return re.sub(r"[^A-Za-z0-9_-]+", "_", str(text)).strip("_") or "recovery"
 
 
+def _rerun() -> Any:
+    """The ``rerun`` module, typed ``Any``: rerun-sdk stops at import below Python 3.11,
+    so a type checker set to Python 3.10 sees none of its names."""
+    import rerun
+
+    return rerun
+
+
 def rerun_entries(data: dict, prefix: str) -> list:
     """``(entity path, archetype)`` pairs logging one recovery under ``prefix``: the
     camera (a pinhole's intrinsics), the depth image, the point layers and the parts."""
-    import rerun as rr
-
     from ._camera import PinholeCamera
 
+    rr = _rerun()
     layers = view_layers(data)
     out = [(prefix, rr.ViewCoordinates.RDF)]
     camera, depth = data.get("camera"), data.get("depth")
@@ -216,7 +224,7 @@ def rerun_entries(data: dict, prefix: str) -> list:
 
 def rerun_bytes(entries) -> bytes:
     """One Rerun recording (``.rrd`` bytes) of the entries, all static."""
-    import rerun as rr
+    rr = _rerun()
 
     recording = rr.RecordingStream("sqparts")
     stream = recording.binary_stream()
