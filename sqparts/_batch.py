@@ -364,9 +364,11 @@ class _ResultsLog:
                 f.write("".join(json.dumps(r) + "\n" for r in keep).encode())
                 f.flush()
                 os.fsync(f.fileno())
-        self.fd = os.open(path, os.O_WRONLY | os.O_APPEND | os.O_CREAT, 0o666)
+        self.fd: int | None = os.open(path, os.O_WRONLY | os.O_APPEND | os.O_CREAT, 0o666)
 
     def append(self, record: dict) -> None:
+        if self.fd is None:
+            raise ValueError("results: got a closed results.jsonl, expected one open for appending")
         os.write(self.fd, (json.dumps(record) + "\n").encode())
         os.fsync(self.fd)
 

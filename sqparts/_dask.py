@@ -59,7 +59,8 @@ def run_on_cluster(tasks, client: Client):
 def local_cluster(workers: int):
     """A ``LocalCluster`` of ``workers`` processes with one thread each; yields its client."""
     cluster = LocalCluster(n_workers=workers, threads_per_worker=1, processes=True,
-                           dashboard_address=None, silence_logs=logging.ERROR)
+                           dashboard_address=None,  # pyright: ignore[reportArgumentType]  (None = no dashboard, as distributed documents)
+                           silence_logs=logging.ERROR)
     try:
         with Client(cluster) as client:
             yield client

@@ -216,7 +216,7 @@ def _cluster(args):
         flag = "--jobs" if args.jobs is not None else "--scheduler"
         raise ValueError(f"{flag}: got it without Dask ({e}), expected dask.distributed installed "
                          "(pip install 'sqparts[distributed]')") from None
-    return _dask.local_cluster(args.jobs) if args.jobs is not None else _dask.connect(args.scheduler)
+    return _dask.local_cluster(args.jobs) if args.jobs is not None else _dask.connect(str(args.scheduler))
 
 
 def cmd_recover(args) -> int:
