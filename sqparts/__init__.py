@@ -54,6 +54,9 @@ _EXPORTS = {
         "FractalSurface", "ResidualModel", "fit_fractal", "prettify", "residual_model",
         "snap_rotation", "snap_to_gravity",
     ),
+    "_describe": (
+        "ATTRIBUTES", "RELATIONS", "Description", "describe", "describe_figures", "part_volume",
+    ),
     "_scenes": (
         "BUILTIN_SCENES", "BuiltinScene", "builtin_scene",
     ),
