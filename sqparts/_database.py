@@ -96,12 +96,17 @@ class StoredView:
         return (self.main, *self.variants)
 
 
-def _centred(parts: Part) -> Part:
-    """``parts`` moved so that their volume-weighted centre is the origin."""
-    pos = np.asarray(parts.position, float)
-    vol = part_volume(np.asarray(parts.size, float), np.asarray(parts.squareness, float))
-    centre = (pos * vol[:, None]).sum(0) / vol.sum()
-    return dataclasses.replace(parts, position=(pos - centre).astype(np.asarray(parts.position).dtype))
+def transform_parts(parts: Part, pose) -> Part:
+    """Batched ``parts`` moved by a 4x4 rigid transform (p -> R p + t)."""
+    from ._part import matrix_to_rotation_vector
+
+    pose = np.asarray(pose, float)
+    r, t = pose[:3, :3], pose[:3, 3]
+    rot = np.einsum("ij,njk->nik", r, np.asarray(parts.rotation(), float))
+    ori = np.stack([np.asarray(matrix_to_rotation_vector(m.astype(np.float32))) for m in rot]).astype(np.float32)
+    pos = (np.asarray(parts.position, float) @ r.T + t).astype(np.float32)
+    return Part(size=parts.size, squareness=parts.squareness, position=pos, orientation=ori, bend=parts.bend,
+                taper=parts.taper)
 
 
 def _stored(kind: str, parts: Part) -> StoredDescription:
@@ -180,7 +185,8 @@ class RecognitionMatch:
 
     ``parts``: (query part, model part) pairs, query indices into the whole recovery's
     parts (all figures, as in parts.json), model indices into ``model_parts``;
-    ``pose``: 4x4, model frame to the query's camera frame.
+    ``pose``: 4x4, model frame to the query's camera frame; ``figure``: the query
+    figure matched (-1: all figures together).
     """
 
     name: str
@@ -191,6 +197,10 @@ class RecognitionMatch:
     view: int
     kind: str
     model_parts: Part
+
+    def posed_parts(self) -> Part:
+        """The matched stored parts moved into the query's camera frame by ``pose``."""
+        return transform_parts(self.model_parts, self.pose)
 
     def to_json(self) -> dict:
         return {"name": self.name, "score": float(self.score), "parts": self.parts.tolist(), "pose": self.pose.tolist(),
@@ -264,9 +274,17 @@ class ModelDatabase:
     def add_view(self, name: str, view: StoredView, *, calibrate: bool = True) -> None:
         """Add one view to object ``name`` (made if new), write its file and, with
         ``calibrate``, recalibrate the threshold and write ``database.json``."""
+        self.add_views(name, [view], calibrate=calibrate)
+
+    def add_views(self, name: str, views, *, replace: bool = False, calibrate: bool = True) -> None:
+        """Add views to object ``name`` (made if new; with ``replace`` its old views are
+        dropped), write its file once and, with ``calibrate``, recalibrate."""
         check_name(name)
+        views = tuple(views)
+        if not all(isinstance(v, StoredView) for v in views):
+            raise TypeError("views: got something other than StoredView, expected views from view_from_parts")
         self.path.mkdir(parents=True, exist_ok=True)
-        self.objects[name] = (*self.objects.get(name, ()), view)
+        self.objects[name] = (*(() if replace else self.objects.get(name, ())), *views)
         self._write_object(name)
         if calibrate:
             self.calibrate()
@@ -343,6 +361,20 @@ def _coarse_levels(recovery, levels: int, **recover_kwargs) -> list[Part]:
     return out
 
 
+def view_from_recovery(recovery, *, source: str = "", levels: int = 2, **recover_kwargs) -> StoredView:
+    """A :class:`StoredView` from a recovery of a view that shows one object: all its
+    figures together are the object (depth jumps inside an object, a fin in front of a
+    body, tear it into several figures). The variants: the largest figure's selection
+    before refinement and its coarser multiscale levels (``levels`` - 1 of them,
+    recovered here), each with the other figures' parts, then merges and splits."""
+    figures = _figure_recoveries(recovery)
+    others = [p for r in figures[1:] for p in r.parts]
+    parts = stack_parts([p for r in figures for p in r.parts])
+    coarse = _coarse_levels(recovery, levels, **recover_kwargs) if levels > 1 else []
+    return view_from_parts(parts, source=source, initial=stack_parts([*figures[0].initial_parts, *others]),
+                           levels=[stack_parts([*c, *others]) for c in coarse])
+
+
 def learn(name: str, views, *, database, levels: int = 2, progress=None, **recover_kwargs) -> ModelDatabase:
     """Recover each view and add it to object ``name`` in ``database``.
 
@@ -373,11 +405,9 @@ def learn(name: str, views, *, database, levels: int = 2, progress=None, **recov
             source = f"view {k}"
         else:
             rec, source = view, f"recovery {k}"
-        fig = _figure_recoveries(rec)
-        if not fig or len(fig[0].parts) == 0:
+        if not _figure_recoveries(rec):
             raise ValueError(f"views[{k}]: got a range image in which nothing was recovered, expected a view of the object")
-        coarse = _coarse_levels(rec, levels, grid=recover_kwargs.get("grid", "coarse")) if levels > 1 else []
-        db.add_view(name, view_from_parts(fig[0].parts, source=source, initial=fig[0].initial_parts, levels=coarse),
+        db.add_view(name, view_from_recovery(rec, source=source, levels=levels, grid=recover_kwargs.get("grid", "coarse")),
                     calibrate=k == len(views) - 1)
     return db
 
@@ -386,17 +416,22 @@ def match_figures(figures, *, database, settings: MatchSettings = MatchSettings(
     """Match each figure's parts (a list of batched :class:`~sqparts.Part`, camera frame)
     against every stored object. Returns (best name or None, list of
     :class:`RecognitionMatch`, one per object, best first); query part indices count
-    through all figures in order."""
+    through all figures in order. Each figure is matched on its own, and, when there are
+    several, all of them together (an object torn at its own depth jumps; an occluder
+    is then an extra part)."""
     db = database if isinstance(database, ModelDatabase) else ModelDatabase(database)
     figures = [f if f.batch_shape else stack_parts([f]) for f in figures if f is not None and (not f.batch_shape or len(f))]
     offsets = np.cumsum([0] + [len(f) for f in figures])
+    queries = list(enumerate(figures))
+    if len(figures) > 1:  # also all figures together: an object torn at its own depth jumps
+        queries.append((-1, stack_parts([p for f in figures for p in f])))
     best: dict[str, tuple] = {}
-    for f, parts in enumerate(figures):
+    for f, parts in queries:
         query = describe(parts)
         for name, score, view, kind, m, stored in db.match(query, settings=settings):
             if name not in best or score > best[name][0]:
                 pairs = m.pairs.copy()
-                pairs[:, 0] += offsets[f]
+                pairs[:, 0] += offsets[f] if f >= 0 else 0
                 best[name] = (score, RecognitionMatch(name, score, pairs, m.pose, f, view, kind, stored.parts))
     matches = [m for _, m in sorted(best.values(), key=lambda r: -r[0])]
     top = matches[0].name if matches and matches[0].score >= db.threshold else None

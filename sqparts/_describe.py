@@ -21,6 +21,7 @@ from __future__ import annotations
 import dataclasses
 
 import numpy as np
+from scipy.spatial import cKDTree
 from scipy.special import beta
 
 from ._part import Part, matrix_to_rotation_vector, stack_parts
@@ -240,6 +241,7 @@ def describe(parts: Part, *, names=None, touch_gap: float = TOUCH_GAP) -> Descri
         sorted_size / scale, sq, np.abs(taper), np.hypot(bend[:, 0], bend[:, 1]), volume / volume.sum(),
     ])
     samples = [surface_samples(size[i], sq[i], bend[i], taper[i], rot[i], position[i]) for i in range(n)]
+    trees = [cKDTree(p) for p in samples]
     relations = np.zeros((n, n, len(RELATIONS)))
     for i in range(n):
         for j in range(n):
@@ -248,8 +250,7 @@ def describe(parts: Part, *, names=None, touch_gap: float = TOUCH_GAP) -> Descri
             if j < i:
                 gap = relations[j, i, 1]
             else:
-                d2 = ((samples[i][:, None, :] - samples[j][None, :, :]) ** 2).sum(-1)
-                gap = float(np.sqrt(d2.min())) / scale
+                gap = float(trees[i].query(samples[j], k=1)[0].min()) / scale
             offset = np.abs(sorted_rot[i].T @ (position[j] - position[i])) / scale
             cos = abs(float(sorted_rot[i][:, 0] @ sorted_rot[j][:, 0]))
             relations[i, j] = [
