@@ -86,7 +86,7 @@ def mesh_view(mesh, azimuth, elevation, scale=1.0, *, plate=False, noise=0.0, rn
     m.apply_transform(_rotation(azimuth, elevation))
     m.apply_translation([0, 0, DISTANCE * scale])
     if plate:
-        box = trimesh.creation.box(extents=[0.22, 0.8, 0.03])
+        box = trimesh.creation.box(extents=[0.22, 0.5, 0.03])
         box.apply_translation([0.19 * (1 if rng.random() < 0.5 else -1), 0, DISTANCE * scale - 0.7])
         m = trimesh.util.concatenate([m, box])
     depth = render_mesh(m, camera())
