@@ -43,6 +43,10 @@ class MatchSettings:
     angle_tolerance : sigma of the angle between longest axes (radians).
     min_similarity : a pair less similar than this is left unmatched.
     iterations : IPFP re-assignments after the first.
+    weighting : a matched pair's weight: ``"fraction"``, sqrt(v_query v_model) of the two
+        parts' volume fractions; ``"volume"``, min(V_query, V_model) / max(ΣV_query,
+        ΣV_model) of their volumes in scene units, so that a query explaining only a small
+        piece of a model (or a model only a small piece of the query) scores low.
     """
 
     size_tolerance: float = 0.3
@@ -52,6 +56,11 @@ class MatchSettings:
     angle_tolerance: float = 0.6
     min_similarity: float = 0.05
     iterations: int = 4
+    weighting: str = "volume"
+
+    def __post_init__(self):
+        if self.weighting not in ("fraction", "volume"):
+            raise ValueError(f"weighting: got {self.weighting!r}, expected 'fraction' or 'volume'")
 
 
 @dataclasses.dataclass(frozen=True)
@@ -184,7 +193,11 @@ def match_descriptions(query: Description, model: Description, settings: MatchSe
     if not isinstance(settings, MatchSettings):
         raise TypeError(f"settings: got {type(settings).__name__}, expected a MatchSettings")
     unary = unary_similarity(query, model, settings)
-    weight = np.sqrt(query.attributes[:, _VOLUME][:, None] * model.attributes[:, _VOLUME][None, :])
+    if settings.weighting == "volume":
+        vq, vm = query.attributes[:, _VOLUME] * query.scale**3, model.attributes[:, _VOLUME] * model.scale**3
+        weight = np.minimum(vq[:, None], vm[None, :]) / max(vq.sum(), vm.sum())
+    else:
+        weight = np.sqrt(query.attributes[:, _VOLUME][:, None] * model.attributes[:, _VOLUME][None, :])
     qr, mr = _relation_features(query), _relation_features(model)
     benefit = unary * weight
     pairs = _assign(benefit, unary, settings.min_similarity)
