@@ -216,3 +216,28 @@ def test_recognize_with_an_empty_database_is_one_line(tmp_path, capsys):
     err = capsys.readouterr().err.strip()
     assert err.startswith("sqparts: error: --db: got") and "expected a database made by sqparts learn" in err
     assert not (tmp_path / "o").exists()
+
+
+@pytest.mark.parametrize("argv, start", [
+    (["learn", "a/b", "x.npy"], "sqparts: error: name: got 'a/b', expected 1-100 letters"),
+    (["learn", "ok", "missing.npy"], "sqparts: error: input: got"),
+    (["learn", "ok", "x.npy", "--levels", "9"], "sqparts: error: --levels: got '9', expected an integer in [1, 4]"),
+])
+def test_learn_errors_are_one_line_before_any_work(tmp_path, capsys, monkeypatch, argv, start):
+    monkeypatch.chdir(tmp_path)
+    np.save(tmp_path / "x.npy", np.ones((4, 4), np.float32))
+    assert main([*argv, "--db", str(tmp_path / "db")]) == 2
+    err = capsys.readouterr().err.strip()
+    assert err.startswith(start) and "\n" not in err
+    assert not (tmp_path / "db").exists()
+
+
+def test_a_database_path_that_is_a_file_is_refused(tmp_path):
+    (tmp_path / "f").write_text("x")
+    with pytest.raises(NotADirectoryError, match=r"--db: got .*, which is a file, expected a database folder"):
+        ModelDatabase(tmp_path / "f")
+
+
+def test_bad_match_settings_are_refused():
+    with pytest.raises(ValueError, match=r"weighting: got 'x', expected 'fraction' or 'volume'"):
+        sqparts.MatchSettings(weighting="x")
