@@ -37,7 +37,8 @@ class MatchSettings:
 
     Attributes
     ----------
-    size_tolerance : log-ratio of a semi-axis that halves... (one "sigma" of log size).
+    size_tolerance : sigma of the log of a semi-axis (scene units; a pair of parts whose
+        sizes differ by this much in every axis has unary similarity exp(-1/2)).
     squareness_tolerance, deformation_tolerance : sigma of ε and of |taper|, |bend|.
     distance_tolerance : sigma of gaps, distances and offsets, a fraction of the model's scale.
     angle_tolerance : sigma of the angle between longest axes (radians).
