@@ -37,8 +37,9 @@ class MatchSettings:
 
     Attributes
     ----------
-    size_tolerance : sigma of the log of a semi-axis (scene units; a pair of parts whose
-        sizes differ by this much in every axis has unary similarity exp(-1/2)).
+    size_tolerance : sigma of the log of a semi-axis (the semi-axes compared in scene
+        units); the unary similarity is exp(-d²/2), d the RMS over the seven features of
+        their differences divided by their sigmas.
     squareness_tolerance, deformation_tolerance : sigma of ε and of |taper|, |bend|.
     distance_tolerance : sigma of gaps, distances and offsets, a fraction of the model's scale.
     angle_tolerance : sigma of the angle between longest axes (radians).
