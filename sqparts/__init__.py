@@ -54,13 +54,22 @@ _EXPORTS = {
         "FractalSurface", "ResidualModel", "fit_fractal", "prettify", "residual_model",
         "snap_rotation", "snap_to_gravity",
     ),
+    "_describe": (
+        "ATTRIBUTES", "RELATIONS", "Description", "describe", "describe_figures", "part_volume",
+    ),
+    "_recognize": (
+        "Match", "MatchSettings", "calibrate_threshold", "estimate_pose", "match_descriptions",
+    ),
     "_scenes": (
-        "BUILTIN_SCENES", "BuiltinScene", "builtin_scene",
+        "BUILTIN_SCENES", "BuiltinScene", "HUMAN_POSES", "builtin_scene", "posed_human",
     ),
     "_io": (
         "PARTS_SCHEMA_PATH", "camera_from_realsense", "load_camera", "load_scene", "parts_schema",
         "read_range_image", "save_camera", "save_scene", "scene_from_dict", "scene_to_dict",
         "write_range_image",
+    ),
+    "_database": (
+        "ModelDatabase", "Recognition", "RecognitionMatch", "learn", "recognize",
     ),
     "_mesh": (
         "load_mesh", "part_colors", "part_mesh", "render_mesh", "save_mesh", "scene_mesh",

@@ -148,3 +148,45 @@ def save_residual_report(path, recovery, model, *, title: str | None = None) -> 
         fig.suptitle(title + "\n" + model.summary(), fontsize=9)
     fig.tight_layout()
     _save(fig, path)
+
+
+def save_recognition_report(path, recognition, *, title: str | None = None) -> None:
+    """Report PNG of a recognition: the input, its recovered parts and the best-matching
+    stored object's parts placed by the estimated pose, corresponding parts in the same
+    colour (unmatched recovered parts grey); with the scores of the top matches."""
+    from ._render import render_range_image
+
+    plt = _pyplot()
+    rec = recognition.recovery
+    depth, camera = rec.depth, rec.camera
+    parts = rec.parts
+    _, labels = render_range_image(parts, camera, return_labels=True)
+    labels = np.asarray(labels)
+    match = recognition.matches[0] if recognition.matches else None
+    colour = np.full(len(parts), -2)
+    if match is not None:
+        for k, (i, _) in enumerate(match.parts):
+            colour[i] = k
+    lab = np.where(labels >= 0, colour[np.clip(labels, 0, None)], -1)
+    rgb = _label_rgb(np.where(lab == -2, 0, lab), depth)
+    rgb[lab == -2] = 0.6
+    panels = [("input", range_image_rgb(depth)), ("recovered parts (matched in colour)", rgb)]
+    if match is not None:
+        model = match.posed_parts()
+        mdepth, mlabels = render_range_image(model, camera, return_labels=True)
+        mlabels = np.asarray(mlabels)
+        mcolour = np.full(len(model), -2)
+        for k, (_, j) in enumerate(match.parts):
+            mcolour[j] = k
+        mlab = np.where(mlabels >= 0, mcolour[np.clip(mlabels, 0, None)], -1)
+        mrgb = _label_rgb(np.where(mlab == -2, 0, mlab), mdepth)
+        mrgb[mlab == -2] = 0.6
+        panels.append((f"model {match.name!r} ({match.kind}, view {match.view}) at the estimated pose", mrgb))
+    fig, axes = plt.subplots(1, len(panels), figsize=(4.2 * len(panels), 4.8), dpi=100)
+    for ax, (name, img) in zip(np.atleast_1d(axes), panels):
+        ax.imshow(img, interpolation="nearest")
+        ax.set_title(_wrap(name, 40), fontsize=9)
+        ax.set_xticks([])
+        ax.set_yticks([])
+    fig.suptitle(_wrap(f"{title + ': ' if title else ''}{recognition.summary()}", 110), fontsize=9)
+    _save(fig, path)

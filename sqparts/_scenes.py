@@ -165,6 +165,66 @@ def gate(width: int = 128, height: int = 48) -> BuiltinScene:
                         "a gate 20 m away (Figure 10), members about two pixels wide, scanner camera")
 
 
+HUMAN_POSES = {
+    # name: (right arm, left arm, right leg, left leg), each limb (upper, lower) as
+    # (abduction, swing) in degrees: abduction away from the body in the frontal plane,
+    # swing towards the camera; 0, 0 hangs straight down.
+    "standing": (((8, 0), (6, 0)), ((8, 0), (6, 0)), ((2, 0), (2, 0)), ((2, 0), (2, 0))),
+    "arms up": (((160, 0), (170, 0)), ((160, 0), (170, 0)), ((3, 0), (3, 0)), ((3, 0), (3, 0))),
+    "t-pose": (((90, 0), (90, 0)), ((90, 0), (90, 0)), ((6, 0), (6, 0)), ((6, 0), (6, 0))),
+    "walking": (((5, -25), (5, 0)), ((5, 25), (5, 50)), ((2, 28), (2, 0)), ((2, -22), (2, -45))),
+    "waving": (((130, 0), (170, 0)), ((8, 0), (6, 0)), ((2, 0), (2, 0)), ((2, 0), (2, 0))),
+    "pointing": (((8, 0), (6, 0)), ((50, 0), (0, 90)), ((2, 0), (2, 0)), ((2, 0), (2, 0))),
+    "straddle": (((30, 0), (20, 0)), ((30, 0), (20, 0)), ((25, 0), (5, 0)), ((25, 0), (5, 0))),
+}
+"""Joint angles of :func:`posed_human`'s poses (configuration stability, section 1)."""
+
+
+def _limb_direction(abduction_deg: float, swing_deg: float, side: float) -> np.ndarray:
+    a, s = np.radians(abduction_deg), np.radians(swing_deg)
+    return np.array([side * np.sin(a) * np.cos(s), np.cos(a) * np.cos(s), -np.sin(s)])
+
+
+def posed_human(pose: str = "standing", resolution: int = 128) -> BuiltinScene:
+    """The built-in person's 16 parts in one of :data:`HUMAN_POSES`, 4 m from the camera
+    as :func:`human`: the same limbs (sizes, squareness, taper), the joints moved."""
+    if pose not in HUMAN_POSES:
+        raise ValueError(f"pose: got {pose!r}, expected one of {sorted(HUMAN_POSES)}")
+    z = 4.0
+    right_arm, left_arm, right_leg, left_leg = HUMAN_POSES[pose]
+    named = {
+        "head": limb([0, -0.90, z], [0, -0.66, z], 0.095, 0.105, (0.9, 1.0)),
+        "neck": limb([0, -0.67, z], [0, -0.57, z], 0.05),
+        "torso": limb([0, -0.58, z], [0, -0.08, z], 0.17, 0.10, (0.5, 0.6)),
+        "pelvis": limb([0, -0.10, z], [0, 0.06, z], 0.15, 0.10, (0.6, 0.6)),
+    }
+    for side, label, (upper, lower) in ((-1.0, "right", right_arm), (1.0, "left", left_arm)):
+        shoulder = np.array([0.22 * side, -0.54, z])
+        elbow = shoulder + 0.29 * _limb_direction(*upper, side)
+        wrist = elbow + 0.24 * _limb_direction(*lower, side)
+        hand = wrist + 0.10 * _limb_direction(*lower, side)
+        named[f"{label} upper arm"] = limb(shoulder, elbow, 0.05)
+        named[f"{label} forearm"] = limb(elbow, wrist, 0.042, taper=-0.25)
+        named[f"{label} hand"] = limb(wrist, hand, 0.04, 0.02, (0.6, 0.8))
+    for side, label, (upper, lower) in ((-1.0, "right", right_leg), (1.0, "left", left_leg)):
+        hip = np.array([0.09 * side, 0.04, z])
+        knee = hip + 0.42 * _limb_direction(*upper, side)
+        ankle = knee + 0.40 * _limb_direction(*lower, side)
+        named[f"{label} thigh"] = limb(hip, knee, 0.075, taper=-0.2)
+        named[f"{label} calf"] = limb(knee, ankle, 0.055, taper=-0.2)
+        heel = ankle + np.array([0.0, 0.03, 0.04])
+        named[f"{label} foot"] = limb(heel, heel + np.array([0.0, 0.0, -0.22]), 0.045, 0.03, (0.6, 0.8))
+    order = ["head", "neck", "torso", "pelvis", "right upper arm", "right forearm", "right hand", "left upper arm",
+             "left forearm", "left hand", "right thigh", "left thigh", "right calf", "left calf", "right foot", "left foot"]
+    f = resolution * z / 2.6
+    c = (resolution - 1) / 2
+    cam = PinholeCamera(resolution, resolution, f, f, c, c)
+    return BuiltinScene(
+        f"human ({pose})", stack_parts([named[k] for k in order]), cam, tuple(order),
+        f"the articulated person in pose {pose!r}, 16 parts, 4 m from a pinhole camera",
+    )
+
+
 BUILTIN_SCENES = {"human": human, "chair": chair, "castings": castings, "gate": gate}
 
 

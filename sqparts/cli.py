@@ -327,6 +327,81 @@ def cmd_demo(args) -> int:
     return 0
 
 
+def _read_inputs(args, inputs) -> list:
+    """(path, depth, camera) per input, every one read and checked before any work."""
+    from ._io import load_camera, read_range_image
+
+    camera_arg = load_camera(args.camera) if args.camera else None
+    loaded = []
+    for path in inputs:
+        depth, camera = read_range_image(path, depth_scale=args.depth_scale)
+        camera = camera_arg or camera
+        if camera is None:
+            raise ValueError(f"--camera: got nothing for {str(path)!r}, which carries no camera, expected --camera CAM.json")
+        if depth.shape != (camera.height, camera.width):
+            raise ValueError(
+                f"--camera: got a {camera.width}x{camera.height} camera for {str(path)!r}, expected "
+                f"{depth.shape[1]}x{depth.shape[0]} (the image's size)"
+            )
+        loaded.append((path, depth, camera))
+    return loaded
+
+
+def _recognition_options(args) -> dict:
+    return dict(grid=args.grid, refine_rounds=args.refine_rounds, resolution=args.resolution)
+
+
+def cmd_learn(args) -> int:
+    from ._database import ModelDatabase, check_name, view_from_recovery
+    from ._recover import recover_scene
+
+    check_name(args.name)
+    db = ModelDatabase(args.db)  # read and checked before any work
+    inputs = _inputs(args.input)
+    loaded = _read_inputs(args, inputs)
+    progress = _progress(args, "regions", "region")
+    views = []
+    for path, depth, camera in loaded:
+        rec = recover_scene(depth, camera, progress=progress, **_recognition_options(args))
+        if not rec.figures:
+            raise ValueError(f"input: got {str(path)!r}, in which nothing was recovered, expected a view of the object")
+        views.append(view_from_recovery(rec, source=str(path), levels=args.levels, grid=args.grid))
+        _say(args, f"{path.name}: {rec.summary()}")
+    db.add_views(args.name, views, replace=args.overwrite)
+    _say(args, f"learnt {args.name!r}: {len(db.objects[args.name])} view(s); {len(db.objects)} object(s) in "
+               f"{db.path}, threshold {db.threshold:.3f}")
+    return 0
+
+
+def cmd_recognize(args) -> int:
+    import json
+
+    from ._database import ModelDatabase, recognize
+    from ._io import atomic_write, check_new_output, staged_folder
+    from ._plot import save_recognition_report
+
+    db = ModelDatabase(args.db)
+    if not db.objects:
+        raise ValueError(f"--db: got {args.db!r} with no objects, expected a database made by sqparts learn")
+    inputs = _inputs(args.input)
+    out = Path(args.out)
+    targets = [out / name for name in output_names(inputs)]
+    for target in targets:  # before any work: never overwrite silently
+        check_new_output(target, overwrite=args.overwrite)
+    loaded = _read_inputs(args, inputs)
+    progress = _progress(args, "regions", "region")
+    for (path, depth, camera), target in zip(loaded, targets):
+        result = recognize(depth, camera, database=db, progress=progress, **_recognition_options(args))
+        with staged_folder(target, overwrite=args.overwrite) as folder:
+            with atomic_write(folder / "recognition.json", "w") as f:
+                f.write(json.dumps(dict(result.to_json(), input=str(path)), indent=1) + "\n")
+            with atomic_write(folder / "parts.json", "w") as f:
+                f.write(json.dumps(result.recovery.scene_dict(), indent=2) + "\n")
+            save_recognition_report(folder / "report.png", result, title=path.name)
+        _say(args, f"{path.name}: {result.summary()}\n  wrote {target}/recognition.json, parts.json, report.png")
+    return 0
+
+
 def _say(args, msg: str) -> None:
     if not getattr(args, "quiet", False):
         print(msg)
@@ -416,6 +491,30 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--resolution", type=_number("an integer in [32, 1024]", low=32, high=1024, integer=True),
                    default=128)
     p.set_defaults(func=cmd_demo)
+
+    def recognition_options(p):
+        p.add_argument("--camera", help="camera JSON (a .pcd carries its own)")
+        p.add_argument("--db", required=True, help="model database folder")
+        p.add_argument("--grid", default="coarse", choices=["coarse", "default", "fine"], help="hypothesis grid")
+        p.add_argument("--refine-rounds", type=_number(f"an integer in [0, {MAX_REFINE_ROUNDS}]", low=0,
+                       high=MAX_REFINE_ROUNDS, integer=True), default=2)
+        p.add_argument("--resolution", type=_number("an integer >= 0", low=0, integer=True), default=160,
+                       help="bin the image so its longest side is about this many pixels (0 = full resolution)")
+        p.add_argument("--depth-scale", type=depth_scale, default=0.001, help="PNG units per value (m)")
+
+    p = sub.add_parser("learn", help="recover views of an object and add them to a model database")
+    p.add_argument("name", help="the object's name (letters, digits, '.', '_', '-')")
+    p.add_argument("input", nargs="+", help="range images (.npy .png .tif .pcd) or folders of them")
+    recognition_options(p)
+    p.add_argument("--levels", type=_number("an integer in [1, 4]", low=1, high=4, integer=True), default=2,
+                   help="multiscale levels stored per view (1 = the recovery only)")
+    p.set_defaults(func=cmd_learn)
+
+    p = sub.add_parser("recognize", help="recognise objects of a model database in range images")
+    p.add_argument("input", nargs="+", help="range images (.npy .png .tif .pcd) or folders of them")
+    recognition_options(p)
+    p.add_argument("--out", required=True, help="output directory: one sub-folder per input")
+    p.set_defaults(func=cmd_recognize)
 
     for p in sub.choices.values():
         p.add_argument("--overwrite", action="store_true", help="replace an existing output (default: refuse)")

@@ -204,6 +204,8 @@ def test_recovery_from_exported_programs(one_part, tmp_path):
     """A recovery run from exported programs in a "new process" (nothing loaded, JAX's
     in-memory caches cleared) builds only its own programs and recovers the same parts
     as the plain jit."""
+    _compile.set_export_dir(None)  # whatever an earlier test (a CLI run in this process) loaded
+    _compile.forget_loaded()
     plain = sqparts.recover(one_part, CAM, **KW)
     _compile.set_export_dir(tmp_path)
     try:

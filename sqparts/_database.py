@@ -1,0 +1,484 @@
+"""The model database and the learn / recognize pipelines (the edge: files).
+
+A database is a folder of JSON files, human-readable and diffable::
+
+    DB/database.json   {"format": "sqparts-database/1", "threshold": t, "calibration": {...}}
+    DB/NAME.json       {"format": "sqparts-model/1", "name": NAME, "views": [VIEW, ...]}
+
+Each VIEW is one learnt range image: ``source`` (where it came from), ``main`` (the
+recovered parts as scene JSON, moved so that their volume-weighted centre is the origin:
+the model's frame) with its ``description`` (:meth:`sqparts.Description.to_json`), and
+``variants``: the other descriptions recovery could also have given, each
+``{"kind", "parts", "description"}``: ``level`` (the multiscale levels, coarse to fine,
+section 4.1), ``initial`` (the selection before refinement), ``merged`` (two touching
+parts as one) and ``split`` (a long part as two). Recognition matches a query against
+every stored description of an object and keeps the best.
+
+Every file is written atomically (``sqparts._io.atomic_write``) and read through the
+same checks as scene files, so a failed write leaves the database as it was.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import json
+import re
+import time
+from pathlib import Path
+
+import numpy as np
+
+from ._describe import Description, describe, merged_alternatives, part_volume
+from ._io import _load_json, atomic_write, scene_from_dict, scene_to_dict
+from ._part import Part, stack_parts
+from ._recognize import Match, MatchSettings, calibrate_threshold, match_descriptions
+
+DATABASE_FORMAT = "sqparts-database/1"
+MODEL_FORMAT = "sqparts-model/1"
+INDEX = "database.json"
+DEFAULT_THRESHOLD = 0.45
+"""Score below which nothing is recognised, until the database has calibrated its own."""
+
+_NAME = re.compile(r"^[A-Za-z0-9][A-Za-z0-9._-]{0,99}$")
+
+
+def check_name(name) -> str:
+    if not isinstance(name, str) or not _NAME.match(name) or name == Path(INDEX).stem:
+        raise ValueError(
+            f"name: got {name!r}, expected 1-100 letters, digits, '.', '_' or '-', starting with a letter "
+            f"or digit (not 'database')"
+        )
+    return name
+
+
+def _round(x):
+    """Numbers to 6 significant digits, so files stay small and diffs readable."""
+    if isinstance(x, float):
+        return float(f"{x:.6g}")
+    if isinstance(x, dict):
+        return {k: _round(v) for k, v in x.items()}
+    if isinstance(x, (list, tuple)):
+        return [_round(v) for v in x]
+    return x
+
+
+_NUMBER_LIST = re.compile(r"\[\s+([-+0-9.eE,\s]+?)\s+\]")
+_FLAT_OBJECT = re.compile(r"\{\s+((?:\"[a-z_0-9]+\": [^{}\[\]\n]+,?\s+)+)\}")
+
+
+def _write_json(path: Path, data) -> None:
+    """Indented JSON with lists of numbers and flat objects (edges) on one line each."""
+    text = json.dumps(_round(data), indent=1)
+    text = _NUMBER_LIST.sub(lambda m: "[" + ", ".join(x.strip() for x in m.group(1).split(",")) + "]", text)
+    text = _FLAT_OBJECT.sub(lambda m: "{" + ", ".join(x.strip().rstrip(",") for x in m.group(1).strip().split("\n")) + "}", text)
+    with atomic_write(path, "w") as f:
+        f.write(text + "\n")
+
+
+@dataclasses.dataclass(frozen=True)
+class StoredDescription:
+    """One description of one view of a stored object, with the parts it describes."""
+
+    kind: str
+    parts: Part
+    description: Description
+
+
+@dataclasses.dataclass(frozen=True)
+class StoredView:
+    source: str
+    main: StoredDescription
+    variants: tuple
+
+    @property
+    def descriptions(self) -> tuple:
+        """The main description first, then the variants."""
+        return (self.main, *self.variants)
+
+
+def transform_parts(parts: Part, pose) -> Part:
+    """Batched ``parts`` moved by a 4x4 rigid transform (p -> R p + t)."""
+    from ._part import matrix_to_rotation_vector
+
+    pose = np.asarray(pose, float)
+    r, t = pose[:3, :3], pose[:3, 3]
+    rot = np.einsum("ij,njk->nik", r, np.asarray(parts.rotation(), float))
+    ori = np.stack([np.asarray(matrix_to_rotation_vector(m.astype(np.float32))) for m in rot]).astype(np.float32)
+    pos = (np.asarray(parts.position, float) @ r.T + t).astype(np.float32)
+    return Part(size=parts.size, squareness=parts.squareness, position=pos, orientation=ori, bend=parts.bend,
+                taper=parts.taper)
+
+
+def _stored(kind: str, parts: Part) -> StoredDescription:
+    parts = parts if parts.batch_shape else stack_parts([parts])
+    return StoredDescription(kind, parts, describe(parts))
+
+
+def _stored_to_json(s: StoredDescription) -> dict:
+    return {"kind": s.kind, "parts": scene_to_dict(s.parts)["parts"], "description": s.description.to_json()}
+
+
+def _stored_from_json(data, where: str) -> StoredDescription:
+    if not isinstance(data, dict) or "parts" not in data:
+        raise ValueError(f"{where}: got {type(data).__name__}, expected an object with 'kind', 'parts' and 'description'")
+    try:
+        parts, _, _ = scene_from_dict({"parts": data["parts"]})
+    except ValueError as e:
+        raise ValueError(f"{where}.{e}") from None
+    desc = Description.from_json(data.get("description"), where=f"{where}.description")
+    if len(desc) != (len(parts) if parts.batch_shape else 1):
+        raise ValueError(f"{where}.description: got {len(desc)} parts, expected {len(parts)} (as in {where}.parts)")
+    return StoredDescription(str(data.get("kind", "main")), parts, desc)
+
+
+def view_from_parts(parts: Part, *, source: str = "", initial: Part | None = None, levels=(),
+                    merged: int = 2, split: int = 2) -> StoredView:
+    """A :class:`StoredView` from one figure's recovered parts (camera frame): the parts
+    centred (the model's frame), their description and the variants (see the module
+    docstring). ``levels`` are coarser recoveries' parts, ``initial`` the selection before
+    refinement; ``merged`` and ``split`` bound how many of those variants are made."""
+    parts = parts if parts.batch_shape else stack_parts([parts])
+    pos = np.asarray(parts.position, float)
+    vol = part_volume(np.asarray(parts.size, float), np.asarray(parts.squareness, float))
+    centre = (pos * vol[:, None]).sum(0) / vol.sum()
+
+    def move(p: Part) -> Part:
+        p = p if p.batch_shape else stack_parts([p])
+        return dataclasses.replace(p, position=(np.asarray(p.position, float) - centre).astype(np.float32))
+
+    main = _stored("main", move(parts))
+    variants = [_stored("level", move(p)) for p in levels if p is not None]
+    if initial is not None and len(initial) != len(parts):
+        variants.append(_stored("initial", move(initial)))
+    variants += [_stored("merged", p) for p in merged_alternatives(main.parts, main.description, limit=merged)]
+    variants += [_stored("split", p) for p in split_alternatives(main.parts, limit=split)]
+    return StoredView(source, main, tuple(variants))
+
+
+def split_alternatives(parts: Part, *, limit: int = 2, min_elongation: float = 2.0) -> list[Part]:
+    """Up to ``limit`` alternatives, each with one elongated part (longest semi-axis at
+    least ``min_elongation`` times the next) split in two halves along that axis."""
+    sizes = np.asarray(parts.size, float)
+    out = []
+    order = np.argsort(-sizes.max(1))
+    for i in order:
+        s = np.sort(sizes[i])
+        if len(out) >= limit or s[2] < min_elongation * s[1]:
+            continue
+        axis = int(np.argmax(sizes[i]))
+        rot = np.asarray(parts[int(i)].rotation(), float)
+        half = sizes[i].copy()
+        half[axis] /= 2
+        p = parts[int(i)]
+        pieces = []
+        for sign in (-1.0, 1.0):
+            pos = np.asarray(p.position, float) + sign * rot[:, axis] * half[axis]
+            pieces.append(Part(size=half.astype(np.float32), squareness=p.squareness, position=pos.astype(np.float32),
+                               orientation=p.orientation))
+        out.append(stack_parts([parts[k] for k in range(len(parts)) if k != i] + pieces))
+    return out
+
+
+@dataclasses.dataclass(frozen=True)
+class RecognitionMatch:
+    """One stored object's best match to a query.
+
+    ``parts``: (query part, model part) pairs, query indices into the whole recovery's
+    parts (all figures, as in parts.json), model indices into ``model_parts``;
+    ``pose``: 4x4, model frame to the query's camera frame; ``figure``: the query
+    figure matched (-1: all figures together).
+    """
+
+    name: str
+    score: float
+    parts: np.ndarray
+    pose: np.ndarray
+    figure: int
+    view: int
+    kind: str
+    model_parts: Part
+
+    def posed_parts(self) -> Part:
+        """The matched stored parts moved into the query's camera frame by ``pose``."""
+        return transform_parts(self.model_parts, self.pose)
+
+    def to_json(self) -> dict:
+        return {"name": self.name, "score": float(self.score), "parts": self.parts.tolist(), "pose": self.pose.tolist(),
+                "figure": self.figure, "view": self.view, "kind": self.kind}
+
+
+class ModelDatabase:
+    """A folder of stored objects (see the module docstring).
+
+    ``ModelDatabase(path)`` opens a folder, which need not exist yet (it is made on the
+    first :meth:`add_view`). ``objects`` maps each name to its tuple of
+    :class:`StoredView`; ``threshold`` is the calibrated score below which a query is
+    not recognised.
+    """
+
+    def __init__(self, path):
+        self.path = Path(path)
+        if self.path.exists() and not self.path.is_dir():
+            raise NotADirectoryError(f"--db: got {str(self.path)!r}, which is a file, expected a database folder")
+        self.objects: dict[str, tuple] = {}
+        self.threshold = DEFAULT_THRESHOLD
+        self.calibration: dict = {}
+        if self.path.is_dir():
+            self._read()
+
+    def _read(self) -> None:
+        index = self.path / INDEX
+        if index.is_file():
+            data = _load_json(index, "database")
+            if not isinstance(data, dict) or data.get("format") != DATABASE_FORMAT:
+                raise ValueError(f"database: got {str(index)!r} without format {DATABASE_FORMAT!r}, expected a sqparts database")
+            t = data.get("threshold", DEFAULT_THRESHOLD)
+            if not isinstance(t, (int, float)) or not np.isfinite(t):
+                raise ValueError(f"database.threshold: got {t!r}, expected a finite number")
+            self.threshold = float(t)
+            self.calibration = data.get("calibration", {})
+        for file in sorted(self.path.glob("*.json")):
+            if file.name == INDEX or file.name.startswith("."):
+                continue
+            data = _load_json(file, "model")
+            where = file.name
+            if not isinstance(data, dict) or data.get("format") != MODEL_FORMAT or not isinstance(data.get("views"), list):
+                raise ValueError(f"{where}: got {type(data).__name__}, expected an object with format {MODEL_FORMAT!r} and views")
+            name = check_name(data.get("name"))
+            views = []
+            for k, v in enumerate(data["views"]):
+                w = f"{where}.views[{k}]"
+                if not isinstance(v, dict) or not isinstance(v.get("variants", []), list):
+                    raise ValueError(f"{w}: got {type(v).__name__}, expected an object with 'main' and 'variants'")
+                views.append(StoredView(
+                    str(v.get("source", "")), _stored_from_json(v.get("main"), f"{w}.main"),
+                    tuple(_stored_from_json(s, f"{w}.variants[{i}]") for i, s in enumerate(v.get("variants", []))),
+                ))
+            self.objects[name] = tuple(views)
+
+    @property
+    def names(self) -> list[str]:
+        return sorted(self.objects)
+
+    def _write_object(self, name: str) -> None:
+        data = {"format": MODEL_FORMAT, "name": name, "views": [
+            {"source": v.source, "main": _stored_to_json(v.main), "variants": [_stored_to_json(s) for s in v.variants]}
+            for v in self.objects[name]
+        ]}
+        _write_json(self.path / f"{name}.json", data)
+
+    def _write_index(self) -> None:
+        _write_json(self.path / INDEX, {"format": DATABASE_FORMAT, "threshold": self.threshold,
+                                        "calibration": self.calibration, "objects": self.names})
+
+    def add_view(self, name: str, view: StoredView, *, calibrate: bool = True) -> None:
+        """Add one view to object ``name`` (made if new), write its file and, with
+        ``calibrate``, recalibrate the threshold and write ``database.json``."""
+        self.add_views(name, [view], calibrate=calibrate)
+
+    def add_views(self, name: str, views, *, replace: bool = False, calibrate: bool = True) -> None:
+        """Add views to object ``name`` (made if new; with ``replace`` its old views are
+        dropped), write its file once and, with ``calibrate``, recalibrate."""
+        check_name(name)
+        views = tuple(views)
+        if not all(isinstance(v, StoredView) for v in views):
+            raise TypeError("views: got something other than StoredView, expected views from view_from_parts")
+        self.path.mkdir(parents=True, exist_ok=True)
+        self.objects[name] = (*(() if replace else self.objects.get(name, ())), *views)
+        self._write_object(name)
+        if calibrate:
+            self.calibrate()
+
+    def without(self, *names) -> "ModelDatabase":
+        """An in-memory copy without the named objects (nothing written); the threshold kept."""
+        other = ModelDatabase.__new__(ModelDatabase)
+        other.path, other.threshold, other.calibration = self.path, self.threshold, self.calibration
+        other.objects = {k: v for k, v in self.objects.items() if k not in names}
+        return other
+
+    def match(self, query: Description, *, settings: MatchSettings = MatchSettings(), exclude=None):
+        """Per object, its best (score, view, kind, Match, stored) against ``query``, best first.
+        ``exclude``: (name, view index) to leave out."""
+        out = []
+        for name, views in self.objects.items():
+            best = None
+            for k, view in enumerate(views):
+                if exclude == (name, k):
+                    continue
+                for stored in view.descriptions:
+                    m = match_descriptions(query, stored.description, settings)
+                    if best is None or m.score > best[0]:
+                        best = (m.score, k, stored.kind, m, stored)
+            if best is not None:
+                out.append((name, *best))
+        return sorted(out, key=lambda r: -r[1])
+
+    def calibrate(self, *, settings: MatchSettings = MatchSettings()) -> float:
+        """Set :attr:`threshold` from the stored views alone: genuine scores (each view's
+        main description against its own object with that view left out) and impostor
+        scores (its best against the other objects); see
+        :func:`sqparts._recognize.calibrate_threshold`. Writes ``database.json``."""
+        genuine, impostor = [], []
+        for name, views in self.objects.items():
+            for k, view in enumerate(views):
+                scores = {n: s for n, s, *_ in self.match(view.main.description, settings=settings, exclude=(name, k))}
+                if len(views) > 1:
+                    genuine.append(scores[name])
+                others = [s for n, s in scores.items() if n != name]
+                if others:
+                    impostor.append(max(others))
+        self.threshold = calibrate_threshold(genuine, impostor, default=DEFAULT_THRESHOLD)
+        self.calibration = {"genuine": sorted(genuine), "impostor": sorted(impostor)}
+        if self.path.is_dir():
+            self._write_index()
+        return self.threshold
+
+
+def _figure_recoveries(recovery) -> list:
+    return list(getattr(recovery, "figures", None) or [recovery])
+
+
+def _coarse_levels(recovery, levels: int, **recover_kwargs) -> list[Part]:
+    """Parts of the largest figure recovered on its image binned by 2^(levels-1) ... 2
+    (section 4.1's coarser levels), each with parts up to half the figure's extent / 2^k."""
+    from ._preprocess import downsample, downsample_mask
+    from ._recover import recover
+
+    fig = _figure_recoveries(recovery)[0]
+    depth = np.where(fig.figure, fig.depth, np.nan).astype(np.float32)
+    camera = getattr(recovery, "camera", None) or fig.data.camera
+    pts = camera.points(depth)[fig.figure]
+    max_size = float(np.max(np.ptp(pts, axis=0))) / 2.0
+    out = []
+    for k in range(levels - 1):
+        f = 2 ** (levels - 1 - k)
+        d, cam = downsample(depth, camera, f)
+        mask = downsample_mask(fig.figure, f) & np.isfinite(d)
+        if mask.sum() < 16:
+            continue
+        rec = recover(d, cam, figure=mask, max_size=max_size / 2**k, refine_rounds=0, **recover_kwargs)
+        out.append(rec.parts)
+    return out
+
+
+def view_from_recovery(recovery, *, source: str = "", levels: int = 2, **recover_kwargs) -> StoredView:
+    """A :class:`StoredView` from a recovery of a view that shows one object: all its
+    figures together are the object (depth jumps inside an object, a fin in front of a
+    body, tear it into several figures). The variants: the largest figure's selection
+    before refinement and its coarser multiscale levels (``levels`` - 1 of them,
+    recovered here), each with the other figures' parts, then merges and splits."""
+    figures = _figure_recoveries(recovery)
+    others = [p for r in figures[1:] for p in r.parts]
+    parts = stack_parts([p for r in figures for p in r.parts])
+    coarse = _coarse_levels(recovery, levels, **recover_kwargs) if levels > 1 else []
+    return view_from_parts(parts, source=source, initial=stack_parts([*figures[0].initial_parts, *others]),
+                           levels=[stack_parts([*c, *others]) for c in coarse])
+
+
+def learn(name: str, views, *, database, levels: int = 2, progress=None, **recover_kwargs) -> ModelDatabase:
+    """Recover each view and add it to object ``name`` in ``database``.
+
+    Parameters
+    ----------
+    name : the object's name (letters, digits, '.', '_', '-').
+    views : sequence of (depth, camera) pairs, or of :class:`~sqparts.SceneRecovery` /
+        :class:`~sqparts.Recovery` already made; the largest figure of each is the object.
+    database : a :class:`ModelDatabase` or a folder path.
+    levels : multiscale levels stored per view (1: only the recovery itself).
+    recover_kwargs : passed to :func:`sqparts.recover_scene`.
+
+    Returns the database, written and recalibrated.
+    """
+    from ._recover import recover_scene
+
+    check_name(name)
+    if not (isinstance(levels, (int, np.integer)) and 1 <= levels <= 4):
+        raise ValueError(f"levels: got {levels!r}, expected an integer in [1, 4]")
+    db = database if isinstance(database, ModelDatabase) else ModelDatabase(database)
+    views = list(views)
+    if not views:
+        raise ValueError("views: got none, expected at least one (depth, camera) pair or recovery")
+    for k, view in enumerate(views):
+        if isinstance(view, tuple):
+            depth, camera = view
+            rec = recover_scene(depth, camera, progress=progress, **recover_kwargs)
+            source = f"view {k}"
+        else:
+            rec, source = view, f"recovery {k}"
+        if not _figure_recoveries(rec):
+            raise ValueError(f"views[{k}]: got a range image in which nothing was recovered, expected a view of the object")
+        db.add_view(name, view_from_recovery(rec, source=source, levels=levels, grid=recover_kwargs.get("grid", "coarse")),
+                    calibrate=k == len(views) - 1)
+    return db
+
+
+def match_figures(figures, *, database, settings: MatchSettings = MatchSettings()):
+    """Match each figure's parts (a list of batched :class:`~sqparts.Part`, camera frame)
+    against every stored object. Returns (best name or None, list of
+    :class:`RecognitionMatch`, one per object, best first); query part indices count
+    through all figures in order. Each figure is matched on its own, and, when there are
+    several, all of them together (an object torn at its own depth jumps; an occluder
+    is then an extra part)."""
+    db = database if isinstance(database, ModelDatabase) else ModelDatabase(database)
+    figures = [f if f.batch_shape else stack_parts([f]) for f in figures if f is not None and (not f.batch_shape or len(f))]
+    offsets = np.cumsum([0] + [len(f) for f in figures])
+    queries = list(enumerate(figures))
+    if len(figures) > 1:  # also all figures together: an object torn at its own depth jumps
+        queries.append((-1, stack_parts([p for f in figures for p in f])))
+    best: dict[str, tuple] = {}
+    for f, parts in queries:
+        query = describe(parts)
+        for name, score, view, kind, m, stored in db.match(query, settings=settings):
+            if name not in best or score > best[name][0]:
+                pairs = m.pairs.copy()
+                pairs[:, 0] += offsets[f] if f >= 0 else 0
+                best[name] = (score, RecognitionMatch(name, score, pairs, m.pose, f, view, kind, stored.parts))
+    matches = [m for _, m in sorted(best.values(), key=lambda r: -r[0])]
+    top = matches[0].name if matches and matches[0].score >= db.threshold else None
+    return top, matches
+
+
+@dataclasses.dataclass(frozen=True)
+class Recognition:
+    """What :func:`recognize` found: ``best`` (a name, or None when no stored object
+    scores above ``threshold``), ``matches`` (one per stored object, best first), the
+    ``recovery`` of the input and the seconds taken (``timings``)."""
+
+    best: str | None
+    matches: list
+    threshold: float
+    recovery: object
+    timings: dict
+
+    def to_json(self) -> dict:
+        return {"best": self.best, "threshold": self.threshold, "matches": [m.to_json() for m in self.matches],
+                "timings_s": self.timings}
+
+    def summary(self) -> str:
+        top = ", ".join(f"{m.name} {m.score:.2f}" for m in self.matches[:3])
+        return f"best: {self.best or 'none (unknown object)'} (threshold {self.threshold:.2f}; {top})"
+
+
+def recognize(depth=None, camera=None, *, database, recovery=None, settings: MatchSettings = MatchSettings(),
+              progress=None, **recover_kwargs) -> Recognition:
+    """Recover a range image (or take ``recovery``) and match each of its figures against
+    every stored object; per object the best figure, view and variant is kept.
+
+    ``best`` is the top object if its score reaches the database's calibrated threshold,
+    else None (an object the database does not know). Each match's ``pose`` takes the
+    model's frame to the camera frame.
+    """
+    from ._recover import recover_scene
+
+    db = database if isinstance(database, ModelDatabase) else ModelDatabase(database)
+    if not db.objects:
+        raise ValueError(f"--db: got {str(db.path)!r} with no objects, expected a database made by sqparts learn")
+    t0 = time.perf_counter()
+    if recovery is None:
+        if depth is None or camera is None:
+            raise ValueError("depth, camera: got none, expected a range image and its camera (or recovery=)")
+        recovery = recover_scene(depth, camera, progress=progress, **recover_kwargs)
+    t1 = time.perf_counter()
+    top, matches = match_figures([r.parts for r in _figure_recoveries(recovery)], database=db, settings=settings)
+    t2 = time.perf_counter()
+    return Recognition(top, matches, db.threshold, recovery, {"recovery": t1 - t0, "matching": t2 - t1, "total": t2 - t0})

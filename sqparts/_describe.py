@@ -1,0 +1,305 @@
+"""Part-structure descriptions: what a recovery says about an object, independent of the camera.
+
+Section 1 of the paper asks for a description that is *stable* and can be matched against
+stored ones: a handful of parts, each with a few shape numbers, and how the parts sit
+together. A :class:`Description` holds, per part, pose-free attributes in the object's
+own scale (sorted semi-axes, squareness ε1 ε2, |taper|, |bend|, volume fraction) and,
+per ordered pair of parts, relations (whether they touch, relative size, where one's
+centre sits in the other's frame, the angle between their longest axes). None of these
+change under a rigid motion of the camera or a change of units; the camera-frame
+positions and rotations are kept beside them (``positions``, ``rotations``) only to
+estimate the pose once parts are matched.
+
+The graph form (:meth:`Description.graph`) is a ``networkx.DiGraph``: nodes are parts,
+edges ordered pairs; :meth:`Description.to_json` is its node-link JSON.
+
+Pure numpy: no file I/O, no JAX tracing.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+
+import numpy as np
+from scipy.spatial import cKDTree
+from scipy.special import beta
+
+from ._part import Part, matrix_to_rotation_vector, stack_parts
+
+ATTRIBUTES = ("size_1", "size_2", "size_3", "squareness_1", "squareness_2", "taper", "bend", "volume")
+"""Columns of :attr:`Description.attributes`: semi-axes sorted largest first and divided by
+the object's scale, ε1, ε2 (Eq. 1), |taper|, the bends' magnitude sqrt(b0² + b1²), and the
+part's share of the object's volume."""
+
+RELATIONS = ("touch", "gap", "distance", "offset_1", "offset_2", "offset_3", "axis_angle", "log_volume_ratio")
+"""Columns of :attr:`Description.relations` for the ordered pair (i, j): 1 if the parts touch,
+the gap between their surfaces and the distance between their centres (object scale),
+|offset| of j's centre along i's axes (i's sorted axes, object scale), the angle in [0, π/2]
+between their longest axes (radians), and log(volume_j / volume_i)."""
+
+TOUCH_GAP = 0.08
+"""Parts whose surfaces come closer than this (a fraction of the object's scale) touch."""
+
+
+def part_volume(size, squareness) -> np.ndarray:
+    """Volume of undeformed superquadrics, 2 a1 a2 a3 ε1 ε2 B(ε1/2 + 1, ε1) B(ε2/2, ε2/2).
+
+    ``size`` (..., 3), ``squareness`` (..., 2); tapering and bending are ignored.
+    """
+    size, sq = np.asarray(size, float), np.asarray(squareness, float)
+    e1, e2 = sq[..., 0], sq[..., 1]
+    return 2.0 * np.prod(size, -1) * e1 * e2 * beta(e1 / 2 + 1, e1) * beta(e2 / 2, e2 / 2)
+
+
+def _signed_pow(x, e):
+    return np.sign(x) * np.abs(x) ** e
+
+
+def _rotation_matrices(orientation) -> np.ndarray:
+    """Rodrigues' formula for rotation vectors (n, 3) -> (n, 3, 3)."""
+    rv = np.asarray(orientation, float).reshape(-1, 3)
+    theta = np.linalg.norm(rv, axis=1)
+    safe = np.where(theta < 1e-12, 1.0, theta)
+    k = rv / safe[:, None]
+    kx = np.zeros((len(rv), 3, 3))
+    kx[:, 0, 1], kx[:, 0, 2], kx[:, 1, 2] = -k[:, 2], k[:, 1], -k[:, 0]
+    kx = kx - kx.transpose(0, 2, 1)
+    s, c = np.sin(theta)[:, None, None], np.cos(theta)[:, None, None]
+    return np.eye(3) + s * kx + (1 - c) * kx @ kx
+
+
+def surface_samples(size, squareness, bend, taper, rotation, position, *, count: int = 12) -> np.ndarray:
+    """Camera-frame points on one deformed part (Eq. 1, then taper and bends as
+    :func:`sqparts._part.deform`): ``count`` latitudes x 2 ``count`` longitudes."""
+    eta = np.linspace(-np.pi / 2, np.pi / 2, count)
+    omega = np.linspace(-np.pi, np.pi, 2 * count, endpoint=False)
+    ee, ww = np.meshgrid(eta, omega, indexing="ij")
+    e1, e2 = squareness
+    a1, a2, a3 = size
+    ce, se = _signed_pow(np.cos(ee), e1), _signed_pow(np.sin(ee), e1)
+    x = a1 * ce * _signed_pow(np.cos(ww), e2)
+    y = a2 * ce * _signed_pow(np.sin(ww), e2)
+    z = a3 * se
+    scale = 1.0 + taper * z / a3
+    x, y = x * scale, y * scale
+    x = x + bend[0] * z * z / a3
+    z = z + bend[1] * x * x / a1
+    q = np.stack([x.ravel(), y.ravel(), z.ravel()], -1)
+    return q @ np.asarray(rotation).T + np.asarray(position)
+
+
+@dataclasses.dataclass(frozen=True, eq=False)
+class Description:
+    """The part structure of one figure (section 1: a stable description to match).
+
+    Attributes
+    ----------
+    scale : float
+        The object's scale, the cube root of its parts' total volume (scene units).
+    attributes : (n, 8) array
+        Per part, the pose-free :data:`ATTRIBUTES`.
+    relations : (n, n, 8) array
+        Per ordered pair (i, j), the :data:`RELATIONS` (zeros on the diagonal).
+    positions : (n, 3) array
+        Part centres in the frame the parts were given in (for pose estimation only).
+    rotations : (n, 3, 3) array
+        Part-to-frame rotations, columns in the order of the sorted axes (for pose only).
+    names : tuple of str
+        Optional part names ("" where none).
+    """
+
+    scale: float
+    attributes: np.ndarray
+    relations: np.ndarray
+    positions: np.ndarray
+    rotations: np.ndarray
+    names: tuple = ()
+
+    def __len__(self) -> int:
+        return len(self.attributes)
+
+    @property
+    def touching(self) -> np.ndarray:
+        """(n, n) bool: which parts touch."""
+        return self.relations[..., 0] > 0.5
+
+    @property
+    def volumes(self) -> np.ndarray:
+        return self.attributes[:, ATTRIBUTES.index("volume")]
+
+    def transformed(self, rotation, translation) -> "Description":
+        """The same description with the pose data moved by a rigid motion (p -> R p + t)."""
+        r = np.asarray(rotation, float)
+        return dataclasses.replace(
+            self, positions=self.positions @ r.T + np.asarray(translation, float), rotations=r @ self.rotations
+        )
+
+    def to_json(self) -> dict:
+        """Node-link JSON: ``{"scale", "nodes": [...], "edges": [...]}``, every number a float."""
+        nodes = []
+        for i in range(len(self)):
+            node = {"id": i, **{k: float(v) for k, v in zip(ATTRIBUTES, self.attributes[i])},
+                    "position": self.positions[i].tolist(), "rotation": self.rotations[i].tolist()}
+            if self.names and self.names[i]:
+                node["name"] = self.names[i]
+            nodes.append(node)
+        edges = [
+            {"source": i, "target": j, **{k: float(v) for k, v in zip(RELATIONS, self.relations[i, j])}}
+            for i in range(len(self)) for j in range(len(self)) if i != j
+        ]
+        for e in edges:
+            e["touch"] = bool(e["touch"])
+        return {"scale": float(self.scale), "nodes": nodes, "edges": edges}
+
+    @classmethod
+    def from_json(cls, data, *, where: str = "description") -> "Description":
+        """Inverse of :meth:`to_json`; raises ``ValueError`` naming ``where`` and the field."""
+        if not isinstance(data, dict) or "nodes" not in data or "scale" not in data:
+            raise ValueError(f"{where}: got {type(data).__name__}, expected an object with 'scale', 'nodes' and 'edges'")
+        nodes, edges = data["nodes"], data.get("edges", [])
+        if not isinstance(nodes, list) or not nodes or not isinstance(edges, list):
+            raise ValueError(f"{where}.nodes: got {type(nodes).__name__}, expected a non-empty list of parts")
+        n = len(nodes)
+
+        def number(value, field, shape=()):
+            try:
+                a = np.asarray(value, float)
+            except (TypeError, ValueError):
+                a = None
+            if a is None or a.shape != shape or not np.all(np.isfinite(a)):
+                raise ValueError(f"{where}.{field}: got {value!r:.60}, expected {'a finite number' if not shape else f'finite numbers of shape {shape}'}")
+            return a
+
+        scale = float(number(data["scale"], "scale"))
+        if scale <= 0:
+            raise ValueError(f"{where}.scale: got {scale}, expected a number > 0")
+        attributes = np.zeros((n, len(ATTRIBUTES)))
+        positions, rotations, names = np.zeros((n, 3)), np.zeros((n, 3, 3)), []
+        for i, node in enumerate(nodes):
+            if not isinstance(node, dict):
+                raise ValueError(f"{where}.nodes[{i}]: got {type(node).__name__}, expected an object")
+            for k, key in enumerate(ATTRIBUTES):
+                attributes[i, k] = number(node.get(key), f"nodes[{i}].{key}")
+            positions[i] = number(node.get("position"), f"nodes[{i}].position", (3,))
+            rotations[i] = number(node.get("rotation"), f"nodes[{i}].rotation", (3, 3))
+            names.append(str(node.get("name", "")))
+        relations = np.zeros((n, n, len(RELATIONS)))
+        for k, edge in enumerate(edges):
+            if not isinstance(edge, dict):
+                raise ValueError(f"{where}.edges[{k}]: got {type(edge).__name__}, expected an object")
+            i, j = edge.get("source"), edge.get("target")
+            if not (isinstance(i, int) and isinstance(j, int) and 0 <= i < n and 0 <= j < n and i != j):
+                raise ValueError(f"{where}.edges[{k}]: got source {i!r}, target {j!r}, expected two different part ids in [0, {n})")
+            for c, key in enumerate(RELATIONS):
+                relations[i, j, c] = number(edge.get(key), f"edges[{k}].{key}")
+        return cls(scale, attributes, relations, positions, rotations, tuple(names) if any(names) else ())
+
+    def graph(self):
+        """The description as a ``networkx.DiGraph`` (node and edge attributes as in :meth:`to_json`)."""
+        import networkx as nx
+
+        return nx.node_link_graph(dict(self.to_json(), directed=True, multigraph=False, graph={"scale": self.scale}),
+                                  edges="edges")
+
+
+def _as_arrays(parts: Part):
+    single = parts.batch_shape == ()
+    get = (lambda x: np.asarray(x, float)[None]) if single else (lambda x: np.asarray(x, float))
+    return (get(parts.size), get(parts.squareness), get(parts.bend), get(parts.taper).reshape(-1),
+            get(parts.position), get(parts.orientation))
+
+
+def describe(parts: Part, *, names=None, touch_gap: float = TOUCH_GAP) -> Description:
+    """The part-structure :class:`Description` of one figure's parts.
+
+    Parameters
+    ----------
+    parts : Part
+        One figure's parts (batched or single), in any frame (usually the camera's).
+    names : optional sequence of str, one per part.
+    touch_gap : surfaces closer than this fraction of the object's scale touch.
+
+    Every attribute and relation is unchanged by a rigid motion of all the parts and by a
+    change of units; the axes of each part are sorted by size (largest first), so that
+    the same shape labelled differently by the search is described the same way.
+    """
+    if not isinstance(parts, Part):
+        raise TypeError(f"parts: got {type(parts).__name__}, expected a sqparts.Part")
+    if not (isinstance(touch_gap, (int, float)) and np.isfinite(touch_gap) and touch_gap >= 0):
+        raise ValueError(f"touch_gap: got {touch_gap!r}, expected a finite number >= 0")
+    size, sq, bend, taper, position, orientation = _as_arrays(parts)
+    n = len(size)
+    if names is not None and len(names) != n:
+        raise ValueError(f"names: got {len(names)} names, expected {n} (one per part)")
+    rot = _rotation_matrices(orientation)
+    volume = part_volume(size, sq)
+    scale = float(np.cbrt(volume.sum()))
+    order = np.argsort(-size, axis=1, kind="stable")
+    sorted_size = np.take_along_axis(size, order, 1)
+    sorted_rot = np.take_along_axis(rot, order[:, None, :], 2)  # columns = axes, largest first
+    attributes = np.column_stack([
+        sorted_size / scale, sq, np.abs(taper), np.hypot(bend[:, 0], bend[:, 1]), volume / volume.sum(),
+    ])
+    samples = [surface_samples(size[i], sq[i], bend[i], taper[i], rot[i], position[i]) for i in range(n)]
+    trees = [cKDTree(p) for p in samples]
+    relations = np.zeros((n, n, len(RELATIONS)))
+    for i in range(n):
+        for j in range(n):
+            if i == j:
+                continue
+            if j < i:
+                gap = relations[j, i, 1]
+            else:
+                gap = float(trees[i].query(samples[j], k=1)[0].min()) / scale
+            offset = np.abs(sorted_rot[i].T @ (position[j] - position[i])) / scale
+            cos = abs(float(sorted_rot[i][:, 0] @ sorted_rot[j][:, 0]))
+            relations[i, j] = [
+                float(gap < touch_gap), gap, np.linalg.norm(position[j] - position[i]) / scale, *offset,
+                np.arccos(min(cos, 1.0)), np.log(volume[j] / volume[i]),
+            ]
+    return Description(scale, attributes, relations, position.copy(), sorted_rot,
+                       tuple(names) if names is not None else ())
+
+
+def describe_figures(recovery, *, names=None) -> list[Description]:
+    """One :class:`Description` per figure of a :class:`~sqparts.SceneRecovery` (largest
+    first), or a one-element list for a :class:`~sqparts.Recovery`."""
+    figures = getattr(recovery, "figures", None) or [recovery]
+    return [describe(r.parts, names=names if len(figures) == 1 else None) for r in figures]
+
+
+def merged_alternatives(parts: Part, description: Description | None = None, *, limit: int = 3) -> list[Part]:
+    """Other part structures recovery could also have given: each of up to ``limit``
+    pairs of touching parts (smallest combined volume first) merged into one part.
+
+    The merged part is fitted to both parts' surface samples by their moments: centre
+    and axes from the samples' principal directions, semi-axes from their extents,
+    squareness of the larger part, no taper or bend. Returns one batched Part per
+    alternative (one part fewer than ``parts``).
+    """
+    d = description if description is not None else describe(parts)
+    n = len(d)
+    if n < 2:
+        return []
+    size, sq, bend, taper, position, orientation = _as_arrays(parts)
+    rot = _rotation_matrices(orientation)
+    pairs = [(d.volumes[i] + d.volumes[j], i, j) for i in range(n) for j in range(i + 1, n) if d.touching[i, j]]
+    out = []
+    for _, i, j in sorted(pairs)[:limit]:
+        pts = np.concatenate([surface_samples(size[k], sq[k], bend[k], taper[k], rot[k], position[k]) for k in (i, j)])
+        centre = pts.mean(0)
+        _, _, vt = np.linalg.svd(pts - centre, full_matrices=False)
+        axes = vt[::-1].T  # smallest variance first: largest extent on local z
+        if np.linalg.det(axes) < 0:
+            axes[:, 0] *= -1
+        local = (pts - centre) @ axes
+        lo, hi = local.min(0), local.max(0)
+        centre = centre + axes @ ((lo + hi) / 2)
+        half = np.maximum((hi - lo) / 2, 1e-6)
+        big = i if d.volumes[i] >= d.volumes[j] else j
+        merged = Part(size=half.astype(np.float32), squareness=sq[big].astype(np.float32),
+                      position=centre.astype(np.float32),
+                      orientation=np.asarray(matrix_to_rotation_vector(axes.astype(np.float32)), np.float32))
+        keep = [parts[k] for k in range(n) if k not in (i, j)]
+        out.append(stack_parts(keep + [merged]))
+    return out

@@ -1,0 +1,251 @@
+"""Matching part-structure descriptions (section 1: recognition by matching stable descriptions).
+
+A query :class:`~sqparts.Description` (one figure of a recovered scene) is matched to a
+stored one by an assignment of query parts to model parts that maximises a score in
+[0, 1]: each matched pair contributes its volume weight sqrt(v_query · v_model) times
+its unary similarity (sizes, squareness, taper, bend) times the mean similarity of its
+relations to the other matched pairs (gap, distance, offsets, axis angle). Unmatched
+parts on either side contribute nothing, so a model with a part hidden (occlusion) or a
+query with an extra part still matches, with a somewhat lower score.
+
+The assignment is solved by ``scipy.optimize.linear_sum_assignment``: first on the
+unary similarities, then a few times on the unary similarities weighted by the pairwise
+consistency with the previous assignment (the linearisation step of integer projected
+fixed point, IPFP, Leordeanu et al. 2009); the best-scoring assignment is kept.
+Sizes and relations are compared in scene units (a range image is metric), each
+difference divided by a tolerance that is a fraction of the model's scale.
+
+The model's pose in the query's frame is estimated from the matched parts' centres by
+weighted Kabsch (``scipy.spatial.transform.Rotation.align_vectors``), or from the axes
+of the best matched pair when fewer than three parts match.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+
+import numpy as np
+from scipy.optimize import linear_sum_assignment
+from scipy.spatial.transform import Rotation
+
+from ._describe import ATTRIBUTES, RELATIONS, Description
+
+
+@dataclasses.dataclass(frozen=True)
+class MatchSettings:
+    """Tolerances of :func:`match_descriptions`.
+
+    Attributes
+    ----------
+    size_tolerance : sigma of the log of a semi-axis (the semi-axes compared in scene
+        units); the unary similarity is exp(-d²/2), d the RMS over the seven features of
+        their differences divided by their sigmas.
+    squareness_tolerance, deformation_tolerance : sigma of ε and of |taper|, |bend|.
+    distance_tolerance : sigma of gaps, distances and offsets, a fraction of the model's scale.
+    angle_tolerance : sigma of the angle between longest axes (radians).
+    min_similarity : a pair less similar than this is left unmatched.
+    iterations : IPFP re-assignments after the first.
+    weighting : a matched pair's weight: ``"fraction"``, sqrt(v_query v_model) of the two
+        parts' volume fractions; ``"volume"``, min(V_query, V_model) / max(ΣV_query,
+        ΣV_model) of their volumes in scene units, so that a query explaining only a small
+        piece of a model (or a model only a small piece of the query) scores low.
+    """
+
+    size_tolerance: float = 0.3
+    squareness_tolerance: float = 0.45
+    deformation_tolerance: float = 0.4
+    distance_tolerance: float = 0.25
+    angle_tolerance: float = 0.6
+    min_similarity: float = 0.05
+    iterations: int = 4
+    weighting: str = "volume"
+
+    def __post_init__(self):
+        if self.weighting not in ("fraction", "volume"):
+            raise ValueError(f"weighting: got {self.weighting!r}, expected 'fraction' or 'volume'")
+
+
+@dataclasses.dataclass(frozen=True)
+class Match:
+    """One query description matched to one stored description.
+
+    Attributes
+    ----------
+    score : float in [0, 1].
+    pairs : (k, 2) int array of (query part, model part) indices.
+    pose : (4, 4) array taking model-frame points to the query's frame.
+    """
+
+    score: float
+    pairs: np.ndarray
+    pose: np.ndarray
+
+
+_SIZE = slice(0, 3)
+_SQ = slice(3, 5)
+_DEF = slice(5, 7)
+_REL = [RELATIONS.index(k) for k in ("gap", "distance", "offset_1", "offset_2", "offset_3")]
+_ANGLE = RELATIONS.index("axis_angle")
+_VOLUME = ATTRIBUTES.index("volume")
+
+
+def _unary_features(d: Description) -> np.ndarray:
+    a = d.attributes
+    return np.column_stack([np.log(a[:, _SIZE] * d.scale), np.sort(a[:, _SQ], axis=1), a[:, _DEF]])
+
+
+def unary_similarity(query: Description, model: Description, settings: MatchSettings = MatchSettings()) -> np.ndarray:
+    """(n_query, n_model) similarity exp(-d²/2) of each pair of parts' attributes, d the
+    RMS of the differences over their tolerances."""
+    s = settings
+    sigma = np.array([s.size_tolerance] * 3 + [s.squareness_tolerance] * 2 + [s.deformation_tolerance] * 2)
+    diff = (_unary_features(query)[:, None, :] - _unary_features(model)[None, :, :]) / sigma
+    return np.exp(-0.5 * np.mean(diff**2, -1))
+
+
+def _relation_features(d: Description) -> tuple[np.ndarray, np.ndarray]:
+    return d.relations[..., _REL] * d.scale, d.relations[..., _ANGLE]
+
+
+def _pairwise_similarity(qr, mr, pairs, settings: MatchSettings, model_scale: float) -> np.ndarray:
+    """(k, k) similarity of the relations of matched pairs a=(i, j), b=(k, l): query
+    relation (i, k) against model relation (j, l)."""
+    if len(pairs) < 2:
+        return np.ones((len(pairs), len(pairs)))
+    qi, mj = pairs[:, 0], pairs[:, 1]
+    qd, qa = qr[0][np.ix_(qi, qi)], qr[1][np.ix_(qi, qi)]
+    md, ma = mr[0][np.ix_(mj, mj)], mr[1][np.ix_(mj, mj)]
+    dd = (qd - md) / (settings.distance_tolerance * model_scale)
+    da = (qa - ma) / settings.angle_tolerance
+    d2 = (np.sum(dd**2, -1) + da**2) / (dd.shape[-1] + 1)
+    return np.exp(-0.5 * d2)
+
+
+def _consistency(qr, mr, query_n, model_n, pairs, settings, model_scale) -> np.ndarray:
+    """(n_query, n_model) mean relation similarity of each candidate pair to the pairs of
+    the current assignment (1 where the assignment has no other pair)."""
+    out = np.ones((query_n, model_n))
+    if len(pairs) == 0:
+        return out
+    qi, mj = pairs[:, 0], pairs[:, 1]
+    qd, qa = qr[0][:, qi], qr[1][:, qi]  # (nq, k, 5), (nq, k)
+    md, ma = mr[0][:, mj], mr[1][:, mj]  # (nm, k, 5)
+    dd = (qd[:, None] - md[None]) / (settings.distance_tolerance * model_scale)
+    da = (qa[:, None] - ma[None]) / settings.angle_tolerance
+    sim = np.exp(-0.5 * (np.sum(dd**2, -1) + da**2) / (dd.shape[-1] + 1))  # (nq, nm, k)
+    # A candidate pair is not compared with an assigned pair sharing its query or model part.
+    other = (np.arange(query_n)[:, None, None] != qi[None, None, :]) & (np.arange(model_n)[None, :, None] != mj[None, None, :])
+    count = other.sum(-1)
+    return np.where(count > 0, (sim * other).sum(-1) / np.maximum(count, 1), 1.0)
+
+
+def _score(unary, weight, pairwise, pairs) -> float:
+    if len(pairs) == 0:
+        return 0.0
+    u = unary[pairs[:, 0], pairs[:, 1]] * weight[pairs[:, 0], pairs[:, 1]]
+    if len(pairs) == 1:
+        return float(u.sum())
+    k = len(pairs)
+    consistency = (pairwise.sum(1) - np.diag(pairwise)) / (k - 1)
+    return float((u * consistency).sum())
+
+
+def _assign(benefit, unary, min_similarity) -> np.ndarray:
+    rows, cols = linear_sum_assignment(-benefit)
+    keep = unary[rows, cols] >= min_similarity
+    return np.stack([rows[keep], cols[keep]], -1).astype(np.int64).reshape(-1, 2)
+
+
+def estimate_pose(query: Description, model: Description, pairs, weights=None) -> np.ndarray:
+    """(4, 4) rigid transform taking the model's frame to the query's from matched parts:
+    weighted Kabsch on their centres (three or more pairs spread in space), else the
+    rotation taking the best pair's axes onto each other (a part's axes are defined up to
+    sign; the sign nearest the centres' alignment is not resolved here)."""
+    pairs = np.asarray(pairs, np.int64).reshape(-1, 2)
+    pose = np.eye(4)
+    if len(pairs) == 0:
+        return pose
+    w = np.ones(len(pairs)) if weights is None else np.asarray(weights, float)
+    q, m = query.positions[pairs[:, 0]], model.positions[pairs[:, 1]]
+    qc, mc = np.average(q, 0, w), np.average(m, 0, w)
+    spread = np.linalg.svd(m - mc, compute_uv=False) if len(pairs) >= 3 else np.zeros(3)
+    if len(pairs) >= 3 and spread[1] > 1e-3 * model.scale:
+        rot, _ = Rotation.align_vectors(q - qc, m - mc, weights=w)
+        r = rot.as_matrix()
+    else:
+        best = int(np.argmax(w))
+        rq, rm = query.rotations[pairs[best, 0]], model.rotations[pairs[best, 1]]
+        r = rq @ rm.T
+        if np.linalg.det(r) < 0:
+            r = rq @ np.diag([1, 1, -1]) @ rm.T
+    pose[:3, :3] = r
+    pose[:3, 3] = qc - r @ mc
+    return pose
+
+
+def match_descriptions(query: Description, model: Description, settings: MatchSettings = MatchSettings()) -> Match:
+    """Match a query description to a model description (see the module docstring).
+
+    Missing and extra parts are allowed on both sides; the score counts only the matched
+    parts, weighted by their volume fractions, so it is 1 for identical descriptions and
+    falls as parts go unmatched or differ.
+    """
+    if not isinstance(query, Description) or not isinstance(model, Description):
+        raise TypeError(f"query, model: got {type(query).__name__}, {type(model).__name__}, expected two Descriptions")
+    if not isinstance(settings, MatchSettings):
+        raise TypeError(f"settings: got {type(settings).__name__}, expected a MatchSettings")
+    unary = unary_similarity(query, model, settings)
+    if settings.weighting == "volume":
+        vq, vm = query.attributes[:, _VOLUME] * query.scale**3, model.attributes[:, _VOLUME] * model.scale**3
+        weight = np.minimum(vq[:, None], vm[None, :]) / max(vq.sum(), vm.sum())
+    else:
+        weight = np.sqrt(query.attributes[:, _VOLUME][:, None] * model.attributes[:, _VOLUME][None, :])
+    qr, mr = _relation_features(query), _relation_features(model)
+    benefit = unary * weight
+    pairs = _assign(benefit, unary, settings.min_similarity)
+    best_pairs, best_score = pairs, _score(unary, weight, _pairwise_similarity(qr, mr, pairs, settings, model.scale), pairs)
+    for _ in range(settings.iterations):
+        consistency = _consistency(qr, mr, len(query), len(model), pairs, settings, model.scale)
+        new = _assign(benefit * consistency, unary, settings.min_similarity)
+        score = _score(unary, weight, _pairwise_similarity(qr, mr, new, settings, model.scale), new)
+        if score > best_score + 1e-12:
+            best_pairs, best_score = new, score
+        if np.array_equal(new, pairs):
+            break
+        pairs = new
+    # Drop matched pairs whose relations contradict the rest (they lower the score).
+    while len(best_pairs) > 2:
+        pw = _pairwise_similarity(qr, mr, best_pairs, settings, model.scale)
+        scores = [
+            _score(unary, weight, np.delete(np.delete(pw, k, 0), k, 1), np.delete(best_pairs, k, 0))
+            for k in range(len(best_pairs))
+        ]
+        k = int(np.argmax(scores))
+        if scores[k] <= best_score:
+            break
+        best_pairs, best_score = np.delete(best_pairs, k, 0), scores[k]
+    w = weight[best_pairs[:, 0], best_pairs[:, 1]] if len(best_pairs) else None
+    return Match(best_score, best_pairs, estimate_pose(query, model, best_pairs, w))
+
+
+def calibrate_threshold(genuine, impostor, *, default: float = 0.45) -> float:
+    """Score threshold separating ``genuine`` scores (a view against its own object, the
+    view itself left out) from ``impostor`` scores (a view's best against other objects).
+
+    The threshold minimises the sum of the two error rates, and sits midway between the
+    neighbouring scores; with only one kind of score it keeps a margin from it, and with
+    none it is ``default``.
+    """
+    g, i = np.sort(np.asarray(genuine, float)), np.sort(np.asarray(impostor, float))
+    if len(g) == 0 and len(i) == 0:
+        return float(default)
+    if len(g) == 0:
+        return float(max(default, i.max() + 0.05))
+    if len(i) == 0:
+        return float(min(default, 0.8 * g.min()))
+    values = np.unique(np.concatenate([g, i]))
+    candidates = np.concatenate([[values[0] - 1e-3], (values[1:] + values[:-1]) / 2, [values[-1] + 1e-3]])
+    errors = [np.mean(g < t) + np.mean(i >= t) for t in candidates]
+    best = np.flatnonzero(np.isclose(errors, np.min(errors)))
+    # Of equally good thresholds, the middle of the widest run.
+    return float(candidates[best[len(best) // 2]])
