@@ -33,10 +33,9 @@ from pathlib import Path
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 
 import numpy as np
+from _common import save
 
 import sqparts
-
-from _common import save
 
 OPTIONS = dict(resolution=0)
 
@@ -51,9 +50,14 @@ def make_frames(folder: Path, n: int, side: int, *, seed: int = 0, min_returns: 
     (folder.parent / "cam.json").write_text(json.dumps(camera.to_json()))
     i = 0
     while i < n:
-        part = sqparts.Part(size=rng.uniform(0.08, 0.3, 3), squareness=rng.uniform(0.2, 1.8, 2),
-                            position=np.r_[rng.uniform(-0.1, 0.1, 2), 2.0], orientation=rng.normal(size=3),
-                            bend=rng.uniform(-0.3, 0.3, 2), taper=rng.uniform(-0.4, 0.4))
+        part = sqparts.Part(
+            size=rng.uniform(0.08, 0.3, 3),
+            squareness=rng.uniform(0.2, 1.8, 2),
+            position=np.r_[rng.uniform(-0.1, 0.1, 2), 2.0],
+            orientation=rng.normal(size=3),
+            bend=rng.uniform(-0.3, 0.3, 2),
+            taper=rng.uniform(-0.4, 0.4),
+        )
         depth = np.asarray(sqparts.render_range_image(part, camera))
         if np.isfinite(depth).sum() >= min_returns:
             np.save(folder / f"frame{i:04d}.npy", depth)
@@ -77,9 +81,12 @@ def timed_batch(inputs, camera, out: Path, client=None) -> dict:
     seconds = time.perf_counter() - t0
     ok = [r for r in records if r["status"] == "ok"]
     assert len(records) == len(inputs) and len(ok) == len(inputs), [r["error"] for r in records if r["error"]]
-    return {"seconds": seconds, "frames_per_minute": 60 * len(records) / seconds,
-            "parts": {r["output"]: r["parts"] for r in records},
-            "median_seconds_per_frame": float(np.median([r["seconds"] for r in records]))}
+    return {
+        "seconds": seconds,
+        "frames_per_minute": 60 * len(records) / seconds,
+        "parts": {r["output"]: r["parts"] for r in records},
+        "median_seconds_per_frame": float(np.median([r["seconds"] for r in records])),
+    }
 
 
 def throughput(frames: int) -> dict:
@@ -97,32 +104,53 @@ def throughput(frames: int) -> dict:
         print(f"one process: {row['frames_per_minute']:.1f} frames/min (warm-up {warmup:.1f} s)", flush=True)
         for workers in (1, 2):
             t0 = time.perf_counter()
-            with LocalCluster(n_workers=workers, threads_per_worker=1, processes=True, dashboard_address=None) as cluster, \
-                    Client(cluster) as client:
+            with (
+                LocalCluster(
+                    n_workers=workers, threads_per_worker=1, processes=True, dashboard_address=None
+                ) as cluster,
+                Client(cluster) as client,
+            ):
                 start = time.perf_counter() - t0
                 t1 = time.perf_counter()
                 client.run(_warm, str(inputs[0]), camera, str(warm))
                 warmup = time.perf_counter() - t1
-                row = {"how": f"Dask, {workers} worker(s)", "workers": workers, "cluster_start_s": start,
-                       "warmup_s": warmup, **timed_batch(inputs, camera, tmp / f"dask{workers}", client)}
+                row = {
+                    "how": f"Dask, {workers} worker(s)",
+                    "workers": workers,
+                    "cluster_start_s": start,
+                    "warmup_s": warmup,
+                    **timed_batch(inputs, camera, tmp / f"dask{workers}", client),
+                }
             rows.append(row)
-            print(f"{workers} Dask worker(s): {row['frames_per_minute']:.1f} frames/min "
-                  f"(cluster start {start:.1f} s, warm-up {warmup:.1f} s)", flush=True)
+            print(
+                f"{workers} Dask worker(s): {row['frames_per_minute']:.1f} frames/min "
+                f"(cluster start {start:.1f} s, warm-up {warmup:.1f} s)",
+                flush=True,
+            )
         same = all(r["parts"] == rows[0]["parts"] for r in rows)
         print(f"parts counts identical across the three: {same}", flush=True)
         for r in rows:
             r["ratio_to_one_process"] = r["frames_per_minute"] / rows[0]["frames_per_minute"]
             counts = list(r.pop("parts").values())
             r["parts_histogram"] = {str(k): counts.count(k) for k in sorted(set(counts))}
-        return {"frames": frames, "image": "48x48", "dtype": "float32", "options": OPTIONS, "grid": "coarse",
-                "refine_rounds": 2, "parts_identical": same, "rows": rows}
+        return {
+            "frames": frames,
+            "image": "48x48",
+            "dtype": "float32",
+            "options": OPTIONS,
+            "grid": "coarse",
+            "refine_rounds": 2,
+            "parts_identical": same,
+            "rows": rows,
+        }
 
 
 def _cli(args, cwd) -> tuple[int, float, str]:
     env = dict(os.environ, JAX_PLATFORMS=os.environ.get("JAX_PLATFORMS", "cpu"))
     t0 = time.perf_counter()
-    res = subprocess.run([sys.executable, "-m", "sqparts", "recover", *args], cwd=cwd, env=env,
-                         capture_output=True, text=True)
+    res = subprocess.run(
+        [sys.executable, "-m", "sqparts", "recover", *args], cwd=cwd, env=env, capture_output=True, text=True
+    )
     return res.returncode, time.perf_counter() - t0, (res.stderr.strip().splitlines() or [""])[-1]
 
 
@@ -134,8 +162,19 @@ def resume_check(n: int) -> dict:
         broken.write_bytes(b"not a range image")
         # Synthetic frames have no background: figure/ground (which may take a flat part
         # for a background plane and leave no figure) is off.
-        base = ["frames", "--camera", "cam.json", "--out", "out", "--resolution", "0", "--refine-rounds", "0",
-                "--no-figure-ground", "--quiet"]
+        base = [
+            "frames",
+            "--camera",
+            "cam.json",
+            "--out",
+            "out",
+            "--resolution",
+            "0",
+            "--refine-rounds",
+            "0",
+            "--no-figure-ground",
+            "--quiet",
+        ]
         results = tmp / "out" / "results.jsonl"
         steps = []
 
@@ -148,15 +187,25 @@ def resume_check(n: int) -> dict:
             lines = results.read_text().splitlines()
             records = [json.loads(line) for line in lines]
             after = stamps()
-            row = {"step": name, "exit": code, "expected_exit": want, "seconds": seconds, "lines": len(lines),
-                   "ok": sum(r["status"] == "ok" for r in records),
-                   "errors": [r["input"] for r in records if r["status"] != "ok"],
-                   "messages": [r["error"] for r in records if r["status"] != "ok"],
-                   "outputs_rewritten": sum(after.get(p) != t for p, t in before.items()),
-                   "outputs_new": len(set(after) - set(before)), "stderr_last_line": err}
+            row = {
+                "step": name,
+                "exit": code,
+                "expected_exit": want,
+                "seconds": seconds,
+                "lines": len(lines),
+                "ok": sum(r["status"] == "ok" for r in records),
+                "errors": [r["input"] for r in records if r["status"] != "ok"],
+                "messages": [r["error"] for r in records if r["status"] != "ok"],
+                "outputs_rewritten": sum(after.get(p) != t for p, t in before.items()),
+                "outputs_new": len(set(after) - set(before)),
+                "stderr_last_line": err,
+            }
             steps.append(row)
-            print(f"{name}: exit {code} in {seconds:.1f} s, {row['lines']} lines ({row['ok']} ok, errors "
-                  f"{row['errors']}), {row['outputs_rewritten']} outputs rewritten, {row['outputs_new']} new", flush=True)
+            print(
+                f"{name}: exit {code} in {seconds:.1f} s, {row['lines']} lines ({row['ok']} ok, errors "
+                f"{row['errors']}), {row['outputs_rewritten']} outputs rewritten, {row['outputs_new']} new",
+                flush=True,
+            )
             assert code == want, err
             return row
 
@@ -169,8 +218,12 @@ def resume_check(n: int) -> dict:
         assert fixed["outputs_rewritten"] == 0 and fixed["outputs_new"] == 1 and fixed["ok"] == n
         nothing = step("--resume (complete)", ["--resume"], 0)
         assert nothing["outputs_rewritten"] == 0 and nothing["outputs_new"] == 0 and nothing["lines"] == n
-        return {"inputs": n, "image": "24x24", "options": {"resolution": 0, "refine_rounds": 0, "figure_ground": False},
-                "steps": steps}
+        return {
+            "inputs": n,
+            "image": "24x24",
+            "options": {"resolution": 0, "refine_rounds": 0, "figure_ground": False},
+            "steps": steps,
+        }
 
 
 def main() -> None:

@@ -92,23 +92,41 @@ def main():
     work = Path(tempfile.mkdtemp(prefix="bench-cli-"))
     (work / "parts.json").write_text(json.dumps(SCENE))
     (work / "cam.json").write_text(json.dumps(CAMERA))
-    run(ROOT, work / "render-cache", ["render", str(work / "parts.json"), "--camera", str(work / "cam.json"),
-                                      "--out", str(work / "part.npy"), "--quiet"])
+    run(
+        ROOT,
+        work / "render-cache",
+        [
+            "render",
+            str(work / "parts.json"),
+            "--camera",
+            str(work / "cam.json"),
+            "--out",
+            str(work / "part.npy"),
+            "--quiet",
+        ],
+    )
     variants = {"base": args.base.resolve(), "new": ROOT}
-    recover = lambda out: ["recover", str(work / "part.npy"), "--camera", str(work / "cam.json"),  # noqa: E731
-                           "--out", str(out), "--quiet"]
+    recover = lambda out: [  # noqa: E731
+        "recover",
+        str(work / "part.npy"),
+        "--camera",
+        str(work / "cam.json"),  # noqa: E731
+        "--out",
+        str(out),
+        "--quiet",
+    ]
     demo = lambda out: ["demo", "--out", str(out), "--quiet"]  # noqa: E731
     times = {v: {"recover_cold": [], "recover_warm": [], "demo_cold": [], "demo_warm": []} for v in variants}
     counts = {}
     for command, make, repeats in (("recover", recover, args.repeats), ("demo", demo, args.demo_repeats)):
-        for i in range(repeats):  # cold: an empty cache each time, base and new interleaved
+        for _ in range(repeats):  # cold: an empty cache each time, base and new interleaved
             for v, checkout in variants.items():
                 cache = work / f"cache-{v}-{command}-cold"
                 shutil.rmtree(cache, ignore_errors=True)
                 wall, _ = run(checkout, cache, make(work / f"out-{v}-{command}"))
                 times[v][f"{command}_cold"].append(wall)
                 print(f"{v} {command} cold {wall:.1f} s", flush=True)
-        for i in range(repeats):  # warm: the cache the last cold run left
+        for _ in range(repeats):  # warm: the cache the last cold run left
             for v, checkout in variants.items():
                 wall, _ = run(checkout, work / f"cache-{v}-{command}-cold", make(work / f"out-{v}-{command}"))
                 times[v][f"{command}_warm"].append(wall)
@@ -117,19 +135,31 @@ def main():
             _, c = run(checkout, work / f"cache-{v}-{command}-cold", make(work / f"out-{v}-{command}"), count=True)
             counts.setdefault(v, {})[command] = c
             print(f"{v} {command} warm counts {c}", flush=True)
-    same = {c: max_difference(parts_of(work / f"out-base-{c}"), parts_of(work / f"out-new-{c}")) for c in ("recover", "demo")}
+    same = {
+        c: max_difference(parts_of(work / f"out-base-{c}"), parts_of(work / f"out-new-{c}"))
+        for c in ("recover", "demo")
+    }
     summary = {v: {k: {"median_s": statistics.median(t), "all_s": t} for k, t in d.items()} for v, d in times.items()}
     ratios = {k: summary["base"][k]["median_s"] / summary["new"][k]["median_s"] for k in summary["new"]}
     payload = {
-        "image": "96x96 pinhole, one part (sqparts render of the scene below)", "scene": SCENE, "camera": CAMERA,
-        "demo": "sqparts demo (built-in human, 128x128)", "dtype": "float32",
-        "base": str(variants["base"]), "repeats": args.repeats, "demo_repeats": args.demo_repeats,
-        "times": summary, "speedup_base_over_new": ratios, "warm_counts": counts,
+        "image": "96x96 pinhole, one part (sqparts render of the scene below)",
+        "scene": SCENE,
+        "camera": CAMERA,
+        "demo": "sqparts demo (built-in human, 128x128)",
+        "dtype": "float32",
+        "base": str(variants["base"]),
+        "repeats": args.repeats,
+        "demo_repeats": args.demo_repeats,
+        "times": summary,
+        "speedup_base_over_new": ratios,
+        "warm_counts": counts,
         "max_parameter_difference_base_vs_new": same,
     }
     save("cli", payload)
     for k in summary["new"]:
-        print(f"{k:14s} base {summary['base'][k]['median_s']:6.1f} s  new {summary['new'][k]['median_s']:6.1f} s  x{ratios[k]:.1f}")
+        print(
+            f"{k:14s} base {summary['base'][k]['median_s']:6.1f} s  new {summary['new'][k]['median_s']:6.1f} s  x{ratios[k]:.1f}"
+        )
     print("warm counts", counts)
     print("max parameter difference", same)
     shutil.rmtree(work, ignore_errors=True)

@@ -24,11 +24,10 @@ from pathlib import Path
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 
 import numpy as np
+from _common import machine, save
 
 import sqparts
 from sqparts._plot import save_report, save_residual_report
-
-from _common import machine, save
 
 ROOT = Path(__file__).resolve().parents[1]
 DATA = ROOT.parent / "shared" / "data"
@@ -71,7 +70,12 @@ def inputs(only=None):
     if only in (None, "kinect"):
         yield "kinect", "laptop and box on a table (Kinect)", *sqparts.read_range_image(DATA / "grabber_frame0.pcd"), {}
     if only in (None, "mug"):
-        yield "mug", "mug on a table (stereo)", *sqparts.read_range_image(DATA / "table_scene_mug_stereo_textured.pcd"), {}
+        yield (
+            "mug",
+            "mug on a table (stereo)",
+            *sqparts.read_range_image(DATA / "table_scene_mug_stereo_textured.pcd"),
+            {},
+        )
     if only in (None, "teapot"):
         for view, (d, cam, up) in teapot_views().items():
             yield f"teapot-{view}", f"Utah teapot, {view} view (mesh render)", d, cam, {"up": up}

@@ -34,16 +34,15 @@ sys.path.insert(0, str(Path(__file__).resolve().parent))
 
 import numpy as np
 import trimesh
+from _common import RESULTS, result_path, save
 
 import sqparts
-from sqparts._database import ModelDatabase, match_figures, view_from_parts, _coarse_levels
+from sqparts._database import ModelDatabase, _coarse_levels, match_figures, view_from_parts
 from sqparts._describe import describe
 from sqparts._io import scene_from_dict, scene_to_dict
 from sqparts._mesh import render_mesh
 from sqparts._part import Part, matrix_to_rotation_vector, stack_parts
 from sqparts._recognize import match_descriptions
-
-from _common import RESULTS, result_path, save
 
 ROOT = Path(__file__).resolve().parents[1]
 DATA = ROOT.parent / "shared" / "data"
@@ -56,8 +55,16 @@ NOISE = 0.001  # m
 RECOVER = dict(refine_rounds=1)
 LEARN_VIEWS = [(0, 20), (120, 20), (240, 20)]
 HUMAN_LEARN = [("standing", 0), ("standing", 40), ("standing", -40)]
-HUMAN_TEST = [("arms up", 0), ("t-pose", 20), ("walking", 0), ("waving", -20), ("pointing", 10),
-              ("straddle", 0), ("walking", 30), ("waving", 15)]
+HUMAN_TEST = [
+    ("arms up", 0),
+    ("t-pose", 20),
+    ("walking", 0),
+    ("waving", -20),
+    ("pointing", 10),
+    ("straddle", 0),
+    ("walking", 30),
+    ("waving", 15),
+]
 STABILITY_OBJECTS = ["spot", "teapot"]
 CACHE = RESULTS / "recognition_cache.json"
 
@@ -103,8 +110,14 @@ def human_view(pose, azimuth, scale=1.0, *, noise=0.0, rng=None):
     pos = (np.asarray(p.position, float) - centre) @ r.T + np.array([0, 0, 4.0 * scale])
     rot = np.einsum("ij,njk->nik", r, np.asarray(p.rotation(), float))
     ori = np.stack([np.asarray(matrix_to_rotation_vector(m.astype(np.float32))) for m in rot])
-    parts = Part(size=p.size, squareness=p.squareness, position=pos.astype(np.float32), orientation=ori,
-                 bend=p.bend, taper=p.taper)
+    parts = Part(
+        size=p.size,
+        squareness=p.squareness,
+        position=pos.astype(np.float32),
+        orientation=ori,
+        bend=p.bend,
+        taper=p.taper,
+    )
     cam = camera(focal=RESOLUTION * 4.0 / 2.4)
     depth = np.asarray(sqparts.render_range_image(parts, cam))
     if noise:
@@ -121,19 +134,44 @@ def plan(seed: int = 0):
             views.append((f"{name}/learn{k}", name, "learn", dict(azimuth=az, elevation=el, scale=1.0)))
         azimuths = rng.permutation(np.arange(8) * 45 + 20 + rng.uniform(-8, 8, 8))
         for k in range(8):
-            spec = dict(azimuth=float(azimuths[k]), elevation=float(rng.choice([-10, 5, 35, 50])),
-                        scale=float(rng.uniform(1.0, 1.6)), noise=NOISE, plate=k >= 6, seed=int(rng.integers(1 << 30)))
+            spec = dict(
+                azimuth=float(azimuths[k]),
+                elevation=float(rng.choice([-10, 5, 35, 50])),
+                scale=float(rng.uniform(1.0, 1.6)),
+                noise=NOISE,
+                plate=k >= 6,
+                seed=int(rng.integers(1 << 30)),
+            )
             views.append((f"{name}/test{k}", name, "test", spec))
     for k, (pose, az) in enumerate(HUMAN_LEARN):
         views.append((f"human/learn{k}", "human", "learn", dict(pose=pose, azimuth=az, scale=1.0)))
     for k, (pose, az) in enumerate(HUMAN_TEST):
-        views.append((f"human/test{k}", "human", "test", dict(pose=pose, azimuth=az, scale=float(rng.uniform(1.0, 1.6)),
-                                                              noise=NOISE, seed=int(rng.integers(1 << 30)))))
+        views.append(
+            (
+                f"human/test{k}",
+                "human",
+                "test",
+                dict(
+                    pose=pose,
+                    azimuth=az,
+                    scale=float(rng.uniform(1.0, 1.6)),
+                    noise=NOISE,
+                    seed=int(rng.integers(1 << 30)),
+                ),
+            )
+        )
     for name in STABILITY_OBJECTS:
         for s in (1.0, 1.3, 1.6, 2.0):
             views.append((f"{name}/scale{s}", name, "stability-scale", dict(azimuth=60, elevation=20, scale=s)))
         for n in (0.0, 0.001, 0.003):
-            views.append((f"{name}/noise{n}", name, "stability-noise", dict(azimuth=60, elevation=20, scale=1.0, noise=n, seed=7)))
+            views.append(
+                (
+                    f"{name}/noise{n}",
+                    name,
+                    "stability-noise",
+                    dict(azimuth=60, elevation=20, scale=1.0, noise=n, seed=7),
+                )
+            )
         for az in (0, 60, 120, 180, 240, 300):
             views.append((f"{name}/view{az}", name, "stability-viewpoint", dict(azimuth=az, elevation=20, scale=1.0)))
     for pose in sqparts.HUMAN_POSES:
@@ -145,8 +183,15 @@ def render(name, spec, meshes):
     rng = np.random.default_rng(spec.get("seed", 0))
     if name == "human":
         return human_view(spec["pose"], spec["azimuth"], spec["scale"], noise=spec.get("noise", 0), rng=rng)
-    depth = mesh_view(meshes[name], spec["azimuth"], spec["elevation"], spec["scale"], plate=spec.get("plate", False),
-                      noise=spec.get("noise", 0), rng=rng)
+    depth = mesh_view(
+        meshes[name],
+        spec["azimuth"],
+        spec["elevation"],
+        spec["scale"],
+        plate=spec.get("plate", False),
+        noise=spec.get("noise", 0),
+        rng=rng,
+    )
     return depth, camera()
 
 
@@ -167,13 +212,20 @@ def recover_all(views, meshes, cache: dict) -> dict:
         try:
             rec = sqparts.recover_scene(depth, cam, **RECOVER)
         except ValueError as e:  # e.g. the plate taken for background and too little left: a failure, counted
-            cache[key] = {"figures": [], "seconds": time.perf_counter() - t0, "error": str(e),
-                          "pixels": int(np.isfinite(depth).sum())}
+            cache[key] = {
+                "figures": [],
+                "seconds": time.perf_counter() - t0,
+                "error": str(e),
+                "pixels": int(np.isfinite(depth).sum()),
+            }
             print(f"[{i + 1}/{len(views)}] {key}: recovery failed: {e}", flush=True)
             continue
         seconds = time.perf_counter() - t0
-        entry = {"figures": [_parts_json(r.parts) for r in rec.figures], "seconds": seconds,
-                 "pixels": int(np.isfinite(depth).sum())}
+        entry = {
+            "figures": [_parts_json(r.parts) for r in rec.figures],
+            "seconds": seconds,
+            "pixels": int(np.isfinite(depth).sum()),
+        }
         if role == "learn":
             entry["initial"] = _parts_json(rec.figures[0].initial_parts)
             t0 = time.perf_counter()
@@ -212,19 +264,24 @@ def main():
     folder = Path(tempfile.mkdtemp(prefix="sqparts-bench-db-"))
     db = ModelDatabase(folder)
     objects = MESHES + ["teapot", "human"]
-    for key, name, role, spec in views:
+    for key, name, role, _spec in views:
         if role == "learn":
             e = cache[key]  # as view_from_recovery: all figures are the object
             others = [p for f in e["figures"][1:] for p in _parts(f)]
-            view = view_from_parts(stack_parts([p for f in e["figures"] for p in _parts(f)]), source=key,
-                                   initial=stack_parts([*_parts(e["initial"]), *others]),
-                                   levels=[stack_parts([*_parts(p), *others]) for p in e["levels"]])
+            view = view_from_parts(
+                stack_parts([p for f in e["figures"] for p in _parts(f)]),
+                source=key,
+                initial=stack_parts([*_parts(e["initial"]), *others]),
+                levels=[stack_parts([*_parts(p), *others]) for p in e["levels"]],
+            )
             db.add_view(name, view, calibrate=False)
     t0 = time.perf_counter()
     threshold = db.calibrate()
     calibrate_s = time.perf_counter() - t0
-    print(f"threshold {threshold:.3f} from {len(db.calibration['genuine'])} genuine and "
-          f"{len(db.calibration['impostor'])} impostor scores")
+    print(
+        f"threshold {threshold:.3f} from {len(db.calibration['genuine'])} genuine and "
+        f"{len(db.calibration['impostor'])} impostor scores"
+    )
 
     # --- recognition ------------------------------------------------------------------
     rows, confusion = [], np.zeros((len(objects), len(objects) + 1), int)
@@ -238,12 +295,22 @@ def main():
         match_s = time.perf_counter() - t0
         unknown_best, unknown_matches = match_figures(figures, database=db.without(name))
         names = [m.name for m in matches]
-        row = {"view": key, "object": name, "spec": spec, "parts": [len(f) for f in figures], "best": best,
-               "top": names[0] if names else None, "top_score": matches[0].score if matches else 0.0,
-               "true_score": next((m.score for m in matches if m.name == name), 0.0),
-               "rank": names.index(name) + 1 if name in names else None,
-               "recovery_s": e["seconds"], "matching_s": match_s, "recovery_error": e.get("error"),
-               "unknown_best": unknown_best, "unknown_top_score": unknown_matches[0].score if unknown_matches else 0.0}
+        row = {
+            "view": key,
+            "object": name,
+            "spec": spec,
+            "parts": [len(f) for f in figures],
+            "best": best,
+            "top": names[0] if names else None,
+            "top_score": matches[0].score if matches else 0.0,
+            "true_score": next((m.score for m in matches if m.name == name), 0.0),
+            "rank": names.index(name) + 1 if name in names else None,
+            "recovery_s": e["seconds"],
+            "matching_s": match_s,
+            "recovery_error": e.get("error"),
+            "unknown_best": unknown_best,
+            "unknown_top_score": unknown_matches[0].score if unknown_matches else 0.0,
+        }
         rows.append(row)
         confusion[objects.index(name), objects.index(best) if best else len(objects)] += 1
         print(f"{key}: best {best} ({row['top_score']:.2f}; true {row['true_score']:.2f}), without it: {unknown_best}")
@@ -264,31 +331,61 @@ def main():
             descs = [describe(stack_parts([p for f in cache[k]["figures"] for p in _parts(f)])) for k in keys]
             counts = [len(d) for d in descs]
             dist = [1.0 - match_descriptions(d, descs[0]).score for d in descs[1:]]
-            stability.append({"kind": kind, "object": name, "views": keys, "part_counts": counts,
-                              "part_count_spread": int(max(counts) - min(counts)),
-                              "part_count_std": float(np.std(counts)),
-                              "description_distance_mean": float(np.mean(dist)),
-                              "description_distance_max": float(np.max(dist))})
+            stability.append(
+                {
+                    "kind": kind,
+                    "object": name,
+                    "views": keys,
+                    "part_counts": counts,
+                    "part_count_spread": int(max(counts) - min(counts)),
+                    "part_count_std": float(np.std(counts)),
+                    "description_distance_mean": float(np.mean(dist)),
+                    "description_distance_max": float(np.max(dist)),
+                }
+            )
 
     summary = {
-        "objects": len(objects), "test_views": n, "top1": float(top1), "accepted_and_correct": float(accepted_correct),
-        "known_wrongly_rejected": float(wrongly_rejected), "unknown_rejected": float(unknown_rejected),
-        "threshold": threshold, "seconds_per_recognition_median": float(np.median(seconds)),
+        "objects": len(objects),
+        "test_views": n,
+        "top1": float(top1),
+        "accepted_and_correct": float(accepted_correct),
+        "known_wrongly_rejected": float(wrongly_rejected),
+        "unknown_rejected": float(unknown_rejected),
+        "threshold": threshold,
+        "seconds_per_recognition_median": float(np.median(seconds)),
         "seconds_per_recognition_mean": float(np.mean(seconds)),
         "matching_seconds_median": float(np.median([r["matching_s"] for r in rows])),
-        "compile_plus_first_recovery_s": cold, "recovery_wall_s": recovery_wall, "calibration_s": calibrate_s,
+        "compile_plus_first_recovery_s": cold,
+        "recovery_wall_s": recovery_wall,
+        "calibration_s": calibrate_s,
     }
     print(json.dumps(summary, indent=1))
     for s in stability:
-        print(f"{s['kind']:13s} {s['object']:8s} parts {s['part_counts']} distance mean {s['description_distance_mean']:.3f} "
-              f"max {s['description_distance_max']:.3f}")
-    save("recognition", {
-        "settings": {"resolution": RESOLUTION, "object_size_m": OBJECT_SIZE, "distance_m": DISTANCE, "noise_m": NOISE,
-                     "recover": RECOVER, "learn_views": LEARN_VIEWS, "human_learn": HUMAN_LEARN,
-                     "human_test": HUMAN_TEST, "dtype": "float32"},
-        "summary": summary, "calibration": db.calibration, "stability": stability, "rows": rows,
-        "confusion": {"rows": objects, "columns": objects + ["(rejected)"], "counts": confusion.tolist()},
-    })
+        print(
+            f"{s['kind']:13s} {s['object']:8s} parts {s['part_counts']} distance mean {s['description_distance_mean']:.3f} "
+            f"max {s['description_distance_max']:.3f}"
+        )
+    save(
+        "recognition",
+        {
+            "settings": {
+                "resolution": RESOLUTION,
+                "object_size_m": OBJECT_SIZE,
+                "distance_m": DISTANCE,
+                "noise_m": NOISE,
+                "recover": RECOVER,
+                "learn_views": LEARN_VIEWS,
+                "human_learn": HUMAN_LEARN,
+                "human_test": HUMAN_TEST,
+                "dtype": "float32",
+            },
+            "summary": summary,
+            "calibration": db.calibration,
+            "stability": stability,
+            "rows": rows,
+            "confusion": {"rows": objects, "columns": objects + ["(rejected)"], "counts": confusion.tolist()},
+        },
+    )
     plot_confusion(confusion, objects, result_path("recognition_confusion", "png"))
 
 
@@ -301,8 +398,14 @@ def plot_confusion(confusion, objects, path):
     for i in range(confusion.shape[0]):
         for j in range(confusion.shape[1]):
             if confusion[i, j]:
-                ax.text(j, i, str(confusion[i, j]), ha="center", va="center",
-                        color="white" if confusion[i, j] > confusion.max() / 2 else "black")
+                ax.text(
+                    j,
+                    i,
+                    str(confusion[i, j]),
+                    ha="center",
+                    va="center",
+                    color="white" if confusion[i, j] > confusion.max() / 2 else "black",
+                )
     ax.set_xticks(range(len(objects) + 1), objects + ["(rejected)"], rotation=60, ha="right")
     ax.set_yticks(range(len(objects)), objects)
     ax.set_xlabel("recognised as (best)")

@@ -21,10 +21,9 @@ from pathlib import Path
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 
 import numpy as np
+from _common import result_path, save
 
 import sqparts
-
-from _common import result_path, save
 
 SCENE_OPTIONS = {"human": {}, "chair": {}, "castings": {}, "gate": {}}
 WARM_RUNS = 3
@@ -58,9 +57,11 @@ def recover_scene(name):
         "warm_runs_total_s": [w.timings["total"] for w in warm],
         "compile_s": cold - timings["total"],
     }
-    print(f"{name}: {row['found_parts']}/{row['true_parts']} parts, explained {row['fraction_explained']:.1%}, "
-          f"commission {row['commission_fraction']:.1%}, {timings['total']:.1f} s warm (median of {WARM_RUNS}), compile {row['compile_s']:.1f} s",
-          flush=True)
+    print(
+        f"{name}: {row['found_parts']}/{row['true_parts']} parts, explained {row['fraction_explained']:.1%}, "
+        f"commission {row['commission_fraction']:.1%}, {timings['total']:.1f} s warm (median of {WARM_RUNS}), compile {row['compile_s']:.1f} s",
+        flush=True,
+    )
     return row, r
 
 
@@ -74,10 +75,19 @@ def perturbation_spread(name, sigma: float = 3e-6, seeds: int = 4):
     for seed in range(seeds):
         noisy = depth + np.random.default_rng(seed).normal(0.0, sigma, depth.shape).astype(np.float32)
         r = sqparts.recover(noisy, s.camera, **SCENE_OPTIONS[name])
-        rows.append({"seed": seed, "found_parts": len(r.parts), "fraction_explained": r.fraction_explained,
-                     "description_length_bits": r.cost.total})
-    print(f"{name} with {sigma * 1e6:.0f} µm noise: parts {[r['found_parts'] for r in rows]}, explained "
-          f"{[round(100 * r['fraction_explained'], 1) for r in rows]}%", flush=True)
+        rows.append(
+            {
+                "seed": seed,
+                "found_parts": len(r.parts),
+                "fraction_explained": r.fraction_explained,
+                "description_length_bits": r.cost.total,
+            }
+        )
+    print(
+        f"{name} with {sigma * 1e6:.0f} µm noise: parts {[r['found_parts'] for r in rows]}, explained "
+        f"{[round(100 * r['fraction_explained'], 1) for r in rows]}%",
+        flush=True,
+    )
     return {"scene": name, "sigma_m": sigma, "runs": rows}
 
 
@@ -91,19 +101,33 @@ def best_first_vs_exact(recovery_problems, trials: int = 40, seed: int = 0):
         for _ in range(trials):
             k = int(rng.integers(min(8, n), min(40, n) + 1))
             idx = np.sort(rng.choice(n, k, replace=False))
-            sub = sqparts.SelectionProblem(problem.area[np.ix_(idx, idx)], problem.commission[np.ix_(idx, idx)], problem.costs)
+            sub = sqparts.SelectionProblem(
+                problem.area[np.ix_(idx, idx)], problem.commission[np.ix_(idx, idx)], problem.costs
+            )
             t0 = time.perf_counter()
             g = sqparts.select_best_first(sub)
             t1 = time.perf_counter()
             x, optimal = sqparts.select_exact(sub)
             t2 = time.perf_counter()
-            rows.append({"n": k, "optimal": bool(optimal), "best_first_bits": sub.energy(g), "exact_bits": sub.energy(x),
-                         "best_first_s": t1 - t0, "exact_s": t2 - t1})
+            rows.append(
+                {
+                    "n": k,
+                    "optimal": bool(optimal),
+                    "best_first_bits": sub.energy(g),
+                    "exact_bits": sub.energy(x),
+                    "best_first_s": t1 - t0,
+                    "exact_s": t2 - t1,
+                }
+            )
     same = np.mean([abs(r["best_first_bits"] - r["exact_bits"]) < 1e-6 for r in rows])
-    return {"trials": len(rows), "best_first_optimal_rate": float(same),
-            "mean_excess_bits": float(np.mean([r["best_first_bits"] - r["exact_bits"] for r in rows])),
-            "median_best_first_s": float(np.median([r["best_first_s"] for r in rows])),
-            "median_exact_s": float(np.median([r["exact_s"] for r in rows])), "rows": rows}
+    return {
+        "trials": len(rows),
+        "best_first_optimal_rate": float(same),
+        "mean_excess_bits": float(np.mean([r["best_first_bits"] - r["exact_bits"] for r in rows])),
+        "median_best_first_s": float(np.median([r["best_first_s"] for r in rows])),
+        "median_exact_s": float(np.median([r["exact_s"] for r in rows])),
+        "rows": rows,
+    }
 
 
 def candidate_problem(name):
@@ -131,8 +155,11 @@ def main() -> None:
         save_report(result_path(f"report_{name}", "png"), r, title=name)
     spread = perturbation_spread("human") if "human" in args.scenes else None
     sel = best_first_vs_exact([candidate_problem("human"), candidate_problem("castings")])
-    print(f"best-first optimal in {sel['best_first_optimal_rate']:.0%} of {sel['trials']} problems, "
-          f"mean excess {sel['mean_excess_bits']:.1f} bits", flush=True)
+    print(
+        f"best-first optimal in {sel['best_first_optimal_rate']:.0%} of {sel['trials']} problems, "
+        f"mean excess {sel['mean_excess_bits']:.1f} bits",
+        flush=True,
+    )
     save("recover", {"scenes": rows, "perturbation": spread, "selection": sel})
 
 

@@ -26,11 +26,10 @@ sys.path.insert(0, str(Path(__file__).resolve().parent))
 
 import jax
 import numpy as np
+from _common import save
 
 import sqparts
 import sqparts._render
-
-from _common import save
 
 
 def random_parts(n: int, seed: int = 0) -> sqparts.Part:
@@ -50,7 +49,9 @@ def load_baseline(path: Path):
     init = path / "sqparts" / "__init__.py"
     if not init.is_file():
         raise SystemExit(f"--baseline: expected a checkout with sqparts/__init__.py, got {path}")
-    spec = importlib.util.spec_from_file_location("sqparts_baseline", init, submodule_search_locations=[str(init.parent)])
+    spec = importlib.util.spec_from_file_location(
+        "sqparts_baseline", init, submodule_search_locations=[str(init.parent)]
+    )
     module = importlib.util.module_from_spec(spec)
     sys.modules["sqparts_baseline"] = module
     spec.loader.exec_module(module)
@@ -59,7 +60,9 @@ def load_baseline(path: Path):
 
 def git_revision(path: Path) -> str | None:
     try:
-        out = subprocess.run(["git", "-C", str(path), "rev-parse", "--short", "HEAD"], capture_output=True, text=True, timeout=10)
+        out = subprocess.run(
+            ["git", "-C", str(path), "rev-parse", "--short", "HEAD"], capture_output=True, text=True, timeout=10
+        )
     except (OSError, subprocess.SubprocessError):
         return None
     return out.stdout.strip() or None
@@ -89,8 +92,13 @@ def main() -> None:
         codes["baseline"] = (base._render, base_parts, git_revision(args.baseline))
     # cast_batch (render_each's kernel), and the search's pattern: lax.map over chunks of
     # hypotheses of cast_part (sqparts._search._map_hypotheses), which gets no ray tiles.
-    configs = [(32, 6, "cast_batch"), (32, 8, "cast_batch"), (64, 6, "cast_batch"), (64, 8, "cast_batch"),
-               (32, 6, "lax.map(cast_part)")]
+    configs = [
+        (32, 6, "cast_batch"),
+        (32, 8, "cast_batch"),
+        (64, 6, "cast_batch"),
+        (64, 8, "cast_batch"),
+        (32, 6, "lax.map(cast_part)"),
+    ]
     rows = []
     for window, steps, entry in configs:
         cam = sqparts.PinholeCamera(window, window, window * 1.25, window * 1.25, (window - 1) / 2, (window - 1) / 2)
@@ -100,7 +108,9 @@ def main() -> None:
             if entry == "cast_batch":
                 fn = lambda p, s=steps, r=render: r.cast_batch(p, o, d, batch_size=args.batch_size, newton_steps=s)  # noqa: E731
             else:
-                fn = lambda p, s=steps, r=render: jax.lax.map(lambda q: r.cast_part(q, o, d, s), p, batch_size=args.batch_size)  # noqa: E731
+                fn = lambda p, s=steps, r=render: jax.lax.map(  # noqa: E731
+                    lambda q: r.cast_part(q, o, d, s), p, batch_size=args.batch_size
+                )
             fns[code] = jax.jit(fn)
             t0 = time.perf_counter()
             outputs[code] = jax.block_until_ready(fns[code](prt))
@@ -139,12 +149,20 @@ def main() -> None:
                 row["speedup_of_this"] = median / statistics.median(times["this"])
                 row["cpu_speedup_of_this"] = row["median_cpu_s"] / statistics.median(cpu_times["this"])
                 row["hit_iou_with_this"] = float(both.sum() / max((hit_new | hit_old).sum(), 1))
-                row["max_depth_difference_with_this"] = float(np.abs(t_new[both] - t_old[both]).max()) if both.any() else 0.0
+                row["max_depth_difference_with_this"] = (
+                    float(np.abs(t_new[both] - t_old[both]).max()) if both.any() else 0.0
+                )
             rows.append(row)
-            print(f"{code:8s} {entry} {window}x{window} steps={steps}: {row['rays_per_s'] / 1e6:.2f} M rays/s, "
-                  f"{row['hypotheses_per_s']:.0f} hyp/s, compile {row['compile_s']:.2f} s"
-                  + (f", this is {row['speedup_of_this']:.2f}x faster ({row['cpu_speedup_of_this']:.2f}x in CPU time), hit IoU {row['hit_iou_with_this']:.5f}, "
-                     f"max |dt| {row['max_depth_difference_with_this']:.1e}" if code == "baseline" else ""))
+            print(
+                f"{code:8s} {entry} {window}x{window} steps={steps}: {row['rays_per_s'] / 1e6:.2f} M rays/s, "
+                f"{row['hypotheses_per_s']:.0f} hyp/s, compile {row['compile_s']:.2f} s"
+                + (
+                    f", this is {row['speedup_of_this']:.2f}x faster ({row['cpu_speedup_of_this']:.2f}x in CPU time), hit IoU {row['hit_iou_with_this']:.5f}, "
+                    f"max |dt| {row['max_depth_difference_with_this']:.1e}"
+                    if code == "baseline"
+                    else ""
+                )
+            )
     save("render", {"rows": rows})
 
 

@@ -27,11 +27,10 @@ sys.path.insert(0, str(Path(__file__).resolve().parent))
 
 import jax
 import numpy as np
+from _common import result_path, save
 from scipy.ndimage import distance_transform_edt
 
 import sqparts
-
-from _common import result_path, save
 
 VARIANTS = ("clean", "noise", "6-bit", "occluded")
 CUSTOM = {
@@ -47,18 +46,28 @@ def make_case(i: int):
     variant = VARIANTS[(i // 2) % len(VARIANTS)]
     deformed = (i // 8) % 2 == 1
     a = np.sort(rng.uniform(0.08, 0.25, 3))[[1, 0, 2]]
-    kw = dict(size=a, squareness=rng.uniform(0.2, 1.8, 2), position=np.r_[rng.uniform(-0.03, 0.03, 2), 2.0],
-              orientation=rng.normal(size=3))
+    kw = dict(
+        size=a,
+        squareness=rng.uniform(0.2, 1.8, 2),
+        position=np.r_[rng.uniform(-0.03, 0.03, 2), 2.0],
+        orientation=rng.normal(size=3),
+    )
     if deformed:
         kw["bend"] = [rng.uniform(-0.3, 0.3), 0.0]
         kw["taper"] = rng.uniform(-0.3, 0.3)
     truth = sqparts.Part(**{k: np.asarray(v, np.float32) for k, v in kw.items()})
-    cam = (sqparts.PinholeCamera(64, 64, 190.0, 190.0, 31.5, 31.5) if pinhole
-           else sqparts.OrthographicCamera(64, 64, 0.0105, 31.5, 31.5))
+    cam = (
+        sqparts.PinholeCamera(64, 64, 190.0, 190.0, 31.5, 31.5)
+        if pinhole
+        else sqparts.OrthographicCamera(64, 64, 0.0105, 31.5, 31.5)
+    )
     scene = truth
     if variant == "occluded":
-        box = sqparts.Part(size=np.array([0.4, 0.4, 0.02], np.float32), squareness=np.array([0.2, 0.2], np.float32),
-                           position=np.array([0.4 if rng.random() < 0.5 else -0.4, 0.0, 1.6], np.float32))
+        box = sqparts.Part(
+            size=np.array([0.4, 0.4, 0.02], np.float32),
+            squareness=np.array([0.2, 0.2], np.float32),
+            position=np.array([0.4 if rng.random() < 0.5 else -0.4, 0.0, 1.6], np.float32),
+        )
         scene = sqparts.stack_parts([truth, box])
     depth, labels = (np.asarray(x) for x in sqparts.render_range_image(scene, cam, return_labels=True))
     if variant == "noise":
@@ -74,8 +83,18 @@ def make_case(i: int):
     # The figure: the piece of the rubber sheet (torn at depth jumps) holding the centre.
     pieces = sqparts.torn_components(depth, cam)
     figure = pieces == pieces[tuple(centre)]
-    return dict(truth=truth, camera=cam, depth=depth, figure=figure, centre=centre, variant=variant, pinhole=pinhole,
-                deformed=deformed, visible=int(visible.sum()), occluded_fraction=None)
+    return dict(
+        truth=truth,
+        camera=cam,
+        depth=depth,
+        figure=figure,
+        centre=centre,
+        variant=variant,
+        pinhole=pinhole,
+        deformed=deformed,
+        visible=int(visible.sum()),
+        occluded_fraction=None,
+    )
 
 
 def chamfer(a: sqparts.Part, b: sqparts.Part, n: int = 2000, dense: int = 40000) -> float:
@@ -109,18 +128,37 @@ def run_grid(name, grid, cases):
         size = 2 * float(np.max(np.asarray(c["truth"].size)))
         ch = chamfer(fit.parts[0], c["truth"]) / size
         g = np.asarray(fit.gamma)
-        rows.append({"case": k, "variant": c["variant"], "pinhole": c["pinhole"], "deformed": c["deformed"],
-                     "chamfer_rel": ch, "success": bool(ch <= 0.02), "gamma": float(g[0]),
-                     "visible_pixels": c["visible"], "ratio": fit.ratio, "wall_s": wall})
-        print(f"  {name} case {k:2d} {c['variant']:8s} {'pin' if c['pinhole'] else 'ortho'} "
-              f"{'deformed' if c['deformed'] else 'plain   '} chamfer {ch:.3f} Γ {g[0]:.0f}/{c['visible']} "
-              f"ratio {fit.ratio:.2f} {wall:.2f} s", flush=True)
-    return {"grid": name, "hypotheses": grid.size, "compile_s": t_compile,
-            "median_wall_s": statistics.median(r["wall_s"] for r in rows),
-            "success_rate": float(np.mean([r["success"] for r in rows])),
-            "success_rate_5pct": float(np.mean([r["chamfer_rel"] <= 0.05 for r in rows])),
-            "median_chamfer_rel": float(np.median([r["chamfer_rel"] for r in rows])),
-            "median_ratio": float(np.median([r["ratio"] for r in rows])), "cases": rows}
+        rows.append(
+            {
+                "case": k,
+                "variant": c["variant"],
+                "pinhole": c["pinhole"],
+                "deformed": c["deformed"],
+                "chamfer_rel": ch,
+                "success": bool(ch <= 0.02),
+                "gamma": float(g[0]),
+                "visible_pixels": c["visible"],
+                "ratio": fit.ratio,
+                "wall_s": wall,
+            }
+        )
+        print(
+            f"  {name} case {k:2d} {c['variant']:8s} {'pin' if c['pinhole'] else 'ortho'} "
+            f"{'deformed' if c['deformed'] else 'plain   '} chamfer {ch:.3f} Γ {g[0]:.0f}/{c['visible']} "
+            f"ratio {fit.ratio:.2f} {wall:.2f} s",
+            flush=True,
+        )
+    return {
+        "grid": name,
+        "hypotheses": grid.size,
+        "compile_s": t_compile,
+        "median_wall_s": statistics.median(r["wall_s"] for r in rows),
+        "success_rate": float(np.mean([r["success"] for r in rows])),
+        "success_rate_5pct": float(np.mean([r["chamfer_rel"] <= 0.05 for r in rows])),
+        "median_chamfer_rel": float(np.median([r["chamfer_rel"] for r in rows])),
+        "median_ratio": float(np.median([r["ratio"] for r in rows])),
+        "cases": rows,
+    }
 
 
 def throughput(repeats: int = 3):
@@ -145,11 +183,17 @@ def throughput(repeats: int = 3):
         fits, _, _ = sqparts.fit_image(depth, s.camera, grid=grid)
         jax.block_until_ready([f.gamma for f in fits])
         per_image = time.perf_counter() - t0
-        out[grid] = {"hypotheses": st.grid.size, "window": st.window, "pruned_s_per_region": res["pruned"],
-                     "brute_s_per_region": res["brute"], "speedup": res["brute"] / res["pruned"],
-                     "hypotheses_per_s_pruned": st.grid.size / res["pruned"],
-                     "hypotheses_per_s_brute": st.grid.size / res["brute"],
-                     "regions": len(fits), "s_per_image": per_image}
+        out[grid] = {
+            "hypotheses": st.grid.size,
+            "window": st.window,
+            "pruned_s_per_region": res["pruned"],
+            "brute_s_per_region": res["brute"],
+            "speedup": res["brute"] / res["pruned"],
+            "hypotheses_per_s_pruned": st.grid.size / res["pruned"],
+            "hypotheses_per_s_brute": st.grid.size / res["brute"],
+            "regions": len(fits),
+            "s_per_image": per_image,
+        }
         print(f"  throughput {grid}: {out[grid]}", flush=True)
     return out
 
@@ -186,8 +230,11 @@ def main() -> None:
     for name in args.grids:
         grid = CUSTOM[name] if name in CUSTOM else sqparts.grid_preset(name)
         results.append(run_grid(name, grid, cases))
-        print(f"{name}: {grid.size} hypotheses, success {results[-1]['success_rate']:.0%}, "
-              f"median Chamfer {results[-1]['median_chamfer_rel']:.3f}, {results[-1]['median_wall_s']:.2f} s/region", flush=True)
+        print(
+            f"{name}: {grid.size} hypotheses, success {results[-1]['success_rate']:.0%}, "
+            f"median Chamfer {results[-1]['median_chamfer_rel']:.3f}, {results[-1]['median_wall_s']:.2f} s/region",
+            flush=True,
+        )
     payload = {"cases": args.cases, "image": "64x64", "dtype": "float32", "densities": results}
     if not args.no_throughput:
         payload["throughput"] = throughput()

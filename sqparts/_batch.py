@@ -82,7 +82,9 @@ def expand_inputs(paths, *, recursive: bool = False) -> list[Path]:
         elif not p.exists() and _PATTERN_CHARACTERS & set(text):
             found = images(map(Path, glob.glob(text, recursive=True)))
             if not found:
-                raise ValueError(f"input: got pattern {text!r}, which matches no range images, expected one matching {wanted} files")
+                raise ValueError(
+                    f"input: got pattern {text!r}, which matches no range images, expected one matching {wanted} files"
+                )
             out.extend(found)
         elif not p.exists():
             raise FileNotFoundError(f"input: got {text!r}, expected an existing file or folder, or a glob pattern")
@@ -135,12 +137,27 @@ def write_recovery(folder, recovery, *, title: str, names=None) -> None:
         from ._io import save_view_data
         from ._view import pixel_status
 
-        save_view_data(folder, recovery.depth, recovery.camera, status=pixel_status(recovery),
-                       model=recovery.cost.rendered, labels=recovery.cost.labels)
+        save_view_data(
+            folder,
+            recovery.depth,
+            recovery.camera,
+            status=pixel_status(recovery),
+            model=recovery.cost.rendered,
+            labels=recovery.cost.labels,
+        )
 
 
-def recover_file(path, target, *, camera=None, depth_scale: float = 0.001, sigma=None,
-                 overwrite: bool = False, progress=None, **options):
+def recover_file(
+    path,
+    target,
+    *,
+    camera=None,
+    depth_scale: float = 0.001,
+    sigma=None,
+    overwrite: bool = False,
+    progress=None,
+    **options,
+):
     """Read one range image, recover its scene (:func:`~sqparts.recover_scene` with
     ``options``) and write its three outputs into the folder ``target`` in one step.
 
@@ -159,7 +176,9 @@ def recover_file(path, target, *, camera=None, depth_scale: float = 0.001, sigma
     depth, own = read_range_image(path, depth_scale=depth_scale)
     camera = camera or own
     if camera is None:
-        raise ValueError(f"--camera: got nothing for {str(path)!r}, which carries no camera, expected --camera CAM.json")
+        raise ValueError(
+            f"--camera: got nothing for {str(path)!r}, which carries no camera, expected --camera CAM.json"
+        )
     if depth.shape != (camera.height, camera.width):
         raise ValueError(
             f"--camera: got a {camera.width}x{camera.height} camera for {str(path)!r}, expected "
@@ -217,9 +236,15 @@ def _run_task(task: _Task, *, worker: bool = False) -> dict:
         enable_compilation_cache()
     t0 = time.perf_counter()
     try:
-        recovery = recover_file(task.input, Path(task.out) / task.output, camera=task.camera,
-                                depth_scale=task.depth_scale, sigma=task.sigma, overwrite=task.replace,
-                                **task.options)
+        recovery = recover_file(
+            task.input,
+            Path(task.out) / task.output,
+            camera=task.camera,
+            depth_scale=task.depth_scale,
+            sigma=task.sigma,
+            overwrite=task.replace,
+            **task.options,
+        )
     except Exception as e:  # noqa: BLE001  (any failure of one input is recorded; the batch goes on)
         return task.record("error", seconds=time.perf_counter() - t0, error=error_message(e))
     return task.record("ok", seconds=time.perf_counter() - t0, recovery=recovery)
@@ -299,14 +324,26 @@ def _ours(folder: Path) -> bool:
     return folder.is_dir() and all(p.name in OUTPUT_FILES + VIEW_FILES for p in folder.iterdir())
 
 
-def plan_batch(inputs, *, out, camera=None, recursive: bool = False, overwrite: bool = False,
-               resume: bool = False, depth_scale: float = 0.001, sigma=None, **options) -> BatchPlan:
+def plan_batch(
+    inputs,
+    *,
+    out,
+    camera=None,
+    recursive: bool = False,
+    overwrite: bool = False,
+    resume: bool = False,
+    depth_scale: float = 0.001,
+    sigma=None,
+    **options,
+) -> BatchPlan:
     """Check a batch before any work (see :func:`recover_many`): inputs exist, names and
     output folders are distinct, nothing would be overwritten silently."""
     from ._io import check_new_output, load_camera
 
     if resume and overwrite:
-        raise ValueError("--resume: got it with --overwrite, expected one of them (resume keeps finished inputs, overwrite redoes all)")
+        raise ValueError(
+            "--resume: got it with --overwrite, expected one of them (resume keeps finished inputs, overwrite redoes all)"
+        )
     out = Path(out)
     if out.exists() and not out.is_dir():
         raise FileExistsError(f"--out: got {str(out)!r}, which is a file, expected a folder")
@@ -319,8 +356,10 @@ def plan_batch(inputs, *, out, camera=None, recursive: bool = False, overwrite: 
     results = out / RESULTS_NAME
     earlier = read_results(results) if results.exists() else []
     if earlier and not (resume or overwrite):
-        raise FileExistsError(f"--out: got {str(out)!r}, which holds the {RESULTS_NAME} of an earlier run, "
-                              "expected a new folder (or --resume to finish it, or --overwrite)")
+        raise FileExistsError(
+            f"--out: got {str(out)!r}, which holds the {RESULTS_NAME} of an earlier run, "
+            "expected a new folder (or --resume to finish it, or --overwrite)"
+        )
     latest = {(r["input"], r["output"]): r for r in earlier} if resume else {}
     tasks, skipped = [], []
     for path, name in zip(paths, names):
@@ -384,8 +423,14 @@ def run_batch(plan: BatchPlan, *, client=None, progress: bool = False):
     from tqdm import tqdm
 
     log = _ResultsLog(plan.results, plan.keep)
-    bar = tqdm(total=len(plan.tasks), desc="inputs", unit="input", disable=not progress or not plan.tasks, leave=False,
-               dynamic_ncols=True)
+    bar = tqdm(
+        total=len(plan.tasks),
+        desc="inputs",
+        unit="input",
+        disable=not progress or not plan.tasks,
+        leave=False,
+        dynamic_ncols=True,
+    )
     failed = 0
     try:
         if client is None:
@@ -423,9 +468,20 @@ def remove_staging(plan: BatchPlan, *, since: float) -> None:
                     shutil.rmtree(p) if p.is_dir() else p.unlink()
 
 
-def recover_many(inputs, *, out, camera=None, client=None, recursive: bool = False,
-                 overwrite: bool = False, resume: bool = False, depth_scale: float = 0.001,
-                 sigma=None, progress: bool = False, **options):
+def recover_many(
+    inputs,
+    *,
+    out,
+    camera=None,
+    client=None,
+    recursive: bool = False,
+    overwrite: bool = False,
+    resume: bool = False,
+    depth_scale: float = 0.001,
+    sigma=None,
+    progress: bool = False,
+    **options,
+):
     """Recover the scene of each of many range images; yield a record per input.
 
     Parameters
@@ -451,6 +507,15 @@ def recover_many(inputs, *, out, camera=None, client=None, recursive: bool = Fal
     output that exists (unless ``overwrite``, or an earlier run's with ``resume``),
     ``ValueError`` for an input given twice.
     """
-    plan = plan_batch(inputs, out=out, camera=camera, recursive=recursive, overwrite=overwrite,
-                      resume=resume, depth_scale=depth_scale, sigma=sigma, **options)
+    plan = plan_batch(
+        inputs,
+        out=out,
+        camera=camera,
+        recursive=recursive,
+        overwrite=overwrite,
+        resume=resume,
+        depth_scale=depth_scale,
+        sigma=sigma,
+        **options,
+    )
     return run_batch(plan, client=client, progress=progress)

@@ -27,7 +27,6 @@ import numpy as np
 
 from ._typing import Array, Float
 
-
 MAX_SIDE = 32768
 """Longest image side a camera or range image may have."""
 MAX_PIXELS = 2**24
@@ -38,8 +37,7 @@ few hundred bytes per pixel, so larger images are refused before anything is all
 def _check_image_size(width: int, height: int) -> None:
     if width > MAX_SIDE or height > MAX_SIDE or width * height > MAX_PIXELS:
         raise ValueError(
-            f"camera: got {width}x{height} pixels, expected at most {MAX_PIXELS} pixels "
-            f"and {MAX_SIDE} per side"
+            f"camera: got {width}x{height} pixels, expected at most {MAX_PIXELS} pixels and {MAX_SIDE} per side"
         )
 
 
@@ -100,7 +98,9 @@ class _Camera:
         uu, vv = self._pixel_grid(window)
         return self._rays(uu, vv)
 
-    def pixel_size_at(self, depth: Float[Array, "..."] | Float[np.ndarray, "..."] | float | np.floating) -> Float[Array, "..."]:
+    def pixel_size_at(
+        self, depth: Float[Array, "..."] | Float[np.ndarray, "..."] | float | np.floating
+    ) -> Float[Array, "..."]:
         """Metric width of one pixel at the given depth (for pixel-equivalent errors)."""
         raise NotImplementedError
 
@@ -111,9 +111,13 @@ class _Camera:
             raise ValueError(f"factor: got {factor!r}, expected an integer >= 1")
         f = int(factor)
         if f > min(self.width, self.height):
-            raise ValueError(f"factor: got {f}, expected at most {min(self.width, self.height)} for a {self.width}x{self.height} camera")
+            raise ValueError(
+                f"factor: got {f}, expected at most {min(self.width, self.height)} for a {self.width}x{self.height} camera"
+            )
         shift = (f - 1) / 2.0
-        common = dict(width=self.width // f, height=self.height // f, cx=(self.cx - shift) / f, cy=(self.cy - shift) / f)
+        common = dict(
+            width=self.width // f, height=self.height // f, cx=(self.cx - shift) / f, cy=(self.cy - shift) / f
+        )
         return dataclasses.replace(self, **common, **self._scaled_fields(f))
 
     def points(self, range_image) -> np.ndarray:
@@ -153,9 +157,7 @@ class PinholeCamera(_Camera):
     def project(self, points):
         """Camera-frame points (..., 3) to pixel coordinates (..., 2) as (u, v)."""
         p = jnp.asarray(points)
-        return jnp.stack(
-            [self.fx * p[..., 0] / p[..., 2] + self.cx, self.fy * p[..., 1] / p[..., 2] + self.cy], -1
-        )
+        return jnp.stack([self.fx * p[..., 0] / p[..., 2] + self.cx, self.fy * p[..., 1] / p[..., 2] + self.cy], -1)
 
     def to_json(self) -> dict:
         k = np.array([[self.fx, 0, self.cx], [0, self.fy, self.cy], [0, 0, 1]], dtype=float)
@@ -176,9 +178,7 @@ class OrthographicCamera(_Camera):
 
     def __post_init__(self):
         _check_image_size(_check_positive_int("width", self.width), _check_positive_int("height", self.height))
-        object.__setattr__(
-            self, "pixel_size", _check_finite("pixel_size", self.pixel_size, positive=True)
-        )
+        object.__setattr__(self, "pixel_size", _check_finite("pixel_size", self.pixel_size, positive=True))
         for name in ("cx", "cy"):
             object.__setattr__(self, name, _check_finite(name, getattr(self, name)))
 
@@ -196,9 +196,7 @@ class OrthographicCamera(_Camera):
 
     def project(self, points):
         p = jnp.asarray(points)
-        return jnp.stack(
-            [p[..., 0] / self.pixel_size + self.cx, p[..., 1] / self.pixel_size + self.cy], -1
-        )
+        return jnp.stack([p[..., 0] / self.pixel_size + self.cx, p[..., 1] / self.pixel_size + self.cy], -1)
 
     def to_json(self) -> dict:
         return {
@@ -293,36 +291,39 @@ def camera_from_json(data: dict) -> Camera:
         "scanner": {"model", "width", "height", "azimuth_step", "elevation_step", "cx", "cy"},
     }
     if model not in known:
-        raise ValueError(
-            f"camera.model: got {model!r}, expected one of {sorted(known)}"
-        )
+        raise ValueError(f"camera.model: got {model!r}, expected one of {sorted(known)}")
     required = known[model] - {"model"}
     missing = sorted(required - set(data))
     if missing:
         raise ValueError(f"camera: got no {', '.join(missing)}, expected keys {sorted(required)} for a {model} camera")
     unknown = sorted(set(data) - known[model])
     if unknown:
-        raise ValueError(f"camera: got unknown key(s) {unknown}, expected only {sorted(known[model])} for a {model} camera")
+        raise ValueError(
+            f"camera: got unknown key(s) {unknown}, expected only {sorted(known[model])} for a {model} camera"
+        )
     if model == "pinhole":
         try:
             k = np.asarray(data["intrinsic_matrix"], dtype=float)
         except (TypeError, ValueError):
-            raise ValueError(f"camera.intrinsic_matrix: got {data['intrinsic_matrix']!r:.80}, expected 9 numbers") from None
-        if k.size != 9:
             raise ValueError(
-                f"camera.intrinsic_matrix: got {k.size}, expected 9 numbers (column-major 3x3)"
-            )
+                f"camera.intrinsic_matrix: got {data['intrinsic_matrix']!r:.80}, expected 9 numbers"
+            ) from None
+        if k.size != 9:
+            raise ValueError(f"camera.intrinsic_matrix: got {k.size}, expected 9 numbers (column-major 3x3)")
         k = k.reshape(3, 3, order="F")
-        if not np.all(np.isfinite(k)) or abs(k[0, 1]) > 1e-9 or abs(k[1, 0]) > 1e-9 or np.any(np.abs(k[2] - [0, 0, 1]) > 1e-9):
+        if (
+            not np.all(np.isfinite(k))
+            or abs(k[0, 1]) > 1e-9
+            or abs(k[1, 0]) > 1e-9
+            or np.any(np.abs(k[2] - [0, 0, 1]) > 1e-9)
+        ):
             raise ValueError(
                 f"camera.intrinsic_matrix: got {k.tolist()}, expected finite "
                 "[[fx,0,cx],[0,fy,cy],[0,0,1]] (column-major)"
             )
         return PinholeCamera(data["width"], data["height"], k[0, 0], k[1, 1], k[0, 2], k[1, 2])
     if model == "orthographic":
-        return OrthographicCamera(
-            data["width"], data["height"], data["pixel_size"], data["cx"], data["cy"]
-        )
+        return OrthographicCamera(data["width"], data["height"], data["pixel_size"], data["cx"], data["cy"])
     return ScannerCamera(
         data["width"],
         data["height"],

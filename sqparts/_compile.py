@@ -36,8 +36,8 @@ import logging
 import os
 import pickle
 import tempfile
+from collections.abc import Callable
 from pathlib import Path
-from typing import Callable
 
 import jax
 import jax.core
@@ -95,8 +95,17 @@ def _environment_key() -> str:
         h.update(f.name.encode())
         h.update(f.read_bytes())
     dev = jax.devices()
-    return "|".join([jax.__version__, jaxlib.version.__version__, jax.default_backend(), dev[0].device_kind,
-                     str(len(dev)), str(jax.config.read("jax_enable_x64")), h.hexdigest()])
+    return "|".join(
+        [
+            jax.__version__,
+            jaxlib.version.__version__,
+            jax.default_backend(),
+            dev[0].device_kind,
+            str(len(dev)),
+            str(jax.config.read("jax_enable_x64")),
+            h.hexdigest(),
+        ]
+    )
 
 
 def _aval(x) -> jax.ShapeDtypeStruct:
@@ -134,8 +143,16 @@ def persistent_jit(fun=None, *, static_argnames=()):
         if any(isinstance(x, jax.core.Tracer) for x in leaves):
             return jitted(*args, **kwargs)
         avals = [_aval(x) for x in leaves]
-        text = "\n".join([_environment_key(), fun.__module__, name, repr(sorted(static.items())), str(tree),
-                          repr([(a.shape, str(a.dtype), a.weak_type) for a in avals])])
+        text = "\n".join(
+            [
+                _environment_key(),
+                fun.__module__,
+                name,
+                repr(sorted(static.items())),
+                str(tree),
+                repr([(a.shape, str(a.dtype), a.weak_type) for a in avals]),
+            ]
+        )
         if " at 0x" in text:  # an object's default repr: not the same in another process
             return jitted(*args, **kwargs)
         key = hashlib.sha256(text.encode()).hexdigest()[:32]
@@ -153,7 +170,7 @@ def persistent_jit(fun=None, *, static_argnames=()):
             loaded[key] = None
             return jitted(*args, **kwargs)
 
-    setattr(call, "jitted", jitted)
+    setattr(call, "jitted", jitted)  # noqa: B010 (a function attribute pyright accepts this way)
     return call
 
 

@@ -58,9 +58,13 @@ def run_on_cluster(tasks, client: Client):
 @contextlib.contextmanager
 def local_cluster(workers: int):
     """A ``LocalCluster`` of ``workers`` processes with one thread each; yields its client."""
-    cluster = LocalCluster(n_workers=workers, threads_per_worker=1, processes=True,
-                           dashboard_address=None,  # pyright: ignore[reportArgumentType]  (None = no dashboard, as distributed documents)
-                           silence_logs=logging.ERROR)
+    cluster = LocalCluster(
+        n_workers=workers,
+        threads_per_worker=1,
+        processes=True,
+        dashboard_address=None,  # pyright: ignore[reportArgumentType]  (None = no dashboard, as distributed documents)
+        silence_logs=logging.ERROR,
+    )
     try:
         with Client(cluster) as client:
             yield client
@@ -74,7 +78,9 @@ def connect(address: str):
     try:
         client = Client(address, timeout="10s")
     except (OSError, TimeoutError, ValueError) as e:
-        raise ValueError(f"--scheduler: got {address!r} ({type(e).__name__}: {str(e).splitlines()[0] if str(e) else ''}), "
-                         "expected the address of a running Dask scheduler (tcp://HOST:8786)") from None
+        raise ValueError(
+            f"--scheduler: got {address!r} ({type(e).__name__}: {str(e).splitlines()[0] if str(e) else ''}), "
+            "expected the address of a running Dask scheduler (tcp://HOST:8786)"
+        ) from None
     with client:
         yield client

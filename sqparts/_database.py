@@ -25,13 +25,17 @@ import json
 import re
 import time
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 import numpy as np
+
+if TYPE_CHECKING:
+    from ._recover import Recovery, SceneRecovery
 
 from ._describe import Description, describe, merged_alternatives, part_volume
 from ._io import _load_json, atomic_write, scene_from_dict, scene_to_dict
 from ._part import Part, stack_parts
-from ._recognize import Match, MatchSettings, calibrate_threshold, match_descriptions
+from ._recognize import MatchSettings, calibrate_threshold, match_descriptions
 
 DATABASE_FORMAT = "sqparts-database/1"
 MODEL_FORMAT = "sqparts-model/1"
@@ -70,7 +74,9 @@ def _write_json(path: Path, data) -> None:
     """Indented JSON with lists of numbers and flat objects (edges) on one line each."""
     text = json.dumps(_round(data), indent=1)
     text = _NUMBER_LIST.sub(lambda m: "[" + ", ".join(x.strip() for x in m.group(1).split(",")) + "]", text)
-    text = _FLAT_OBJECT.sub(lambda m: "{" + ", ".join(x.strip().rstrip(",") for x in m.group(1).strip().split("\n")) + "}", text)
+    text = _FLAT_OBJECT.sub(
+        lambda m: "{" + ", ".join(x.strip().rstrip(",") for x in m.group(1).strip().split("\n")) + "}", text
+    )
     with atomic_write(path, "w") as f:
         f.write(text + "\n")
 
@@ -105,8 +111,9 @@ def transform_parts(parts: Part, pose) -> Part:
     rot = np.einsum("ij,njk->nik", r, np.asarray(parts.rotation(), float))
     ori = np.stack([np.asarray(matrix_to_rotation_vector(m.astype(np.float32))) for m in rot]).astype(np.float32)
     pos = (np.asarray(parts.position, float) @ r.T + t).astype(np.float32)
-    return Part(size=parts.size, squareness=parts.squareness, position=pos, orientation=ori, bend=parts.bend,
-                taper=parts.taper)
+    return Part(
+        size=parts.size, squareness=parts.squareness, position=pos, orientation=ori, bend=parts.bend, taper=parts.taper
+    )
 
 
 def _stored(kind: str, parts: Part) -> StoredDescription:
@@ -120,7 +127,9 @@ def _stored_to_json(s: StoredDescription) -> dict:
 
 def _stored_from_json(data, where: str) -> StoredDescription:
     if not isinstance(data, dict) or "parts" not in data:
-        raise ValueError(f"{where}: got {type(data).__name__}, expected an object with 'kind', 'parts' and 'description'")
+        raise ValueError(
+            f"{where}: got {type(data).__name__}, expected an object with 'kind', 'parts' and 'description'"
+        )
     try:
         parts, _, _ = scene_from_dict({"parts": data["parts"]})
     except ValueError as e:
@@ -131,8 +140,9 @@ def _stored_from_json(data, where: str) -> StoredDescription:
     return StoredDescription(str(data.get("kind", "main")), parts, desc)
 
 
-def view_from_parts(parts: Part, *, source: str = "", initial: Part | None = None, levels=(),
-                    merged: int = 2, split: int = 2) -> StoredView:
+def view_from_parts(
+    parts: Part, *, source: str = "", initial: Part | None = None, levels=(), merged: int = 2, split: int = 2
+) -> StoredView:
     """A :class:`StoredView` from one figure's recovered parts (camera frame): the parts
     centred (the model's frame), their description and the variants (see the module
     docstring). ``levels`` are coarser recoveries' parts, ``initial`` the selection before
@@ -173,8 +183,14 @@ def split_alternatives(parts: Part, *, limit: int = 2, min_elongation: float = 2
         pieces = []
         for sign in (-1.0, 1.0):
             pos = np.asarray(p.position, float) + sign * rot[:, axis] * half[axis]
-            pieces.append(Part(size=half.astype(np.float32), squareness=p.squareness, position=pos.astype(np.float32),
-                               orientation=p.orientation))
+            pieces.append(
+                Part(
+                    size=half.astype(np.float32),
+                    squareness=p.squareness,
+                    position=pos.astype(np.float32),
+                    orientation=p.orientation,
+                )
+            )
         out.append(stack_parts([parts[k] for k in range(len(parts)) if k != i] + pieces))
     return out
 
@@ -203,8 +219,15 @@ class RecognitionMatch:
         return transform_parts(self.model_parts, self.pose)
 
     def to_json(self) -> dict:
-        return {"name": self.name, "score": float(self.score), "parts": self.parts.tolist(), "pose": self.pose.tolist(),
-                "figure": self.figure, "view": self.view, "kind": self.kind}
+        return {
+            "name": self.name,
+            "score": float(self.score),
+            "parts": self.parts.tolist(),
+            "pose": self.pose.tolist(),
+            "figure": self.figure,
+            "view": self.view,
+            "kind": self.kind,
+        }
 
 
 class ModelDatabase:
@@ -231,7 +254,9 @@ class ModelDatabase:
         if index.is_file():
             data = _load_json(index, "database")
             if not isinstance(data, dict) or data.get("format") != DATABASE_FORMAT:
-                raise ValueError(f"database: got {str(index)!r} without format {DATABASE_FORMAT!r}, expected a sqparts database")
+                raise ValueError(
+                    f"database: got {str(index)!r} without format {DATABASE_FORMAT!r}, expected a sqparts database"
+                )
             t = data.get("threshold", DEFAULT_THRESHOLD)
             if not isinstance(t, (int, float)) or not np.isfinite(t):
                 raise ValueError(f"database.threshold: got {t!r}, expected a finite number")
@@ -242,18 +267,27 @@ class ModelDatabase:
                 continue
             data = _load_json(file, "model")
             where = file.name
-            if not isinstance(data, dict) or data.get("format") != MODEL_FORMAT or not isinstance(data.get("views"), list):
-                raise ValueError(f"{where}: got {type(data).__name__}, expected an object with format {MODEL_FORMAT!r} and views")
+            if (
+                not isinstance(data, dict)
+                or data.get("format") != MODEL_FORMAT
+                or not isinstance(data.get("views"), list)
+            ):
+                raise ValueError(
+                    f"{where}: got {type(data).__name__}, expected an object with format {MODEL_FORMAT!r} and views"
+                )
             name = check_name(data.get("name"))
             views = []
             for k, v in enumerate(data["views"]):
                 w = f"{where}.views[{k}]"
                 if not isinstance(v, dict) or not isinstance(v.get("variants", []), list):
                     raise ValueError(f"{w}: got {type(v).__name__}, expected an object with 'main' and 'variants'")
-                views.append(StoredView(
-                    str(v.get("source", "")), _stored_from_json(v.get("main"), f"{w}.main"),
-                    tuple(_stored_from_json(s, f"{w}.variants[{i}]") for i, s in enumerate(v.get("variants", []))),
-                ))
+                views.append(
+                    StoredView(
+                        str(v.get("source", "")),
+                        _stored_from_json(v.get("main"), f"{w}.main"),
+                        tuple(_stored_from_json(s, f"{w}.variants[{i}]") for i, s in enumerate(v.get("variants", []))),
+                    )
+                )
             self.objects[name] = tuple(views)
 
     @property
@@ -261,15 +295,30 @@ class ModelDatabase:
         return sorted(self.objects)
 
     def _write_object(self, name: str) -> None:
-        data = {"format": MODEL_FORMAT, "name": name, "views": [
-            {"source": v.source, "main": _stored_to_json(v.main), "variants": [_stored_to_json(s) for s in v.variants]}
-            for v in self.objects[name]
-        ]}
+        data = {
+            "format": MODEL_FORMAT,
+            "name": name,
+            "views": [
+                {
+                    "source": v.source,
+                    "main": _stored_to_json(v.main),
+                    "variants": [_stored_to_json(s) for s in v.variants],
+                }
+                for v in self.objects[name]
+            ],
+        }
         _write_json(self.path / f"{name}.json", data)
 
     def _write_index(self) -> None:
-        _write_json(self.path / INDEX, {"format": DATABASE_FORMAT, "threshold": self.threshold,
-                                        "calibration": self.calibration, "objects": self.names})
+        _write_json(
+            self.path / INDEX,
+            {
+                "format": DATABASE_FORMAT,
+                "threshold": self.threshold,
+                "calibration": self.calibration,
+                "objects": self.names,
+            },
+        )
 
     def add_view(self, name: str, view: StoredView, *, calibrate: bool = True) -> None:
         """Add one view to object ``name`` (made if new), write its file and, with
@@ -371,8 +420,12 @@ def view_from_recovery(recovery, *, source: str = "", levels: int = 2, **recover
     others = [p for r in figures[1:] for p in r.parts]
     parts = stack_parts([p for r in figures for p in r.parts])
     coarse = _coarse_levels(recovery, levels, **recover_kwargs) if levels > 1 else []
-    return view_from_parts(parts, source=source, initial=stack_parts([*figures[0].initial_parts, *others]),
-                           levels=[stack_parts([*c, *others]) for c in coarse])
+    return view_from_parts(
+        parts,
+        source=source,
+        initial=stack_parts([*figures[0].initial_parts, *others]),
+        levels=[stack_parts([*c, *others]) for c in coarse],
+    )
 
 
 def learn(name: str, views, *, database, levels: int = 2, progress=None, **recover_kwargs) -> ModelDatabase:
@@ -406,9 +459,14 @@ def learn(name: str, views, *, database, levels: int = 2, progress=None, **recov
         else:
             rec, source = view, f"recovery {k}"
         if not _figure_recoveries(rec):
-            raise ValueError(f"views[{k}]: got a range image in which nothing was recovered, expected a view of the object")
-        db.add_view(name, view_from_recovery(rec, source=source, levels=levels, grid=recover_kwargs.get("grid", "coarse")),
-                    calibrate=k == len(views) - 1)
+            raise ValueError(
+                f"views[{k}]: got a range image in which nothing was recovered, expected a view of the object"
+            )
+        db.add_view(
+            name,
+            view_from_recovery(rec, source=source, levels=levels, grid=recover_kwargs.get("grid", "coarse")),
+            calibrate=k == len(views) - 1,
+        )
     return db
 
 
@@ -420,7 +478,9 @@ def match_figures(figures, *, database, settings: MatchSettings = MatchSettings(
     several, all of them together (an object torn at its own depth jumps; an occluder
     is then an extra part)."""
     db = database if isinstance(database, ModelDatabase) else ModelDatabase(database)
-    figures = [f if f.batch_shape else stack_parts([f]) for f in figures if f is not None and (not f.batch_shape or len(f))]
+    figures = [
+        f if f.batch_shape else stack_parts([f]) for f in figures if f is not None and (not f.batch_shape or len(f))
+    ]
     offsets = np.cumsum([0] + [len(f) for f in figures])
     queries = list(enumerate(figures))
     if len(figures) > 1:  # also all figures together: an object torn at its own depth jumps
@@ -447,20 +507,32 @@ class Recognition:
     best: str | None
     matches: list
     threshold: float
-    recovery: object
+    recovery: Recovery | SceneRecovery
     timings: dict
 
     def to_json(self) -> dict:
-        return {"best": self.best, "threshold": self.threshold, "matches": [m.to_json() for m in self.matches],
-                "timings_s": self.timings}
+        return {
+            "best": self.best,
+            "threshold": self.threshold,
+            "matches": [m.to_json() for m in self.matches],
+            "timings_s": self.timings,
+        }
 
     def summary(self) -> str:
         top = ", ".join(f"{m.name} {m.score:.2f}" for m in self.matches[:3])
         return f"best: {self.best or 'none (unknown object)'} (threshold {self.threshold:.2f}; {top})"
 
 
-def recognize(depth=None, camera=None, *, database, recovery=None, settings: MatchSettings = MatchSettings(),
-              progress=None, **recover_kwargs) -> Recognition:
+def recognize(
+    depth=None,
+    camera=None,
+    *,
+    database,
+    recovery=None,
+    settings: MatchSettings = MatchSettings(),
+    progress=None,
+    **recover_kwargs,
+) -> Recognition:
     """Recover a range image (or take ``recovery``) and match each of its figures against
     every stored object; per object the best figure, view and variant is kept.
 
@@ -481,4 +553,6 @@ def recognize(depth=None, camera=None, *, database, recovery=None, settings: Mat
     t1 = time.perf_counter()
     top, matches = match_figures([r.parts for r in _figure_recoveries(recovery)], database=db, settings=settings)
     t2 = time.perf_counter()
-    return Recognition(top, matches, db.threshold, recovery, {"recovery": t1 - t0, "matching": t2 - t1, "total": t2 - t0})
+    return Recognition(
+        top, matches, db.threshold, recovery, {"recovery": t1 - t0, "matching": t2 - t1, "total": t2 - t0}
+    )

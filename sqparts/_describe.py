@@ -21,7 +21,7 @@ from __future__ import annotations
 import dataclasses
 
 import numpy as np
-from scipy.spatial import cKDTree
+from scipy.spatial import KDTree
 from scipy.special import beta
 
 from ._part import Part, matrix_to_rotation_vector, stack_parts
@@ -138,14 +138,20 @@ class Description:
         """Node-link JSON: ``{"scale", "nodes": [...], "edges": [...]}``, every number a float."""
         nodes = []
         for i in range(len(self)):
-            node = {"id": i, **{k: float(v) for k, v in zip(ATTRIBUTES, self.attributes[i])},
-                    "position": self.positions[i].tolist(), "rotation": self.rotations[i].tolist()}
+            node = {
+                "id": i,
+                **{k: float(v) for k, v in zip(ATTRIBUTES, self.attributes[i])},
+                "position": self.positions[i].tolist(),
+                "rotation": self.rotations[i].tolist(),
+            }
             if self.names and self.names[i]:
                 node["name"] = self.names[i]
             nodes.append(node)
         edges = [
             {"source": i, "target": j, **{k: float(v) for k, v in zip(RELATIONS, self.relations[i, j])}}
-            for i in range(len(self)) for j in range(len(self)) if i != j
+            for i in range(len(self))
+            for j in range(len(self))
+            if i != j
         ]
         for e in edges:
             e["touch"] = bool(e["touch"])
@@ -155,7 +161,9 @@ class Description:
     def from_json(cls, data, *, where: str = "description") -> "Description":
         """Inverse of :meth:`to_json`; raises ``ValueError`` naming ``where`` and the field."""
         if not isinstance(data, dict) or "nodes" not in data or "scale" not in data:
-            raise ValueError(f"{where}: got {type(data).__name__}, expected an object with 'scale', 'nodes' and 'edges'")
+            raise ValueError(
+                f"{where}: got {type(data).__name__}, expected an object with 'scale', 'nodes' and 'edges'"
+            )
         nodes, edges = data["nodes"], data.get("edges", [])
         if not isinstance(nodes, list) or not nodes or not isinstance(edges, list):
             raise ValueError(f"{where}.nodes: got {type(nodes).__name__}, expected a non-empty list of parts")
@@ -167,7 +175,9 @@ class Description:
             except (TypeError, ValueError):
                 a = None
             if a is None or a.shape != shape or not np.all(np.isfinite(a)):
-                raise ValueError(f"{where}.{field}: got {value!r:.60}, expected {'a finite number' if not shape else f'finite numbers of shape {shape}'}")
+                raise ValueError(
+                    f"{where}.{field}: got {value!r:.60}, expected {'a finite number' if not shape else f'finite numbers of shape {shape}'}"
+                )
             return a
 
         scale = float(number(data["scale"], "scale"))
@@ -189,7 +199,9 @@ class Description:
                 raise ValueError(f"{where}.edges[{k}]: got {type(edge).__name__}, expected an object")
             i, j = edge.get("source"), edge.get("target")
             if not (isinstance(i, int) and isinstance(j, int) and 0 <= i < n and 0 <= j < n and i != j):
-                raise ValueError(f"{where}.edges[{k}]: got source {i!r}, target {j!r}, expected two different part ids in [0, {n})")
+                raise ValueError(
+                    f"{where}.edges[{k}]: got source {i!r}, target {j!r}, expected two different part ids in [0, {n})"
+                )
             for c, key in enumerate(RELATIONS):
                 relations[i, j, c] = number(edge.get(key), f"edges[{k}].{key}")
         return cls(scale, attributes, relations, positions, rotations, tuple(names) if any(names) else ())
@@ -198,15 +210,22 @@ class Description:
         """The description as a ``networkx.DiGraph`` (node and edge attributes as in :meth:`to_json`)."""
         import networkx as nx
 
-        return nx.node_link_graph(dict(self.to_json(), directed=True, multigraph=False, graph={"scale": self.scale}),
-                                  edges="edges")
+        return nx.node_link_graph(
+            dict(self.to_json(), directed=True, multigraph=False, graph={"scale": self.scale}), edges="edges"
+        )
 
 
 def _as_arrays(parts: Part):
     single = parts.batch_shape == ()
     get = (lambda x: np.asarray(x, float)[None]) if single else (lambda x: np.asarray(x, float))
-    return (get(parts.size), get(parts.squareness), get(parts.bend), get(parts.taper).reshape(-1),
-            get(parts.position), get(parts.orientation))
+    return (
+        get(parts.size),
+        get(parts.squareness),
+        get(parts.bend),
+        get(parts.taper).reshape(-1),
+        get(parts.position),
+        get(parts.orientation),
+    )
 
 
 def describe(parts: Part, *, names=None, touch_gap: float = TOUCH_GAP) -> Description:
@@ -237,11 +256,17 @@ def describe(parts: Part, *, names=None, touch_gap: float = TOUCH_GAP) -> Descri
     order = np.argsort(-size, axis=1, kind="stable")
     sorted_size = np.take_along_axis(size, order, 1)
     sorted_rot = np.take_along_axis(rot, order[:, None, :], 2)  # columns = axes, largest first
-    attributes = np.column_stack([
-        sorted_size / scale, sq, np.abs(taper), np.hypot(bend[:, 0], bend[:, 1]), volume / volume.sum(),
-    ])
+    attributes = np.column_stack(
+        [
+            sorted_size / scale,
+            sq,
+            np.abs(taper),
+            np.hypot(bend[:, 0], bend[:, 1]),
+            volume / volume.sum(),
+        ]
+    )
     samples = [surface_samples(size[i], sq[i], bend[i], taper[i], rot[i], position[i]) for i in range(n)]
-    trees = [cKDTree(p) for p in samples]
+    trees = [KDTree(p) for p in samples]
     relations = np.zeros((n, n, len(RELATIONS)))
     for i in range(n):
         for j in range(n):
@@ -254,11 +279,16 @@ def describe(parts: Part, *, names=None, touch_gap: float = TOUCH_GAP) -> Descri
             offset = np.abs(sorted_rot[i].T @ (position[j] - position[i])) / scale
             cos = abs(float(sorted_rot[i][:, 0] @ sorted_rot[j][:, 0]))
             relations[i, j] = [
-                float(gap < touch_gap), gap, np.linalg.norm(position[j] - position[i]) / scale, *offset,
-                np.arccos(min(cos, 1.0)), np.log(volume[j] / volume[i]),
+                float(gap < touch_gap),
+                gap,
+                np.linalg.norm(position[j] - position[i]) / scale,
+                *offset,
+                np.arccos(min(cos, 1.0)),
+                np.log(volume[j] / volume[i]),
             ]
-    return Description(scale, attributes, relations, position.copy(), sorted_rot,
-                       tuple(names) if names is not None else ())
+    return Description(
+        scale, attributes, relations, position.copy(), sorted_rot, tuple(names) if names is not None else ()
+    )
 
 
 def describe_figures(recovery, *, names=None) -> list[Description]:
@@ -297,9 +327,12 @@ def merged_alternatives(parts: Part, description: Description | None = None, *, 
         centre = centre + axes @ ((lo + hi) / 2)
         half = np.maximum((hi - lo) / 2, 1e-6)
         big = i if d.volumes[i] >= d.volumes[j] else j
-        merged = Part(size=half.astype(np.float32), squareness=sq[big].astype(np.float32),
-                      position=centre.astype(np.float32),
-                      orientation=np.asarray(matrix_to_rotation_vector(axes.astype(np.float32)), np.float32))
+        merged = Part(
+            size=half.astype(np.float32),
+            squareness=sq[big].astype(np.float32),
+            position=centre.astype(np.float32),
+            orientation=np.asarray(matrix_to_rotation_vector(axes.astype(np.float32)), np.float32),
+        )
         keep = [parts[k] for k in range(n) if k not in (i, j)]
         out.append(stack_parts(keep + [merged]))
     return out

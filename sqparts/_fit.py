@@ -216,4 +216,6 @@ def smooth_gamma(rendered, hit, measured, figure, offset, *, sigma: float, commi
     both = hit & figure & jnp.isfinite(measured)
     x = jnp.where(both, rendered - jnp.where(both, measured, 0.0) - offset, 0.0) / sigma
     k = jnp.where(both, 1.0 / (1.0 + (2.0 * x) ** 8), 0.0)
-    return jnp.sum(k) - commission_weight * jnp.sum(commission_mask(hit, rendered, measured, figure, offset + sigma / 2))
+    return jnp.sum(k) - commission_weight * jnp.sum(
+        commission_mask(hit, rendered, measured, figure, offset + sigma / 2)
+    )

@@ -18,7 +18,6 @@ from __future__ import annotations
 import contextlib
 import json
 import os
-import tempfile
 from pathlib import Path
 
 import numpy as np
@@ -27,7 +26,17 @@ from ._camera import MAX_PIXELS, MAX_SIDE, Camera, PinholeCamera, camera_from_js
 from ._part import Part, rotation_vector, stack_parts
 
 PART_KEYS = {"size", "squareness", "position", "rotation", "bend", "taper"}
-ANNOTATION_KEYS = {"name", "gamma", "bits_saved", "fraction_explained", "pixels", "level", "figure", "prettify", "parent"}
+ANNOTATION_KEYS = {
+    "name",
+    "gamma",
+    "bits_saved",
+    "fraction_explained",
+    "pixels",
+    "level",
+    "figure",
+    "prettify",
+    "parent",
+}
 RANGE_IMAGE_SUFFIXES = (".npy", ".png", ".tif", ".tiff", ".pcd", ".exr")
 EXR_DEPTH_CHANNELS = ("Z", "depth", "Y", "R")
 """Channels of an OpenEXR file read as depth, in order of preference."""
@@ -124,7 +133,9 @@ def _load_json(path, what: str):
     try:
         return json.loads(path.read_bytes(), parse_constant=_reject_constant)
     except RecursionError:
-        raise ValueError(f"{what}: got JSON nested too deeply to parse in {str(path)!r}, expected a {what} file") from None
+        raise ValueError(
+            f"{what}: got JSON nested too deeply to parse in {str(path)!r}, expected a {what} file"
+        ) from None
     except (ValueError, UnicodeDecodeError) as e:  # JSONDecodeError is a ValueError
         raise ValueError(f"{what}: got {str(path)!r}, expected valid JSON ({e})") from None
 
@@ -149,21 +160,33 @@ def part_from_dict(d: dict, *, index: int = 0) -> tuple[Part, dict]:
         )
     missing = sorted({"size", "squareness", "position"} - set(d))
     if missing:
-        raise ValueError(f"{where}: got no {', '.join(missing)}, expected keys {sorted(PART_KEYS)} (size, squareness and position required)")
+        raise ValueError(
+            f"{where}: got no {', '.join(missing)}, expected keys {sorted(PART_KEYS)} (size, squareness and position required)"
+        )
+
     def numbers(key, default=None):
         try:
             return np.asarray(d.get(key, default), dtype=np.float64)
         except (TypeError, ValueError):
             raise ValueError(f"{where}.{key}: got {d[key]!r:.60}, expected numbers") from None
 
-    fields = {key: numbers(key, default) for key, default in
-              (("size", None), ("squareness", None), ("position", None), ("rotation", np.eye(3)),
-               ("bend", [0.0, 0.0]), ("taper", 0.0))}
+    fields = {
+        key: numbers(key, default)
+        for key, default in (
+            ("size", None),
+            ("squareness", None),
+            ("position", None),
+            ("rotation", np.eye(3)),
+            ("bend", [0.0, 0.0]),
+            ("taper", 0.0),
+        )
+    }
     try:
         orientation = rotation_vector(fields.pop("rotation"))
         with np.errstate(over="ignore"):  # beyond float32: an inf that Part rejects by name
-            part = Part(orientation=orientation.astype(np.float32),
-                        **{k: v.astype(np.float32) for k, v in fields.items()})
+            part = Part(
+                orientation=orientation.astype(np.float32), **{k: v.astype(np.float32) for k, v in fields.items()}
+            )
     except (ValueError, TypeError) as e:
         raise ValueError(f"{where}.{e}") from None
     return part, {k: d[k] for k in d if k in ANNOTATION_KEYS}
@@ -194,7 +217,9 @@ def _jsonable(v):
 def scene_from_dict(data) -> tuple[Part, list[dict], dict]:
     """Parse scene JSON: returns (batched parts, per-part annotations, top-level metadata)."""
     if not isinstance(data, dict) or "parts" not in data:
-        raise ValueError(f'scene: got {type(data).__name__}{" without parts" if isinstance(data, dict) else ""}, expected a JSON object with a "parts" list')
+        raise ValueError(
+            f'scene: got {type(data).__name__}{" without parts" if isinstance(data, dict) else ""}, expected a JSON object with a "parts" list'
+        )
     if not isinstance(data["parts"], list) or not data["parts"]:
         raise ValueError(f"scene.parts: got {data['parts']!r:.40}, expected a non-empty list of parts")
     parsed = [part_from_dict(d, index=i) for i, d in enumerate(data["parts"])]
@@ -277,22 +302,29 @@ def camera_from_realsense(data: dict) -> PinholeCamera:
     """
     intr = _realsense_intrinsics(data) if isinstance(data, dict) else None
     if intr is None:
-        raise ValueError(f"camera: got {type(data).__name__}, expected RealSense intrinsics with keys {sorted(REALSENSE_KEYS)}")
+        raise ValueError(
+            f"camera: got {type(data).__name__}, expected RealSense intrinsics with keys {sorted(REALSENSE_KEYS)}"
+        )
     unknown = sorted(set(intr) - REALSENSE_KEYS - {"model", "coeffs"})
     if unknown:
-        raise ValueError(f"camera: got unknown key(s) {unknown}, expected only {sorted(REALSENSE_KEYS | {'model', 'coeffs'})} for RealSense intrinsics")
+        raise ValueError(
+            f"camera: got unknown key(s) {unknown}, expected only {sorted(REALSENSE_KEYS | {'model', 'coeffs'})} for RealSense intrinsics"
+        )
     coeffs = intr.get("coeffs", [0.0] * 5)
     try:
         coeffs = np.asarray(coeffs, dtype=float)
     except (TypeError, ValueError):
         raise ValueError(f"camera.coeffs: got {intr['coeffs']!r:.60}, expected 5 numbers") from None
     if coeffs.ndim != 1 or not np.all(np.isfinite(coeffs)) or np.any(coeffs != 0):
-        raise ValueError(f"camera.coeffs: got {coeffs.tolist()!r:.80}, expected zero distortion (an undistorted depth stream)")
+        raise ValueError(
+            f"camera.coeffs: got {coeffs.tolist()!r:.80}, expected zero distortion (an undistorted depth stream)"
+        )
     for key in ("fx", "fy", "ppx", "ppy"):
         if not isinstance(intr[key], (int, float)) or isinstance(intr[key], bool):
             raise ValueError(f"camera.{key}: got {intr[key]!r:.40}, expected a number")
-    return PinholeCamera(intr["width"], intr["height"], float(intr["fx"]), float(intr["fy"]),
-                         float(intr["ppx"]), float(intr["ppy"]))
+    return PinholeCamera(
+        intr["width"], intr["height"], float(intr["fx"]), float(intr["fy"]), float(intr["ppx"]), float(intr["ppy"])
+    )
 
 
 def save_camera(path, camera: Camera) -> None:
@@ -324,8 +356,7 @@ def read_range_image(path, *, depth_scale: float = 0.001) -> tuple[np.ndarray, C
     suffix = path.suffix.lower()
     if suffix not in RANGE_IMAGE_SUFFIXES:
         raise ValueError(
-            f"input: got {str(path)!r}, expected a range image ending in "
-            f"{', '.join(RANGE_IMAGE_SUFFIXES)}"
+            f"input: got {str(path)!r}, expected a range image ending in {', '.join(RANGE_IMAGE_SUFFIXES)}"
         )
     if not path.is_file():
         raise FileNotFoundError(f"input: got {str(path)!r}, expected an existing file")
@@ -342,10 +373,7 @@ def read_range_image(path, *, depth_scale: float = 0.001) -> tuple[np.ndarray, C
             with Image.open(path) as im:
                 raw = np.asarray(im)
             if raw.ndim != 2 or raw.dtype not in (np.uint16, np.int32, np.uint8):
-                raise ValueError(
-                    f"input: got {raw.dtype} , expected a single-channel 16-bit PNG"
-                    f"with shape {raw.shape}"
-                )
+                raise ValueError(f"input: got {raw.dtype} , expected a single-channel 16-bit PNGwith shape {raw.shape}")
             depth = np.where(raw == 0, np.nan, raw.astype(np.float64) * depth_scale)
         elif suffix in (".tif", ".tiff"):
             import tifffile
@@ -360,12 +388,12 @@ def read_range_image(path, *, depth_scale: float = 0.001) -> tuple[np.ndarray, C
         msg = str(e)
         if msg.startswith("input:"):
             raise ValueError(msg) from None
-        raise ValueError(f"input: got {str(path)!r}, expected a readable range image ({type(e).__name__}: {e})") from None
+        raise ValueError(
+            f"input: got {str(path)!r}, expected a readable range image ({type(e).__name__}: {e})"
+        ) from None
     depth = np.asarray(depth)
     if depth.ndim != 2 or not (np.issubdtype(depth.dtype, np.integer) or np.issubdtype(depth.dtype, np.floating)):
-        raise ValueError(
-            f"input: got {depth.dtype} with shape {depth.shape}, expected a 2-D numeric range image"
-        )
+        raise ValueError(f"input: got {depth.dtype} with shape {depth.shape}, expected a 2-D numeric range image")
     depth = depth.astype(np.float32)
     depth[~np.isfinite(depth) | (depth <= 0)] = np.nan
     return depth, camera
@@ -412,7 +440,9 @@ def _open_exr(path: Path, *, header_only: bool = False):
     try:
         import OpenEXR
     except ImportError:
-        raise ValueError(f"input: got {str(path)!r}, expected the OpenEXR package to read it (pip install 'sqparts[interop]')") from None
+        raise ValueError(
+            f"input: got {str(path)!r}, expected the OpenEXR package to read it (pip install 'sqparts[interop]')"
+        ) from None
     try:
         return OpenEXR.File(str(path), separate_channels=True, header_only=header_only)
     except RuntimeError as e:  # OpenEXR's error for a file it cannot parse
@@ -425,7 +455,9 @@ def _read_exr(path: Path, depth_scale: float) -> np.ndarray:
     if name is None and len(channels) == 1:
         name = next(iter(channels))
     if name is None:
-        raise ValueError(f"input: got channels {sorted(channels)} in {str(path)!r}, expected one of {list(EXR_DEPTH_CHANNELS)} or a single channel")
+        raise ValueError(
+            f"input: got channels {sorted(channels)} in {str(path)!r}, expected one of {list(EXR_DEPTH_CHANNELS)} or a single channel"
+        )
     raw = np.asarray(channels[name])
     return raw if np.issubdtype(raw.dtype, np.floating) else raw * depth_scale
 
@@ -521,8 +553,12 @@ def save_view_data(folder, depth, camera: Camera, *, status, model, labels) -> N
     write_range_image(folder / "range.npy", depth)
     save_camera(folder / "camera.json", camera)
     buffer = io.BytesIO()
-    np.savez_compressed(buffer, status=np.asarray(status, np.uint8), model=np.asarray(model, np.float32),
-                        labels=np.asarray(labels, np.int16))
+    np.savez_compressed(
+        buffer,
+        status=np.asarray(status, np.uint8),
+        model=np.asarray(model, np.float32),
+        labels=np.asarray(labels, np.int16),
+    )
     with atomic_write(folder / "pixels.npz") as f:
         f.write(buffer.getvalue())
 
@@ -540,7 +576,9 @@ def load_view_data(folder) -> dict:
     if not folder.is_dir():
         raise FileNotFoundError(f"folder: got {str(folder)!r}, expected a sqparts recover output folder")
     if not (folder / "parts.json").is_file():
-        raise FileNotFoundError(f"folder: got {str(folder)!r} without parts.json, expected a sqparts recover output folder")
+        raise FileNotFoundError(
+            f"folder: got {str(folder)!r} without parts.json, expected a sqparts recover output folder"
+        )
     parts, annotations, meta = scene_from_dict(_load_json(folder / "parts.json", "scene"))
     data = {"parts": parts, "annotations": annotations, "meta": meta, "title": folder.resolve().name, "folder": folder}
     if (folder / "camera.json").is_file():
@@ -551,15 +589,21 @@ def load_view_data(folder) -> dict:
         data["depth"], _ = read_range_image(folder / "range.npy")
         camera = data.get("camera")
         if camera is not None and data["depth"].shape != (camera.height, camera.width):
-            raise ValueError(f"range.npy: got shape {data['depth'].shape}, expected {(camera.height, camera.width)} (camera.json's size)")
+            raise ValueError(
+                f"range.npy: got shape {data['depth'].shape}, expected {(camera.height, camera.width)} (camera.json's size)"
+            )
     if (folder / "pixels.npz").is_file():
         try:
             with np.load(folder / "pixels.npz", allow_pickle=False) as z:
                 pixels = {k: np.asarray(z[k]) for k in ("status", "model", "labels")}
         except (OSError, ValueError, KeyError, EOFError) as e:
-            raise ValueError(f"pixels.npz: got {str(folder / 'pixels.npz')!r}, expected status, model and labels arrays ({e})") from None
+            raise ValueError(
+                f"pixels.npz: got {str(folder / 'pixels.npz')!r}, expected status, model and labels arrays ({e})"
+            ) from None
         if "depth" in data and any(v.shape != data["depth"].shape for v in pixels.values()):
-            raise ValueError(f"pixels.npz: got shapes {[v.shape for v in pixels.values()]}, expected {data['depth'].shape} (range.npy's)")
+            raise ValueError(
+                f"pixels.npz: got shapes {[v.shape for v in pixels.values()]}, expected {data['depth'].shape} (range.npy's)"
+            )
         data.update(pixels)
     if (folder / "report.png").is_file():
         from PIL import Image

@@ -17,8 +17,8 @@ import trimesh
 import trimesh.visual
 
 from ._camera import Camera
-from ._part import Part, surface_point
 from ._io import atomic_write
+from ._part import Part, surface_point
 
 MESH_SUFFIXES = (".ply", ".obj", ".stl", ".glb", ".off")
 
@@ -80,8 +80,9 @@ def scene_mesh(parts: Part, *, resolution: int = 48, union: bool = False) -> tri
     """Mesh of a scene: every part watertight, concatenated; or their Boolean union
     (``union=True``, through manifold3d) as one watertight body."""
     single = parts.batch_shape == ()
-    meshes = [part_mesh(parts if single else parts[i], resolution=resolution)
-              for i in range(1 if single else len(parts))]
+    meshes = [
+        part_mesh(parts if single else parts[i], resolution=resolution) for i in range(1 if single else len(parts))
+    ]
     if union and len(meshes) > 1:
         return trimesh.boolean.union(meshes, engine="manifold")  # pyright: ignore[reportReturnType]  # trimesh annotates Geometry; manifold gives a Trimesh
     return trimesh.util.concatenate(meshes)  # pyright: ignore[reportReturnType]  # trimesh annotates Geometry; meshes give a Trimesh
@@ -93,9 +94,7 @@ def save_mesh(path, mesh: trimesh.Trimesh | trimesh.Scene) -> None:
     path = Path(path)
     suffix = path.suffix.lower()
     if suffix not in MESH_SUFFIXES:
-        raise ValueError(
-            f"out: got {str(path)!r}, expected a mesh path ending in {', '.join(MESH_SUFFIXES)}"
-        )
+        raise ValueError(f"out: got {str(path)!r}, expected a mesh path ending in {', '.join(MESH_SUFFIXES)}")
     data = mesh.export(file_type=suffix[1:])
     with atomic_write(path, "wb") as f:
         f.write(data if isinstance(data, bytes) else data.encode())  # pyright: ignore[reportAttributeAccessIssue]  # trimesh's export may be a dict, but not for a mesh suffix
@@ -122,9 +121,7 @@ def render_mesh(mesh: trimesh.Trimesh, camera: Camera) -> np.ndarray:
     for a scanner).
     """
     origins, directions = (np.asarray(a, np.float64).reshape(-1, 3) for a in camera.rays())
-    locations, index_ray, _ = mesh.ray.intersects_location(
-        origins, directions, multiple_hits=True
-    )
+    locations, index_ray, _ = mesh.ray.intersects_location(origins, directions, multiple_hits=True)
     t = np.einsum("ij,ij->i", locations - origins[index_ray], directions[index_ray])
     t /= np.einsum("ij,ij->i", directions[index_ray], directions[index_ray])
     depth = np.full(len(origins), np.inf)
@@ -169,8 +166,9 @@ def scene_trimesh(parts: Part, *, names=None, resolution: int = 32) -> trimesh.S
     colors = part_colors(len(meshes))
     scene = trimesh.Scene()
     for mesh, name, color in zip(meshes, part_names(parts, names), colors):
-        material = trimesh.visual.material.PBRMaterial(name=name, baseColorFactor=color, roughnessFactor=0.8,
-                                                       metallicFactor=0.0)
+        material = trimesh.visual.material.PBRMaterial(
+            name=name, baseColorFactor=color, roughnessFactor=0.8, metallicFactor=0.0
+        )
         mesh.visual = trimesh.visual.ColorVisuals(mesh, vertex_colors=np.tile(color, (len(mesh.vertices), 1)))
         mesh.visual.material = material  # pyright: ignore[reportAttributeAccessIssue]  # not declared on ColorVisuals; the glTF export reads it
         mesh.metadata["name"] = name
@@ -186,10 +184,13 @@ def scene_open3d(parts: Part, *, resolution: int = 32) -> list:
     except ImportError as e:
         raise ImportError(f"open3d: got {e}, expected open3d installed (pip install 'sqparts[interop]')") from None
     out = []
-    for mesh, color in zip((part_mesh(p, resolution=resolution) for p in _parts_list(parts)),
-                           part_colors(len(_parts_list(parts)))):
-        m = o3d.geometry.TriangleMesh(o3d.utility.Vector3dVector(np.asarray(mesh.vertices, np.float64)),
-                                      o3d.utility.Vector3iVector(np.asarray(mesh.faces, np.int32)))
+    for mesh, color in zip(
+        (part_mesh(p, resolution=resolution) for p in _parts_list(parts)), part_colors(len(_parts_list(parts)))
+    ):
+        m = o3d.geometry.TriangleMesh(
+            o3d.utility.Vector3dVector(np.asarray(mesh.vertices, np.float64)),
+            o3d.utility.Vector3iVector(np.asarray(mesh.faces, np.int32)),
+        )
         m.paint_uniform_color(color[:3].astype(np.float64) / 255)
         m.compute_vertex_normals()
         out.append(m)

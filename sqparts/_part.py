@@ -37,7 +37,6 @@ inside-outside function of the deformed part is ``F(D^{-1}(p))`` in closed form
 
 from __future__ import annotations
 
-
 from typing import Any, cast
 
 import equinox as eqx
@@ -98,9 +97,7 @@ def rotation_matrix(rotation_vector: Float[ArrayLike, "3"]) -> Float[Array, "3 3
     a = jnp.where(small, 1.0 - theta2 / 6.0, jnp.sin(theta) / theta)
     b = jnp.where(small, 0.5 - theta2 / 24.0, (1.0 - jnp.cos(theta)) / theta2_safe)
     zero = jnp.zeros((), w.dtype)
-    k = jnp.array(
-        [[zero, -w[2], w[1]], [w[2], zero, -w[0]], [-w[1], w[0], zero]], dtype=w.dtype
-    )
+    k = jnp.array([[zero, -w[2], w[1]], [w[2], zero, -w[0]], [-w[1], w[0], zero]], dtype=w.dtype)
     return jnp.eye(3, dtype=w.dtype) + a * k + b * matmul(k, k)
 
 
@@ -186,8 +183,15 @@ class Part(eqx.Module):
     # --- the 14-vector -----------------------------------------------------------
     def to_vector(self) -> Float[Array, "*batch 14"]:
         """The 14 parameters (footnote 4) as one vector, in the module docstring's order."""
-        return _host_op(lambda xp, *f: xp.concatenate([*f[:-1], f[-1][..., None]], axis=-1),
-                        self.position, self.orientation, self.size, self.squareness, self.bend, self.taper)
+        return _host_op(
+            lambda xp, *f: xp.concatenate([*f[:-1], f[-1][..., None]], axis=-1),
+            self.position,
+            self.orientation,
+            self.size,
+            self.squareness,
+            self.bend,
+            self.taper,
+        )
 
     @classmethod
     def from_vector(cls, vector: Float[ArrayLike, "*batch 14"]) -> "Part":
@@ -254,9 +258,7 @@ def _validate(fields: dict, batch: tuple[int, ...]) -> None:
         "taper": batch,
     }
     if fields["size"].ndim == 0 or fields["size"].shape[-1] != 3:
-        raise ValueError(
-            f"size: got shape {fields['size'].shape}, expected 3 semi-axes (a1, a2, a3)"
-        )
+        raise ValueError(f"size: got shape {fields['size'].shape}, expected 3 semi-axes (a1, a2, a3)")
     for name, shape in want.items():
         got = fields[name].shape
         if got != shape:

@@ -26,7 +26,6 @@ import numpy as np
 from ._part import Part, rotation_matrix, rotation_vector, stack_parts
 from ._select import Costs
 
-
 # --- prettifying ------------------------------------------------------------------------
 
 
@@ -188,13 +187,15 @@ def variogram(residual, lags=(1, 2, 3, 4, 6, 8)) -> tuple[np.ndarray, np.ndarray
 def fit_fractal(residual, *, lags=(1, 2, 3, 4, 6, 8)) -> FractalSurface:
     """Fit H and s of a fractional Brownian surface to a residual map (NaN = unknown) by
     least squares on log variogram = 2H log d + 2 log s."""
-    l, v = variogram(residual, lags)
+    lag, v = variogram(residual, lags)
     ok = v > 0
     if ok.sum() < 2:
-        raise ValueError("residual: got too few valid pixel pairs, expected at least two lags with 16 pairs and non-zero variance")
-    slope, icpt = np.polyfit(np.log(l[ok]), np.log(v[ok]), 1)
+        raise ValueError(
+            "residual: got too few valid pixel pairs, expected at least two lags with 16 pairs and non-zero variance"
+        )
+    slope, icpt = np.polyfit(np.log(lag[ok]), np.log(v[ok]), 1)
     hurst = float(np.clip(slope / 2.0, 0.01, 0.99))
-    return FractalSurface(hurst, float(math.exp(icpt / 2.0)), tuple(l.tolist()), tuple(v.tolist()))
+    return FractalSurface(hurst, float(math.exp(icpt / 2.0)), tuple(lag.tolist()), tuple(v.tolist()))
 
 
 @dataclasses.dataclass
@@ -235,5 +236,9 @@ def residual_model(recovery, *, clip: float = 2.0, seed: int = 0) -> ResidualMod
     residual = np.where(keep, r, np.nan)
     fractal = fit_fractal(residual)
     texture = fractal.synthesize(model.shape, seed=seed) + float(np.nanmean(residual))
-    return ResidualModel(residual.astype(np.float32), fractal, model.astype(np.float32),
-                         np.where(np.isfinite(model), model + texture, np.nan).astype(np.float32))
+    return ResidualModel(
+        residual.astype(np.float32),
+        fractal,
+        model.astype(np.float32),
+        np.where(np.isfinite(model), model + texture, np.nan).astype(np.float32),
+    )

@@ -30,7 +30,8 @@ from scipy import ndimage
 from scipy.sparse import coo_matrix
 from scipy.sparse.csgraph import connected_components
 
-from ._camera import Camera, check_range_image as _check_depth
+from ._camera import Camera
+from ._camera import check_range_image as _check_depth
 from ._search import camera_points
 
 DEFAULT_TEAR = 8.0
@@ -131,8 +132,10 @@ def torn_components(depth, camera: Camera, mask=None, *, tear: float = DEFAULT_T
     idx = np.arange(h * w).reshape(h, w)
     rows, cols = [], []
     with np.errstate(invalid="ignore"):
-        for sa, sb in (((slice(None), slice(0, -1)), (slice(None), slice(1, None))),
-                       ((slice(0, -1), slice(None)), (slice(1, None), slice(None)))):
+        for sa, sb in (
+            ((slice(None), slice(0, -1)), (slice(None), slice(1, None))),
+            ((slice(0, -1), slice(None)), (slice(1, None), slice(None))),
+        ):
             joined = m[sa] & m[sb] & (np.abs(d[sa] - d[sb]) <= np.fmin(thr[sa], thr[sb]))
             rows.append(idx[sa][joined])
             cols.append(idx[sb][joined])
@@ -167,8 +170,9 @@ def estimate_noise(depth) -> float:
     seen face-on or not), scaled by 1.4826 / sqrt(1.5) for Gaussian noise. Depth edges are
     rare enough not to move the median."""
     d = np.asarray(depth, np.float64)
-    second = np.concatenate([(d[:, 1:-1] - 0.5 * (d[:, :-2] + d[:, 2:])).ravel(),
-                             (d[1:-1] - 0.5 * (d[:-2] + d[2:])).ravel()])
+    second = np.concatenate(
+        [(d[:, 1:-1] - 0.5 * (d[:, :-2] + d[:, 2:])).ravel(), (d[1:-1] - 0.5 * (d[:-2] + d[2:])).ravel()]
+    )
     second = second[np.isfinite(second)]
     if second.size < 16:
         return 0.0
@@ -199,8 +203,10 @@ class CleanedRange:
 
     def summary(self) -> str:
         q = "continuous" if self.quantum is None else f"quantum {self.quantum:.3g}"
-        return (f"{self.missing} missing, {int(self.flying.sum())} flying and {int(self.outliers.sum())} "
-                f"outlier pixels removed; {q}; noise {self.noise:.3g}")
+        return (
+            f"{self.missing} missing, {int(self.flying.sum())} flying and {int(self.outliers.sum())} "
+            f"outlier pixels removed; {q}; noise {self.noise:.3g}"
+        )
 
 
 def crop_depth_range(depth, depth_range: tuple[float, float] | None) -> np.ndarray:

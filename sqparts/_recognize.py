@@ -134,7 +134,9 @@ def _consistency(qr, mr, query_n, model_n, pairs, settings, model_scale) -> np.n
     da = (qa[:, None] - ma[None]) / settings.angle_tolerance
     sim = np.exp(-0.5 * (np.sum(dd**2, -1) + da**2) / (dd.shape[-1] + 1))  # (nq, nm, k)
     # A candidate pair is not compared with an assigned pair sharing its query or model part.
-    other = (np.arange(query_n)[:, None, None] != qi[None, None, :]) & (np.arange(model_n)[None, :, None] != mj[None, None, :])
+    other = (np.arange(query_n)[:, None, None] != qi[None, None, :]) & (
+        np.arange(model_n)[None, :, None] != mj[None, None, :]
+    )
     count = other.sum(-1)
     return np.where(count > 0, (sim * other).sum(-1) / np.maximum(count, 1), 1.0)
 
@@ -170,7 +172,7 @@ def estimate_pose(query: Description, model: Description, pairs, weights=None) -
     qc, mc = np.average(q, 0, w), np.average(m, 0, w)
     spread = np.linalg.svd(m - mc, compute_uv=False) if len(pairs) >= 3 else np.zeros(3)
     if len(pairs) >= 3 and spread[1] > 1e-3 * model.scale:
-        rot, _ = Rotation.align_vectors(q - qc, m - mc, weights=w)
+        rot = Rotation.align_vectors(q - qc, m - mc, weights=w)[0]
         r = rot.as_matrix()
     else:
         best = int(np.argmax(w))
@@ -203,7 +205,10 @@ def match_descriptions(query: Description, model: Description, settings: MatchSe
     qr, mr = _relation_features(query), _relation_features(model)
     benefit = unary * weight
     pairs = _assign(benefit, unary, settings.min_similarity)
-    best_pairs, best_score = pairs, _score(unary, weight, _pairwise_similarity(qr, mr, pairs, settings, model.scale), pairs)
+    best_pairs, best_score = (
+        pairs,
+        _score(unary, weight, _pairwise_similarity(qr, mr, pairs, settings, model.scale), pairs),
+    )
     for _ in range(settings.iterations):
         consistency = _consistency(qr, mr, len(query), len(model), pairs, settings, model.scale)
         new = _assign(benefit * consistency, unary, settings.min_similarity)

@@ -25,7 +25,15 @@ import numpy as np
 from ._camera import Camera
 from ._fit import Encoding
 from ._part import Part, stack_parts
-from ._refine import EncodingCost, encoding_cost, layer_errors, part_statistics, refine_parts, render_each, select_rendered
+from ._refine import (
+    EncodingCost,
+    encoding_cost,
+    layer_errors,
+    part_statistics,
+    refine_parts,
+    render_each,
+    select_rendered,
+)
 from ._render import render_range_image
 from ._search import RangeData, camera_points, fit_image
 from ._select import Costs, SelectionProblem, select_parts
@@ -121,7 +129,6 @@ class Recovery(_Fractions, _Meshes):
     def description_length(self) -> float:
         return self.cost.total
 
-
     def summary(self) -> str:
         n = len(self.parts)
         t = self.timings
@@ -210,23 +217,36 @@ def recover(
         (``restarts=3, polish_rounds=6, polish_steps=15``): flat boxes then come back
         with ε ≈ 0.1 rather than as rounded blobs (see ``benchmarks/README.md``).
     """
-    if isinstance(refine_rounds, bool) or not isinstance(refine_rounds, (int, np.integer)) or not (
-        0 <= refine_rounds <= MAX_REFINE_ROUNDS
+    if (
+        isinstance(refine_rounds, bool)
+        or not isinstance(refine_rounds, (int, np.integer))
+        or not (0 <= refine_rounds <= MAX_REFINE_ROUNDS)
     ):
         raise ValueError(f"refine_rounds: got {refine_rounds!r}, expected an integer in [0, {MAX_REFINE_ROUNDS}]")
     for name, value in (("polish_candidates", top_k), ("polish_rounds", 3), ("polish_steps", 10), ("restarts", 0)):
         search_kwargs.setdefault(name, value)
     t0 = time.perf_counter()
     fits, data, settings = fit_image(
-        depth, camera, grid=grid, figure=figure, encoding=encoding, max_size=max_size, window=window,
-        top_k=top_k, centres=centres, progress=progress, **search_kwargs,
+        depth,
+        camera,
+        grid=grid,
+        figure=figure,
+        encoding=encoding,
+        max_size=max_size,
+        window=window,
+        top_k=top_k,
+        centres=centres,
+        progress=progress,
+        **search_kwargs,
     )
     jax.block_until_ready([f.gamma for f in fits])
     t1 = time.perf_counter()
     costs = Costs.from_encoding(data.encoding, int(data.figure_mask.sum()))
     parts, layers, explained, commission = _candidates(fits, data)
     if parts is None:
-        raise ValueError("depth: got an image where the search found no part that explains any pixel, expected a figure the grid can fit")
+        raise ValueError(
+            "depth: got an image where the search found no part that explains any pixel, expected a figure the grid can fit"
+        )
     assert layers is not None and explained is not None  # None only together with parts
     problem = SelectionProblem.from_masks(explained, commission, costs)
     chosen, method = select_parts(problem, method=selection)
@@ -268,8 +288,12 @@ def recover(
             "sigma": enc.sigma,
             "quantum": enc.quantum,
             "commission_weight": enc.commission_weight,
-            "bits": {"part": costs.part, "explained_pixel": costs.explained,
-                     "commission_pixel": costs.commission, "omitted_pixel": costs.omission},
+            "bits": {
+                "part": costs.part,
+                "explained_pixel": costs.explained,
+                "commission_pixel": costs.commission,
+                "omitted_pixel": costs.omission,
+            },
             "raw_bits": costs.omission * costs.figure_pixels,
         },
         depth=np.asarray(data.image),
@@ -411,8 +435,13 @@ class SceneRecovery(_Fractions, _Meshes):
             ground_plane=None if fg is None or fg.ground is None else fg.ground.to_json(),
             background_planes=[] if fg is None else [p.to_json() for p in fg.planes],
             figures=[
-                {"pixels": int(r.figure.sum()), "parts": len(r.parts), "description_length_bits": r.cost.total,
-                 "fraction_explained": r.fraction_explained, "timings_s": r.timings}
+                {
+                    "pixels": int(r.figure.sum()),
+                    "parts": len(r.parts),
+                    "description_length_bits": r.cost.total,
+                    "fraction_explained": r.fraction_explained,
+                    "timings_s": r.timings,
+                }
                 for r in self.figures
             ],
             timings_s=self.timings,
@@ -465,8 +494,8 @@ def recover_scene(
         ``max_angle`` degrees and ``max_bits``.
     recover_kwargs : passed to :func:`recover` for every figure (grid, max_size, ...).
     """
-    from ._postprocess import prettify as _prettify
     from ._fit import encoding_for
+    from ._postprocess import prettify as _prettify
     from ._preprocess import DEFAULT_TEAR, auto_factor, clean_range_image, crop_depth_range, downsample, estimate_noise
     from ._preprocess import figure_ground as _figure_ground
     from ._search import default_max_size, prepare, window_for
@@ -489,12 +518,22 @@ def recover_scene(
         d = crop_depth_range(d, depth_range)
     fg = None
     if figure_ground:
-        fg = _figure_ground(d, camera, planes=planes, plane_threshold=plane_threshold, tear=tear,
-                            min_pixels=min_figure_pixels, max_figures=max_figures, max_height=max_height,
-                            max_border_fraction=max_border_fraction)
+        fg = _figure_ground(
+            d,
+            camera,
+            planes=planes,
+            plane_threshold=plane_threshold,
+            tear=tear,
+            min_pixels=min_figure_pixels,
+            max_figures=max_figures,
+            max_height=max_height,
+            max_border_fraction=max_border_fraction,
+        )
         masks = fg.figures
         if not masks:
-            raise ValueError("depth: got no figure left after removing the background, expected at least one (try figure_ground=False or a smaller min_figure_pixels)")
+            raise ValueError(
+                "depth: got no figure left after removing the background, expected at least one (try figure_ground=False or a smaller min_figure_pixels)"
+            )
     else:
         masks = [np.isfinite(d)]
     t1 = time.perf_counter()
@@ -521,16 +560,28 @@ def recover_scene(
     if prettify:
         gravity = up if up is not None else (fg.up if fg is not None else None)
         if gravity is None:
-            raise ValueError("up: got nothing and no ground plane was found, expected the gravity direction up=(x, y, z) for prettifying")
+            raise ValueError(
+                "up: got nothing and no ground plane was found, expected the gravity direction up=(x, y, z) for prettifying"
+            )
         for rec in recoveries:
-            parts, cost, report = _prettify(rec.parts, rec.data, rec.costs, up=gravity, max_angle=max_angle, max_bits=max_bits)
+            parts, cost, report = _prettify(
+                rec.parts, rec.data, rec.costs, up=gravity, max_angle=max_angle, max_bits=max_bits
+            )
             rec.parts, rec.cost = parts, cost
             rec.part_stats = part_statistics(parts, rec.data, cost)
             rec.history.append(("prettify", cost.total))
             reports.append(report)
     t2 = time.perf_counter()
-    return SceneRecovery(recoveries, camera, d, factor, cleaned, fg, reports if prettify else None,
-                         {"preprocess": t1 - t0, "recovery": t2 - t1, "total": t2 - t0})
+    return SceneRecovery(
+        recoveries,
+        camera,
+        d,
+        factor,
+        cleaned,
+        fg,
+        reports if prettify else None,
+        {"preprocess": t1 - t0, "recovery": t2 - t1, "total": t2 - t0},
+    )
 
 
 # --- multiscale ---------------------------------------------------------------------
@@ -572,14 +623,25 @@ class MultiscaleRecovery:
                     "binning": f,
                     "max_size": s,
                     "camera": c.to_json(),
-                    "parts": [part_to_dict(r.parts[j], parent=int(p[j]), **r.part_stats[j]) for j in range(len(r.parts))],
+                    "parts": [
+                        part_to_dict(r.parts[j], parent=int(p[j]), **r.part_stats[j]) for j in range(len(r.parts))
+                    ],
                 }
                 for r, f, c, s, p in zip(self.levels, self.factors, self.cameras, self.max_sizes, self.parents)
             ]
         }
 
 
-def recover_multiscale(depth, camera: Camera, *, levels: int = 3, figure=None, max_size: float | None = None, progress=None, **recover_kwargs) -> MultiscaleRecovery:
+def recover_multiscale(
+    depth,
+    camera: Camera,
+    *,
+    levels: int = 3,
+    figure=None,
+    max_size: float | None = None,
+    progress=None,
+    **recover_kwargs,
+) -> MultiscaleRecovery:
     """Recover a coarse-to-fine hierarchy of part models.
 
     Level k of ``levels`` (0 = coarsest) searches parts up to ``max_size`` / 2^k

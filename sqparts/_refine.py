@@ -50,7 +50,9 @@ def _host_parts(vectors) -> Part:
     :meth:`~sqparts.Part.to_vector`), built without dispatching JAX operations: slicing,
     stacking and editing them is plain numpy, and they enter compiled calls as they are."""
     v = np.asarray(vectors, np.float32)
-    return jax.tree_util.tree_unflatten(_PART_TREE, [v[:, 0:3], v[:, 3:6], v[:, 6:9], v[:, 9:11], v[:, 11:13], v[:, 13]])
+    return jax.tree_util.tree_unflatten(
+        _PART_TREE, [v[:, 0:3], v[:, 3:6], v[:, 6:9], v[:, 9:11], v[:, 11:13], v[:, 13]]
+    )
 
 
 def _vectors(parts: Part) -> np.ndarray:
@@ -85,8 +87,9 @@ def render_each(vectors, camera) -> np.ndarray:
         return np.full((0, h, w), np.inf, np.float32)
     # Rendered on the bucketed image (the same rays, a few more of them), then cropped.
     big = bucket_camera(camera)
-    return np.concatenate([np.asarray(_render_each(padded[j : j + _BUCKET], big))[:, :h, :w]
-                           for j in range(0, len(padded), _BUCKET)])[:k]
+    return np.concatenate(
+        [np.asarray(_render_each(padded[j : j + _BUCKET], big))[:, :h, :w] for j in range(0, len(padded), _BUCKET)]
+    )[:k]
 
 
 def _compose(layers: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -157,21 +160,38 @@ def _pixel_errors(hit, rendered, measured, figure, sigma):
     """Explained (on the figure, within ±σ/2 of the measured depth) and commission
     (rendered off the figure and not hidden by data in front: :func:`~sqparts.commission_mask`)
     masks of rendered pixels ``hit``; numpy or jnp arrays."""
-    return hit & figure & (abs(rendered - measured) <= sigma / 2), commission_mask(hit, rendered, measured, figure, sigma / 2)
+    return hit & figure & (abs(rendered - measured) <= sigma / 2), commission_mask(
+        hit, rendered, measured, figure, sigma / 2
+    )
 
 
 def _layers(cost: EncodingCost) -> np.ndarray:
     """``cost.layers``, which every cost from :func:`layers_cost` has."""
     if cost.layers is None:
-        raise ValueError("cost: got an EncodingCost without per-part layers, expected one from encoding_cost or layers_cost")
+        raise ValueError(
+            "cost: got an EncodingCost without per-part layers, expected one from encoding_cost or layers_cost"
+        )
     return cost.layers
 
 
 def _count(n: int, rendered, labels, data: RangeData, costs: Costs, layers=None) -> EncodingCost:
     with np.errstate(invalid="ignore"):
-        explained, commission = _pixel_errors(labels >= 0, rendered, data.image, data.figure_region, data.encoding.sigma)
+        explained, commission = _pixel_errors(
+            labels >= 0, rendered, data.image, data.figure_region, data.encoding.sigma
+        )
     e, c = int(explained.sum()), int(commission.sum())
-    return EncodingCost(float(costs.total(n, e, c)), n, e, c, costs.figure_pixels - e, rendered.astype(np.float32), labels, explained, commission, layers)
+    return EncodingCost(
+        float(costs.total(n, e, c)),
+        n,
+        e,
+        c,
+        costs.figure_pixels - e,
+        rendered.astype(np.float32),
+        labels,
+        explained,
+        commission,
+        layers,
+    )
 
 
 def layer_errors(depth: np.ndarray, data: RangeData) -> tuple[np.ndarray, np.ndarray]:
@@ -205,12 +225,20 @@ def select_rendered(layers: np.ndarray, data: RangeData, costs: Costs, *, start=
             cur = layers[x].min(0) if x.any() else empty
             k = int(x.sum())
             e_now = costs.total(k, *_layer_counts(cur, data))
-            add = np.concatenate([costs.total(k + 1, *_layer_counts(np.minimum(cur, layers[j : j + chunk]), data))
-                                  for j in range(0, n, chunk)])
+            add = np.concatenate(
+                [
+                    costs.total(k + 1, *_layer_counts(np.minimum(cur, layers[j : j + chunk]), data))
+                    for j in range(0, n, chunk)
+                ]
+            )
             add[x] = np.inf
             on = np.flatnonzero(x)
-            drop = np.array([costs.total(k - 1, *_layer_counts(layers[np.delete(on, i)].min(0) if k > 1 else empty, data))
-                             for i in range(k)])
+            drop = np.array(
+                [
+                    costs.total(k - 1, *_layer_counts(layers[np.delete(on, i)].min(0) if k > 1 else empty, data))
+                    for i in range(k)
+                ]
+            )
             a = int(np.argmin(add))
             d = int(np.argmin(drop)) if k else -1
             if k and drop[d] <= add[a] and drop[d] < e_now - 1e-9:
@@ -289,8 +317,10 @@ def _polish_all(parts: Part, points, weights, steps: int, rays, ray_weights) -> 
         rays = (np.zeros((1, 3), np.float32), np.array([[0.0, 0.0, 1.0]], np.float32))
     o, d = (np.asarray(a, np.float32)[ri] for a in rays)
     d[rw == 0] = (0.0, 0.0, 1.0)  # padding rays stay finite
-    out = [_polish_bucket(padded[k : k + _BUCKET], *(a[k : k + _BUCKET] for a in (x, pw, o, d, rw)), steps=steps)
-           for k in range(0, m, _BUCKET)]
+    out = [
+        _polish_bucket(padded[k : k + _BUCKET], *(a[k : k + _BUCKET] for a in (x, pw, o, d, rw)), steps=steps)
+        for k in range(0, m, _BUCKET)
+    ]
     return _host_parts(np.concatenate([_vectors(p) for p in out])[:n])
 
 
@@ -410,7 +440,13 @@ def polish_jointly(parts: Part, data: RangeData, costs: Costs, *, steps: int = 2
 
 
 def split_parts(
-    parts: Part, data: RangeData, costs: Costs, *, steps: int = 20, rounds: int = 4, tries: int = 3,
+    parts: Part,
+    data: RangeData,
+    costs: Costs,
+    *,
+    steps: int = 20,
+    rounds: int = 4,
+    tries: int = 3,
     cost: EncodingCost | None = None,
 ):
     """Replace a part by two, its halves along its longest axis grown by ``rounds`` of
@@ -443,11 +479,15 @@ def split_parts(
 
     def score(halves):
         layers = render_each(halves, data.camera)
-        return [layers_cost(np.concatenate([rest, layers[2 * k : 2 * k + 2]]), data, costs) for k, rest in enumerate(kept)]
+        return [
+            layers_cost(np.concatenate([rest, layers[2 * k : 2 * k + 2]]), data, costs) for k, rest in enumerate(kept)
+        ]
 
     scores = score(np.concatenate([t[-2:] for t in trials]))
     for _ in range(rounds):
-        new = _grow(data, [_grow_inputs(_host_parts(t), data, c, [n - 2, n - 1]) for t, c in zip(trials, scores)], steps=steps)
+        new = _grow(
+            data, [_grow_inputs(_host_parts(t), data, c, [n - 2, n - 1]) for t, c in zip(trials, scores)], steps=steps
+        )
         for k, t in enumerate(trials):
             t[-2:] = new[2 * k : 2 * k + 2]
         scores = score(new)
@@ -472,8 +512,16 @@ def omitted_blobs(omitted: np.ndarray) -> tuple[np.ndarray, int]:
 
 
 def fill_gaps(
-    parts: Part, data: RangeData, costs: Costs, settings, *, steps: int = 20, rounds: int = 3, blobs: int = 4,
-    seeds: int = 3, cost: EncodingCost | None = None,
+    parts: Part,
+    data: RangeData,
+    costs: Costs,
+    settings,
+    *,
+    steps: int = 20,
+    rounds: int = 3,
+    blobs: int = 4,
+    seeds: int = 3,
+    cost: EncodingCost | None = None,
 ):
     """Search the figure's unexplained blobs for parts the first search missed (a hand, a
     foot, a teapot's lid: too small for the scales searched around the skeleton): the
@@ -510,7 +558,9 @@ def fill_gaps(
     additions, seed, innermost = [], [], set()
 
     def search(centre, max_size):
-        fit = fit_region(data, dataclasses.replace(settings, max_size=float(np.clip(max_size, 1e-6, settings.max_size))), centre)
+        fit = fit_region(
+            data, dataclasses.replace(settings, max_size=float(np.clip(max_size, 1e-6, settings.max_size))), centre
+        )
         good = _vectors(fit.parts)[np.asarray(fit.gamma) > 0]
         additions.extend(good)
         seed.extend([centre] * len(good))
@@ -528,8 +578,11 @@ def fill_gaps(
         innermost.add(centre)
         if length > 4 * radius[centre]:
             spacing = max(float(radius[centre]), 1.0)
-            points = [(int(r), int(c)) for r, c in region_centers(blob, spacing=spacing)
-                      if (r - centre[0]) ** 2 + (c - centre[1]) ** 2 >= spacing**2]
+            points = [
+                (int(r), int(c))
+                for r, c in region_centers(blob, spacing=spacing)
+                if (r - centre[0]) ** 2 + (c - centre[1]) ** 2 >= spacing**2
+            ]
             for r, c in points[:seeds]:
                 search((r, c), 4 * pixel * float(radius[r, c]))
     if not additions:
@@ -610,15 +663,29 @@ def settle_part(vector, layer, rest, data: RangeData, costs: Costs, *, iteration
     r0 = int(np.clip((rows.min() + rows.max() + 1 - _CROP) // 2, 0, h - _CROP))
     c0 = int(np.clip((cols.min() + cols.max() + 1 - _CROP) // 2, 0, w - _CROP))
     crop = (slice(r0, r0 + _CROP), slice(c0, c0 + _CROP))
-    args = (np.asarray(rest[crop], np.float32), np.ascontiguousarray(data.image[crop]),
-            np.ascontiguousarray(data.figure_region[crop]), np.float32(data.encoding.sigma))
+    args = (
+        np.asarray(rest[crop], np.float32),
+        np.ascontiguousarray(data.image[crop]),
+        np.ascontiguousarray(data.figure_region[crop]),
+        np.float32(data.encoding.sigma),
+    )
     pixel = float(data.camera.pixel_size_at(float(vector[2])))
     # Steps: a pixel in position, 0.1 rad, 10% in size, 0.4 in logit squareness, 0.2 in bend and taper.
     base = np.array([pixel] * 3 + [0.1] * 6 + [0.4] * 2 + [0.2] * 3, np.float32)
     u, scale, failures = np.asarray(to_unconstrained(_host_parts(vector[None])))[0], 1.0, 0
     for i in range(iterations):
-        trials, e, c, border = (np.asarray(a) for a in _crop_trials(
-            u, base * scale, np.int32(seed), np.uint32(i), np.array([r0, c0], np.int32), *args, camera=data.compiled_camera))
+        trials, e, c, border = (
+            np.asarray(a)
+            for a in _crop_trials(
+                u,
+                base * scale,
+                np.int32(seed),
+                np.uint32(i),
+                np.array([r0, c0], np.int32),
+                *args,
+                camera=data.compiled_camera,
+            )
+        )
         f = np.where(border, np.inf, costs.total(0, e, c))  # E up to the pixels outside the crop
         k = int(np.argmin(f))
         if f[k] < f[0] - 1e-9:  # trial 0 is the current part
@@ -679,8 +746,13 @@ def _merge_candidates(a: np.ndarray, b: np.ndarray) -> np.ndarray:
     rv = Rotation.from_matrix(np.stack([x, np.cross(z, x), z], 1)).as_rotvec()
     width = max(np.sort(a[6:9])[1], np.sort(b[6:9])[1])
     depth = max(a[6:9].min(), b[6:9].min())
-    return np.asarray([[*(pa + pb) / 2, *rv, width, depth, np.linalg.norm(axis) / 2, 1.0, 1.0, bend, 0.0, 0.0]
-                       for bend in (-0.3, 0.0, 0.3)], np.float32)
+    return np.asarray(
+        [
+            [*(pa + pb) / 2, *rv, width, depth, np.linalg.norm(axis) / 2, 1.0, 1.0, bend, 0.0, 0.0]
+            for bend in (-0.3, 0.0, 0.3)
+        ],
+        np.float32,
+    )
 
 
 def _moment_candidates(points: np.ndarray, sigma: float) -> np.ndarray:
@@ -749,8 +821,9 @@ def _distances(parts: Part, points) -> np.ndarray:
     part, ``_BUCKET`` parts per compiled call."""
     padded, n = _pad_parts(parts)
     pts = np.asarray(points)
-    return np.concatenate([np.asarray(_surface_distance(padded[k : k + _BUCKET], pts))
-                           for k in range(0, len(padded), _BUCKET)])[:n]
+    return np.concatenate(
+        [np.asarray(_surface_distance(padded[k : k + _BUCKET], pts)) for k in range(0, len(padded), _BUCKET)]
+    )[:n]
 
 
 def merge_adjacent(
@@ -808,7 +881,9 @@ def merge_adjacent(
         fitted_vec = _vectors(fitted)
         # Share of each pair's points within σ/2 of the fitted surface (no rendering).
         dist = _distances(_host_parts(fitted_vec[:n_pairs]), pts) if n_pairs else np.zeros((0, len(pts)))
-        share = ((np.abs(dist) <= data.encoding.sigma / 2) * w_all[:n_pairs]).sum(1) / np.maximum(w_all[:n_pairs].sum(1), 1)
+        share = ((np.abs(dist) <= data.encoding.sigma / 2) * w_all[:n_pairs]).sum(1) / np.maximum(
+            w_all[:n_pairs].sum(1), 1
+        )
         best = np.argsort(-share)[:tries]
         trials = np.concatenate([fitted_vec[best], fitted_vec[n_pairs:], np.stack(inits)[n_pairs:]])
         groups = [members[k] for k in best] + members[n_pairs:] * 2
@@ -822,8 +897,15 @@ def merge_adjacent(
 
 
 def refine_parts(
-    parts: Part, data: RangeData, costs: Costs, *, rounds: int = 3, steps: int = 20, split: bool = True,
-    merge: bool = True, search=None,
+    parts: Part,
+    data: RangeData,
+    costs: Costs,
+    *,
+    rounds: int = 3,
+    steps: int = 20,
+    split: bool = True,
+    merge: bool = True,
+    search=None,
 ):
     """Joint refinement: ``rounds`` of :func:`polish_jointly` (``steps`` solver steps
     each), then :func:`split_parts` (when ``split``), :func:`fill_gaps` (when ``search``,

@@ -241,9 +241,7 @@ def cast_scene(
 
     Returns ``(t, hit, index)`` where ``index`` is the visible part per pixel (-1 = none).
     """
-    t, hit = jax.vmap(cast_part, in_axes=(0, None, None, None))(
-        parts, origins, directions, newton_steps
-    )
+    t, hit = jax.vmap(cast_part, in_axes=(0, None, None, None))(parts, origins, directions, newton_steps)
     t_masked = jnp.where(hit, t, jnp.inf)
     index = jnp.argmin(t_masked, axis=0)
     any_hit = jnp.any(hit, axis=0)
@@ -258,7 +256,7 @@ def cast_batch(
     *,
     batch_size: int = 64,
     newton_steps: int = DEFAULT_NEWTON_STEPS,
-) -> tuple[Float[Array, "n *pixels"], Bool[Array, "n *pixels"]]:
+) -> tuple[Float[Array, " n *pixels"], Bool[Array, " n *pixels"]]:
     """Each part of a batch rendered alone, in chunks of ``batch_size`` parts.
 
     On CPUs the rays of a chunk are cast in tiles of ``CPU_TILE // batch_size`` rays (at
@@ -283,8 +281,10 @@ MAX_NEWTON_STEPS = 64
 
 
 def _check_newton_steps(newton_steps) -> int:
-    if isinstance(newton_steps, bool) or not isinstance(newton_steps, (int, np.integer)) or not (
-        MIN_NEWTON_STEPS <= newton_steps <= MAX_NEWTON_STEPS
+    if (
+        isinstance(newton_steps, bool)
+        or not isinstance(newton_steps, (int, np.integer))
+        or not (MIN_NEWTON_STEPS <= newton_steps <= MAX_NEWTON_STEPS)
     ):
         raise ValueError(
             f"newton_steps: got {newton_steps!r}, expected an integer in [{MIN_NEWTON_STEPS}, {MAX_NEWTON_STEPS}]"
@@ -295,8 +295,7 @@ def _check_newton_steps(newton_steps) -> int:
 def _check_camera(camera) -> None:
     if not isinstance(camera, _Camera):
         raise TypeError(
-            f"camera: got {type(camera).__name__}, expected a PinholeCamera, OrthographicCamera "
-            "or ScannerCamera"
+            f"camera: got {type(camera).__name__}, expected a PinholeCamera, OrthographicCamera or ScannerCamera"
         )
 
 

@@ -85,7 +85,10 @@ def human(resolution: int = 128) -> BuiltinScene:
     c = (resolution - 1) / 2
     cam = PinholeCamera(resolution, resolution, f, f, c, c)
     return BuiltinScene(
-        "human", stack_parts(named.values()), cam, tuple(named),
+        "human",
+        stack_parts(named.values()),
+        cam,
+        tuple(named),
         "an articulated person (Figure 7), 16 parts, 4 m from a pinhole camera",
     )
 
@@ -94,8 +97,12 @@ def chair(resolution: int = 96) -> BuiltinScene:
     """A chair as in Figure 2(c): seat, bent back, four legs; seen from above at an angle."""
     parts = {
         "seat": limb([0, 0, -0.03], [0, 0, 0.03], 0.24, 0.22, (0.2, 0.3), roll=0.0),
-        "back": Part(size=np.array([0.03, 0.24, 0.25], np.float32), squareness=np.array([0.3, 0.3], np.float32),
-                     position=np.array([-0.23, 0, 0.28], np.float32), bend=np.array([-0.25, 0.0], np.float32)),
+        "back": Part(
+            size=np.array([0.03, 0.24, 0.25], np.float32),
+            squareness=np.array([0.3, 0.3], np.float32),
+            position=np.array([-0.23, 0, 0.28], np.float32),
+            bend=np.array([-0.25, 0.0], np.float32),
+        ),
     }
     for i, (x, y) in enumerate([(-0.2, -0.18), (-0.2, 0.18), (0.2, -0.18), (0.2, 0.18)]):
         parts[f"leg {i + 1}"] = limb([x, y, -0.03], [x, y, -0.45], 0.025, squareness=(0.3, 0.3))
@@ -105,13 +112,23 @@ def chair(resolution: int = 96) -> BuiltinScene:
     posed = []
     for p in parts.values():
         pos = rot @ np.asarray(p.position, float) + np.array([0.0, 0.0, 3.0])
-        posed.append(Part(size=p.size, squareness=p.squareness, position=pos.astype(np.float32),
-                          orientation=_compose(tilt, np.asarray(p.orientation, float)).astype(np.float32),
-                          bend=p.bend, taper=p.taper))
+        posed.append(
+            Part(
+                size=p.size,
+                squareness=p.squareness,
+                position=pos.astype(np.float32),
+                orientation=_compose(tilt, np.asarray(p.orientation, float)).astype(np.float32),
+                bend=p.bend,
+                taper=p.taper,
+            )
+        )
     f = resolution * 3.0 / 1.2
     c = (resolution - 1) / 2
     return BuiltinScene(
-        "chair", stack_parts(posed), PinholeCamera(resolution, resolution, f, f, c, c), tuple(parts),
+        "chair",
+        stack_parts(posed),
+        PinholeCamera(resolution, resolution, f, f, c, c),
+        tuple(parts),
         "a chair (Figure 2c): square seat, bent back, four legs, seen from above at an angle",
     )
 
@@ -134,15 +151,24 @@ def castings(resolution: int = 96, *, seed: int = 3) -> BuiltinScene:
             size[1] *= 0.6
         xy = rng.uniform(-0.22, 0.22, 2)
         rv = _compose(np.array([np.pi / 2 + rng.uniform(-0.4, 0.4), 0, 0]), np.array([0, rng.uniform(0, np.pi), 0]))
-        parts.append(Part(size=size.astype(np.float32),
-                          squareness=np.array([0.2, 1.0 if cylinder else 0.2], np.float32),
-                          position=np.array([xy[0], xy[1], 1.0 - 0.03 * i], np.float32),
-                          orientation=np.asarray(rv, np.float32)))
+        parts.append(
+            Part(
+                size=size.astype(np.float32),
+                squareness=np.array([0.2, 1.0 if cylinder else 0.2], np.float32),
+                position=np.array([xy[0], xy[1], 1.0 - 0.03 * i], np.float32),
+                orientation=np.asarray(rv, np.float32),
+            )
+        )
         names.append(f"{'cylinder' if cylinder else 'block'} {i + 1}")
     c = (resolution - 1) / 2
     cam = OrthographicCamera(resolution, resolution, 0.7 / resolution, c, c)
-    return BuiltinScene("castings", stack_parts(parts), cam, tuple(names),
-                        "six jumbled castings (Figure 8) under an orthographic sensor")
+    return BuiltinScene(
+        "castings",
+        stack_parts(parts),
+        cam,
+        tuple(names),
+        "six jumbled castings (Figure 8) under an orthographic sensor",
+    )
 
 
 def gate(width: int = 128, height: int = 48) -> BuiltinScene:
@@ -161,8 +187,13 @@ def gate(width: int = 128, height: int = 48) -> BuiltinScene:
     parts.append(limb([-2.3, 0.9, d], [2.3, -0.8, d], w, w, (0.2, 0.2)))
     names.append("brace")
     cam = ScannerCamera(width, height, step, step, (width - 1) / 2, (height - 1) / 2)
-    return BuiltinScene("gate", stack_parts(parts), cam, tuple(names),
-                        "a gate 20 m away (Figure 10), members about two pixels wide, scanner camera")
+    return BuiltinScene(
+        "gate",
+        stack_parts(parts),
+        cam,
+        tuple(names),
+        "a gate 20 m away (Figure 10), members about two pixels wide, scanner camera",
+    )
 
 
 HUMAN_POSES = {
@@ -214,13 +245,32 @@ def posed_human(pose: str = "standing", resolution: int = 128) -> BuiltinScene:
         named[f"{label} calf"] = limb(knee, ankle, 0.055, taper=-0.2)
         heel = ankle + np.array([0.0, 0.03, 0.04])
         named[f"{label} foot"] = limb(heel, heel + np.array([0.0, 0.0, -0.22]), 0.045, 0.03, (0.6, 0.8))
-    order = ["head", "neck", "torso", "pelvis", "right upper arm", "right forearm", "right hand", "left upper arm",
-             "left forearm", "left hand", "right thigh", "left thigh", "right calf", "left calf", "right foot", "left foot"]
+    order = [
+        "head",
+        "neck",
+        "torso",
+        "pelvis",
+        "right upper arm",
+        "right forearm",
+        "right hand",
+        "left upper arm",
+        "left forearm",
+        "left hand",
+        "right thigh",
+        "left thigh",
+        "right calf",
+        "left calf",
+        "right foot",
+        "left foot",
+    ]
     f = resolution * z / 2.6
     c = (resolution - 1) / 2
     cam = PinholeCamera(resolution, resolution, f, f, c, c)
     return BuiltinScene(
-        f"human ({pose})", stack_parts([named[k] for k in order]), cam, tuple(order),
+        f"human ({pose})",
+        stack_parts([named[k] for k in order]),
+        cam,
+        tuple(order),
         f"the articulated person in pose {pose!r}, 16 parts, 4 m from a pinhole camera",
     )
 

@@ -30,7 +30,8 @@ import jax.numpy as jnp
 import lineax as lx
 import numpy as np
 import optimistix as optx
-from jax.sharding import Mesh, PartitionSpec as P
+from jax.sharding import Mesh
+from jax.sharding import PartitionSpec as P
 
 from ._camera import Camera, check_range_image
 from ._compile import persistent_jit
@@ -161,9 +162,13 @@ def prepare(depth, camera: Camera, *, figure=None, encoding: Encoding | None = N
     if fig.shape != d.shape:
         raise ValueError(f"figure: got shape {fig.shape}, expected {d.shape}")
     if (fig & np.isfinite(d)).sum() < 4:
-        raise ValueError(f"depth: got a figure of {int((fig & np.isfinite(d)).sum())} pixels with returns, expected at least 4")
+        raise ValueError(
+            f"depth: got a figure of {int((fig & np.isfinite(d)).sum())} pixels with returns, expected at least 4"
+        )
     if encoding is not None and not isinstance(encoding, Encoding):
-        raise TypeError(f"encoding: got {encoding!r:.60} ({type(encoding).__name__}), expected a sqparts.Encoding or None")
+        raise TypeError(
+            f"encoding: got {encoding!r:.60} ({type(encoding).__name__}), expected a sqparts.Encoding or None"
+        )
     enc = encoding or encoding_for(d[fig & np.isfinite(d)])
     h, w = d.shape
     grow = ((pad, pad + _bucket(h) - h), (pad, pad + _bucket(w) - w))
@@ -336,16 +341,20 @@ def _map_hypotheses(fn, batched, replicated, batch_size: int):
     mesh = Mesh(np.asarray(devices), ("hypotheses",))
     spec_b = jax.tree_util.tree_map(lambda _: P("hypotheses"), batched)
     spec_r = jax.tree_util.tree_map(lambda _: P(), replicated)
-    return jax.shard_map(
-        run, mesh=mesh, in_specs=(spec_b, *spec_r), out_specs=P("hypotheses"), check_vma=False
-    )(batched, *replicated)
+    return jax.shard_map(run, mesh=mesh, in_specs=(spec_b, *spec_r), out_specs=P("hypotheses"), check_vma=False)(
+        batched, *replicated
+    )
 
 
 @persistent_jit(static_argnames=("camera", "pad", "window", "stride", "batch_size", "newton_steps"))
-def _score_hypotheses(arrays, orientation_rel, shape, corner, centre, max_size, *, camera, pad, window, stride, batch_size, newton_steps):
+def _score_hypotheses(
+    arrays, orientation_rel, shape, corner, centre, max_size, *, camera, pad, window, stride, batch_size, newton_steps
+):
     """Γ and depth offset p for every hypothesis at one region (the one parallel operation)."""
     depth, fig, sigma, lam = arrays
-    measured, figure, origins, directions, c_o, c_d, surface_t = _region_inputs(depth, fig, camera, pad, corner, centre, window)
+    measured, figure, origins, directions, c_o, c_d, surface_t = _region_inputs(
+        depth, fig, camera, pad, corner, centre, window
+    )
     s = slice(stride // 2, None, stride)
     measured, figure = measured[s, s], figure[s, s]
     origins, directions = origins[s, s], directions[s, s]
@@ -354,12 +363,24 @@ def _score_hypotheses(arrays, orientation_rel, shape, corner, centre, max_size, 
     def one(h, origins, directions, measured, figure, c_o, c_d, surface_t, sigma, lam, max_size):
         orientation_rel, shp = h
         part = pose_hypothesis(orientation_rel, shp, max_size, c_o, c_d, surface_t)
-        return _score_one(part, origins, directions, measured, figure, weight,
-                          sigma=sigma, lam=lam, num_bins=NUM_BINS, newton_steps=newton_steps)
+        return _score_one(
+            part,
+            origins,
+            directions,
+            measured,
+            figure,
+            weight,
+            sigma=sigma,
+            lam=lam,
+            num_bins=NUM_BINS,
+            newton_steps=newton_steps,
+        )
 
     gam, off = _map_hypotheses(
-        one, (orientation_rel, shape),
-        (origins, directions, measured, figure, c_o, c_d, surface_t, sigma, lam, max_size), batch_size,
+        one,
+        (orientation_rel, shape),
+        (origins, directions, measured, figure, c_o, c_d, surface_t, sigma, lam, max_size),
+        batch_size,
     )
     return jnp.where(jnp.isfinite(gam), gam, -jnp.inf), off, c_d
 
@@ -406,8 +427,17 @@ def score_region(data: RangeData, settings: SearchSettings, centre, *, hypothese
     s = np.tile(hyp["shape"][:1], (padded, 1))
     s[:n] = hyp["shape"]
     gam, off, c_d = _score_hypotheses(
-        data.arrays, o, s, corner, centre, np.float32(settings.max_size),
-        camera=data.compiled_camera, pad=data.pad, window=settings.window, stride=stride, batch_size=batch_size,
+        data.arrays,
+        o,
+        s,
+        corner,
+        centre,
+        np.float32(settings.max_size),
+        camera=data.compiled_camera,
+        pad=data.pad,
+        window=settings.window,
+        stride=stride,
+        batch_size=batch_size,
         newton_steps=settings.newton_steps,
     )
     return jax.device_put(np.asarray(gam)[:n]), jax.device_put(np.asarray(off)[:n])
@@ -453,13 +483,33 @@ def _restart_starts(part: Part, levels: int) -> Part:
     starts = []
     for k in range(3):
         idx = jnp.array([(k + i) % 3 for i in range(3)])
-        relabelled = eqx.tree_at(lambda q: (q.size, q.orientation), plain, (part.size[idx], matrix_to_rotation_vector(rot[:, idx])))
+        relabelled = eqx.tree_at(
+            lambda q: (q.size, q.orientation), plain, (part.size[idx], matrix_to_rotation_vector(rot[:, idx]))
+        )
         starts.append(jax.vmap(lambda e: eqx.tree_at(lambda q: q.squareness, relabelled, e))(sq))
     return jax.tree_util.tree_map(lambda *x: jnp.concatenate(x), *starts)
 
 
-@persistent_jit(static_argnames=("camera", "pad", "window", "newton_steps", "polish_steps", "polish_rounds", "restarts"))
-def _finish(arrays, orientation_rel, shape, offsets, corner, centre, max_size, *, camera, pad, window, newton_steps, polish_steps, polish_rounds, restarts):
+@persistent_jit(
+    static_argnames=("camera", "pad", "window", "newton_steps", "polish_steps", "polish_rounds", "restarts")
+)
+def _finish(
+    arrays,
+    orientation_rel,
+    shape,
+    offsets,
+    corner,
+    centre,
+    max_size,
+    *,
+    camera,
+    pad,
+    window,
+    newton_steps,
+    polish_steps,
+    polish_rounds,
+    restarts,
+):
     """Pose the chosen hypotheses, shift them by -p in depth, polish, restart the best
     polished part (:func:`_restart_starts`) and score at full resolution over the window.
 
@@ -469,7 +519,9 @@ def _finish(arrays, orientation_rel, shape, offsets, corner, centre, max_size, *
     that walks onto a neighbour is not kept, and unanchored candidates rank last.
     """
     depth, fig, sigma, lam = arrays
-    measured, figure, origins, directions, c_o, c_d, surface_t = _region_inputs(depth, fig, camera, pad, corner, centre, window)
+    measured, figure, origins, directions, c_o, c_d, surface_t = _region_inputs(
+        depth, fig, camera, pad, corner, centre, window
+    )
     c = window // 2
 
     def shifted(part, p):  # move a part by -p in depth along the region's centre ray
@@ -493,8 +545,17 @@ def _finish(arrays, orientation_rel, shape, offsets, corner, centre, max_size, *
 
         def polish(part, p, seed):
             scale = jnp.maximum(POLISH_SCALE * jnp.max(part.size), sigma)
-            return grow_polish(shifted(part, p), origins[s, s], directions[s, s], measured[s, s], figure[s, s],
-                               seed[s, s], scale=scale, rounds=polish_rounds, steps=polish_steps)
+            return grow_polish(
+                shifted(part, p),
+                origins[s, s],
+                directions[s, s],
+                measured[s, s],
+                figure[s, s],
+                seed[s, s],
+                scale=scale,
+                rounds=polish_rounds,
+                steps=polish_steps,
+            )
 
         gam, off, explained, _, _, anchored = scored
         # lax.map, not vmap: see _refine._polish_bucket (a vmapped LM compiles twice as long).
@@ -566,7 +627,9 @@ def polish_part(part: Part, points, weights, *, rays=None, steps: int = 20) -> P
     return from_unconstrained(jnp.where(ok, sol.value, u0))
 
 
-def grow_polish(part: Part, origins, directions, depth, figure, seed, *, scale, rounds: int, steps: int, grow: int = 2) -> Part:
+def grow_polish(
+    part: Part, origins, directions, depth, figure, seed, *, scale, rounds: int, steps: int, grow: int = 2
+) -> Part:
     """Polish a hypothesis on a window of the image by region growing (an ICP).
 
     ``origins``, ``directions`` (H, W, 3) are the window's rays, ``depth`` (H, W) its
@@ -584,7 +647,12 @@ def grow_polish(part: Part, origins, directions, depth, figure, seed, *, scale, 
     # Every other off-figure ray is enough to keep the part inside its silhouette.
     r = slice(0, None, 2)
     far = jnp.where(jnp.isfinite(depth[r, r]), depth[r, r] - scale, jnp.inf).reshape(-1)
-    rays = (origins[r, r].reshape(-1, 3), directions[r, r].reshape(-1, 3), (~figure[r, r]).reshape(-1).astype(flat.dtype), far)
+    rays = (
+        origins[r, r].reshape(-1, 3),
+        directions[r, r].reshape(-1, 3),
+        (~figure[r, r]).reshape(-1).astype(flat.dtype),
+        far,
+    )
     size = 2 * grow + 1
 
     def one_round(carry, first):
@@ -609,8 +677,9 @@ def fit_region(data: RangeData, settings: SearchSettings, centre, *, prune: bool
     if prune and settings.stride > 1 and settings.survivors < n:
         gam = np.empty(n, np.float32)
         for side, sel in _by_window(settings.grid, settings.window):
-            g, _ = score_region(data, dataclasses.replace(settings, window=side), centre,
-                                hypotheses={k: v[sel] for k, v in hyp.items()})
+            g, _ = score_region(
+                data, dataclasses.replace(settings, window=side), centre, hypotheses={k: v[sel] for k, v in hyp.items()}
+            )
             gam[sel] = np.asarray(g)
         keep = np.argsort(-gam, kind="stable")[: settings.survivors]
         sub = {k: v[keep] for k, v in hyp.items()}
@@ -624,7 +693,9 @@ def fit_region(data: RangeData, settings: SearchSettings, centre, *, prune: bool
     ranked = np.argsort(-gam_full, kind="stable")
     g_sorted = gam_full[ranked]
     ratio = float(g_sorted[0] / g_sorted[1]) if k > 1 and g_sorted[1] > 0 else float("inf")
-    best_i = _distinct(hyp["orientation"][index[ranked]], hyp["shape"][index[ranked]], max(k, settings.polish_candidates))
+    best_i = _distinct(
+        hyp["orientation"][index[ranked]], hyp["shape"][index[ranked]], max(k, settings.polish_candidates)
+    )
     best_i = ranked[best_i]
     chosen = index[best_i]
     parts, gam, explained, hit, commission, anchored = _finish(
@@ -632,9 +703,16 @@ def fit_region(data: RangeData, settings: SearchSettings, centre, *, prune: bool
         hyp["orientation"][chosen],
         hyp["shape"][chosen],
         np.asarray(off_full)[best_i],
-        corner, centre_j, np.float32(settings.max_size),
-        camera=data.compiled_camera, pad=data.pad, window=settings.window, newton_steps=SEARCH_NEWTON_STEPS + 2,
-        polish_steps=settings.polish_steps, polish_rounds=settings.polish_rounds, restarts=settings.restarts,
+        corner,
+        centre_j,
+        np.float32(settings.max_size),
+        camera=data.compiled_camera,
+        pad=data.pad,
+        window=settings.window,
+        newton_steps=SEARCH_NEWTON_STEPS + 2,
+        polish_steps=settings.polish_steps,
+        polish_rounds=settings.polish_rounds,
+        restarts=settings.restarts,
     )
     order = np.lexsort((-np.asarray(gam), ~np.asarray(anchored)))[:k]  # anchored first, then by Γ
     h, w = data.camera.height, data.camera.width
@@ -655,7 +733,9 @@ def fit_region(data: RangeData, settings: SearchSettings, centre, *, prune: bool
     )
 
 
-def _distinct(orientation, shape, n: int, *, angle: float = 30.0, log_size: float = 0.3, squareness: float = 0.5) -> np.ndarray:
+def _distinct(
+    orientation, shape, n: int, *, angle: float = 30.0, log_size: float = 0.3, squareness: float = 0.5
+) -> np.ndarray:
     """Indices of up to ``n`` of the (best-first) hypotheses, skipping near-duplicates of
     those already taken (axes within ``angle`` degrees, every size within a factor
     e^``log_size`` and both squareness values within ``squareness``), so the polished
@@ -752,6 +832,7 @@ def gamma_profile(data: RangeData, part: Part, parameter: int, offsets, *, num_b
             t, hit = cast_part(Part.from_vector(v), o, d)
             mu, eps, _, _ = gamma_terms(t, hit, measured, figure, sigma=enc.sigma, num_bins=nb)
             return mu - enc.commission_weight * eps
+
         return jax.lax.map(one, vecs, batch_size=16)
 
     out = np.asarray(run(vecs), np.float64)
@@ -766,7 +847,8 @@ def _valid_vectors(vecs: np.ndarray) -> np.ndarray:
         np.all(vecs[:, 6:9] > 0, 1)
         & np.all((vecs[:, 9:11] >= SQUARENESS_RANGE[0]) & (vecs[:, 9:11] <= SQUARENESS_RANGE[1]), 1)
         & np.all((vecs[:, 11:13] >= BEND_RANGE[0]) & (vecs[:, 11:13] <= BEND_RANGE[1]), 1)
-        & (vecs[:, 13] >= TAPER_RANGE[0]) & (vecs[:, 13] <= TAPER_RANGE[1])
+        & (vecs[:, 13] >= TAPER_RANGE[0])
+        & (vecs[:, 13] <= TAPER_RANGE[1])
     )
 
 
@@ -802,8 +884,22 @@ def expanding_grid(data: RangeData, part: Part, *, parameters=None, steps=None, 
     names = ["x", "y", "z", "rx", "ry", "rz", "a1", "a2", "a3", "e1", "e2", "bend0", "bend1", "taper"]
     parameters = range(14) if parameters is None else parameters
     size = float(jnp.max(part.size))
-    default_steps = {0: size, 1: size, 2: size, 3: 1.2, 4: 1.2, 5: 1.2, 6: None, 7: None, 8: None,
-                     9: 0.9, 10: 0.9, 11: 0.9, 12: 0.9, 13: 0.9}
+    default_steps = {
+        0: size,
+        1: size,
+        2: size,
+        3: 1.2,
+        4: 1.2,
+        5: 1.2,
+        6: None,
+        7: None,
+        8: None,
+        9: 0.9,
+        10: 0.9,
+        11: 0.9,
+        12: 0.9,
+        13: 0.9,
+    }
     result = {}
     for i in parameters:
         span = (steps or {}).get(i, default_steps[i])

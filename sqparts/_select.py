@@ -61,8 +61,12 @@ class Costs:
     def total(self, parts, explained, commission):
         """E of Eq. (6) from counts: ``parts`` parts, ``explained`` pixels explained
         within ±σ/2 and ``commission`` pixels rendered off the figure (numbers or arrays)."""
-        return (self.part * parts + self.explained * explained + self.commission * commission
-                + self.omission * (self.figure_pixels - explained))
+        return (
+            self.part * parts
+            + self.explained * explained
+            + self.commission * commission
+            + self.omission * (self.figure_pixels - explained)
+        )
 
 
 def area_matrix(masks) -> np.ndarray:
@@ -117,7 +121,12 @@ class SelectionProblem:
         x = np.asarray(x, np.float64)
         c = self.costs
         xa = x @ self.area @ x
-        return float(c.part * x.sum() + c.explained * xa + c.commission * (x @ self.commission @ x) + c.omission * (c.figure_pixels - xa))
+        return float(
+            c.part * x.sum()
+            + c.explained * xa
+            + c.commission * (x @ self.commission @ x)
+            + c.omission * (c.figure_pixels - xa)
+        )
 
 
 def description_length(explained, commission, costs: Costs) -> float:

@@ -70,13 +70,20 @@ def view_layers(data: dict, *, resolution: int = 10) -> dict:
         mesh = part_mesh(parts[i], resolution=resolution)
         a = annotations[i]
         name = f"part_{i}"  # the scene node's name; an annotated name goes in the label
-        words = [name] + ([str(a["name"])] if a.get("name") else []) + (
-            [f"figure {a.get('figure')}"] if several_figures else [])
-        words += [f"{symbol}{a[k]:.0f}{unit}" for k, symbol, unit in (("gamma", "Γ ", ""), ("bits_saved", "", " bits"))
-                  if isinstance(a.get(k), (int, float))]
+        words = (
+            [name]
+            + ([str(a["name"])] if a.get("name") else [])
+            + ([f"figure {a.get('figure')}"] if several_figures else [])
+        )
+        words += [
+            f"{symbol}{a[k]:.0f}{unit}"
+            for k, symbol, unit in (("gamma", "Γ ", ""), ("bits_saved", "", " bits"))
+            if isinstance(a.get(k), (int, float))
+        ]
         label = " · ".join(words)
-        layers["parts"].append((name, np.asarray(mesh.vertices, np.float32), np.asarray(mesh.faces, np.uint32),
-                                colors[i], label))
+        layers["parts"].append(
+            (name, np.asarray(mesh.vertices, np.float32), np.asarray(mesh.faces, np.uint32), colors[i], label)
+        )
     depth, camera = data.get("depth"), data.get("camera")
     if depth is None or camera is None:
         return layers
@@ -92,8 +99,10 @@ def view_layers(data: dict, *, resolution: int = 10) -> dict:
         for name, code in STATUS.items():
             where = (status == code) & np.isfinite(model_xyz if name == "commission" else xyz).all(-1)
             source = model_xyz if name == "commission" else xyz
-            layers["points"][name] = (source[where].astype(np.float32),
-                                      np.tile(np.asarray(STATUS_COLORS[name], np.uint8), (int(where.sum()), 1)))
+            layers["points"][name] = (
+                source[where].astype(np.float32),
+                np.tile(np.asarray(STATUS_COLORS[name], np.uint8), (int(where.sum()), 1)),
+            )
     return layers
 
 
@@ -122,8 +131,11 @@ def build_view(server, data: dict) -> dict:
     handles = {}
     meta = data["meta"]
     bits, explained = _text(meta.get("description_length_bits"), ".0f"), _text(meta.get("fraction_explained"), ".1%")
-    server.gui.add_markdown(f"**{data['title']}**  \n{len(layers['parts'])} parts"
-                            + (f", E = {bits} bits" if bits else "") + (f", {explained} explained" if explained else ""))
+    server.gui.add_markdown(
+        f"**{data['title']}**  \n{len(layers['parts'])} parts"
+        + (f", E = {bits} bits" if bits else "")
+        + (f", {explained} explained" if explained else "")
+    )
 
     def toggle(checkbox, handle):
         @checkbox.on_update
@@ -132,14 +144,26 @@ def build_view(server, data: dict) -> dict:
 
     with server.gui.add_folder("Points"):
         for name, (points, colors) in layers["points"].items():
-            handle = server.scene.add_point_cloud(f"/points/{name}", points, colors, point_size=layers["point_size"],
-                                                  point_shape="rounded", visible=name == "measured")
+            handle = server.scene.add_point_cloud(
+                f"/points/{name}",
+                points,
+                colors,
+                point_size=layers["point_size"],
+                point_shape="rounded",
+                visible=name == "measured",
+            )
             handles[f"points/{name}"] = handle
             toggle(server.gui.add_checkbox(f"{name} ({len(points)})", name == "measured"), handle)
     with server.gui.add_folder("Parts"):
         for name, vertices, faces, color, label in layers["parts"]:
-            handle = server.scene.add_mesh_simple(f"/parts/{name}", vertices, faces, color=tuple(int(c) for c in color[:3]),
-                                                  flat_shading=False, side="double")
+            handle = server.scene.add_mesh_simple(
+                f"/parts/{name}",
+                vertices,
+                faces,
+                color=tuple(int(c) for c in color[:3]),
+                flat_shading=False,
+                side="double",
+            )
             handles[f"parts/{name}"] = handle
             toggle(server.gui.add_checkbox(label, True), handle)
     figures = meta.get("figures")
@@ -148,9 +172,11 @@ def build_view(server, data: dict) -> dict:
             rows = ["| figure | pixels | parts | E (bits) | explained |", "|---|---|---|---|---|"]
             for k, f in enumerate(figures):
                 if isinstance(f, dict):
-                    rows.append(f"| {k} | {_text(f.get('pixels'), 'd')} | {_text(f.get('parts'), 'd')} | "
-                                f"{_text(f.get('description_length_bits'), '.0f')} | "
-                                f"{_text(f.get('fraction_explained'), '.0%')} |")
+                    rows.append(
+                        f"| {k} | {_text(f.get('pixels'), 'd')} | {_text(f.get('parts'), 'd')} | "
+                        f"{_text(f.get('description_length_bits'), '.0f')} | "
+                        f"{_text(f.get('fraction_explained'), '.0%')} |"
+                    )
             server.gui.add_markdown("\n".join(rows))
     if data.get("report") is not None:
         with server.gui.add_folder("Report", expand_by_default=False):
@@ -206,17 +232,32 @@ def rerun_entries(data: dict, prefix: str) -> list:
     out = [(prefix, rr.ViewCoordinates.RDF)]
     camera, depth = data.get("camera"), data.get("depth")
     if isinstance(camera, PinholeCamera):
-        out.append((f"{prefix}/camera", rr.Pinhole(focal_length=[camera.fx, camera.fy],
-                                                   principal_point=[camera.cx, camera.cy],
-                                                   width=camera.width, height=camera.height)))
+        out.append(
+            (
+                f"{prefix}/camera",
+                rr.Pinhole(
+                    focal_length=[camera.fx, camera.fy],
+                    principal_point=[camera.cx, camera.cy],
+                    width=camera.width,
+                    height=camera.height,
+                ),
+            )
+        )
         if depth is not None:
             out.append((f"{prefix}/camera/depth", rr.DepthImage(np.nan_to_num(depth, nan=0.0), meter=1.0)))
     for name, (points, colors) in layers["points"].items():
         out.append((f"{prefix}/points/{name}", rr.Points3D(points, colors=colors, radii=layers["point_size"] / 2)))
-    for name, vertices, faces, color, label in layers["parts"]:
-        out.append((f"{prefix}/parts/{entity_name(name)}", rr.Mesh3D(
-            vertex_positions=vertices, triangle_indices=faces,
-            vertex_colors=np.tile(color[:3], (len(vertices), 1)))))
+    for name, vertices, faces, color, _label in layers["parts"]:
+        out.append(
+            (
+                f"{prefix}/parts/{entity_name(name)}",
+                rr.Mesh3D(
+                    vertex_positions=vertices,
+                    triangle_indices=faces,
+                    vertex_colors=np.tile(color[:3], (len(vertices), 1)),
+                ),
+            )
+        )
     if data.get("report") is not None:
         out.append((f"{prefix}/report", rr.EncodedImage(path=Path(data["folder"]) / "report.png")))
     return out

@@ -26,7 +26,6 @@ from pathlib import Path
 
 import numpy as np
 
-
 # --- arguments ------------------------------------------------------------------------
 
 
@@ -151,12 +150,23 @@ def _write_recovery(folder: Path, recovery, *, title: str, names=None) -> None:
 
 
 def _recover_options(args) -> dict:
-    opts = dict(grid=args.grid, max_size=args.max_size, selection=args.selection,
-                refine_rounds=args.refine_rounds, resolution=args.resolution, clean=args.clean,
-                figure_ground=args.figure_ground, planes=args.planes, tear=args.tear,
-                min_figure_pixels=args.min_figure_pixels, max_figures=args.max_figures,
-                max_border_fraction=args.max_border_fraction, prettify=args.prettify,
-                max_angle=args.max_angle, max_bits=args.max_bits)
+    opts = dict(
+        grid=args.grid,
+        max_size=args.max_size,
+        selection=args.selection,
+        refine_rounds=args.refine_rounds,
+        resolution=args.resolution,
+        clean=args.clean,
+        figure_ground=args.figure_ground,
+        planes=args.planes,
+        tear=args.tear,
+        min_figure_pixels=args.min_figure_pixels,
+        max_figures=args.max_figures,
+        max_border_fraction=args.max_border_fraction,
+        prettify=args.prettify,
+        max_angle=args.max_angle,
+        max_bits=args.max_bits,
+    )
     if args.up is not None:
         try:
             up = [float(x) for x in args.up.split(",")]
@@ -214,8 +224,10 @@ def _cluster(args):
         from . import _dask
     except ImportError as e:
         flag = "--jobs" if args.jobs is not None else "--scheduler"
-        raise ValueError(f"{flag}: got it without Dask ({e}), expected dask.distributed installed "
-                         "(pip install 'sqparts[distributed]')") from None
+        raise ValueError(
+            f"{flag}: got it without Dask ({e}), expected dask.distributed installed "
+            "(pip install 'sqparts[distributed]')"
+        ) from None
     return _dask.local_cluster(args.jobs) if args.jobs is not None else _dask.connect(str(args.scheduler))
 
 
@@ -228,17 +240,33 @@ def cmd_recover(args) -> int:
         out = check_new_output(args.out, overwrite=args.overwrite)  # before any work
         camera = load_camera(args.camera) if args.camera else None
         opts = _recover_options(args)
-        recovery = recover_file(path, out, camera=camera, depth_scale=args.depth_scale, sigma=args.sigma,
-                                overwrite=args.overwrite, progress=_progress(args, "regions", "region"), **opts)
+        recovery = recover_file(
+            path,
+            out,
+            camera=camera,
+            depth_scale=args.depth_scale,
+            sigma=args.sigma,
+            overwrite=args.overwrite,
+            progress=_progress(args, "regions", "region"),
+            **opts,
+        )
         _after_recovery(args, out)
         _say(args, f"{path.name}: {recovery.summary()}\n  wrote {out}/parts.json, model.ply, report.png")
         return 0
     # Everything cheap is checked before any work; each input is read when it is recovered.
     camera = load_camera(args.camera) if args.camera else None
     opts = _recover_options(args)
-    plan = plan_batch(args.input, out=args.out, camera=camera, recursive=args.recursive,
-                      overwrite=args.overwrite, resume=args.resume, depth_scale=args.depth_scale,
-                      sigma=args.sigma, **opts)
+    plan = plan_batch(
+        args.input,
+        out=args.out,
+        camera=camera,
+        recursive=args.recursive,
+        overwrite=args.overwrite,
+        resume=args.resume,
+        depth_scale=args.depth_scale,
+        sigma=args.sigma,
+        **opts,
+    )
     cluster = _cluster(args)
     since, failed, done = time.time(), [], 0
     try:
@@ -256,12 +284,18 @@ def cmd_recover(args) -> int:
     finally:
         if args.jobs is not None:  # workers stopped mid-write leave their staging folders
             remove_staging(plan, since=since)
-    _say(args, f"{done - len(failed)} of {done} inputs recovered, {len(failed)} failed, {len(plan.skipped)} "
-               f"already complete (skipped); records in {plan.results}")
+    _say(
+        args,
+        f"{done - len(failed)} of {done} inputs recovered, {len(failed)} failed, {len(plan.skipped)} "
+        f"already complete (skipped); records in {plan.results}",
+    )
     if failed:
         first = failed[0]
-        print(f"sqparts: error: input: got {len(failed)} of {done} inputs failing (first {first['input']!r}: "
-              f"{first['error']}), expected each to recover; see {plan.results}", file=sys.stderr)
+        print(
+            f"sqparts: error: input: got {len(failed)} of {done} inputs failing (first {first['input']!r}: "
+            f"{first['error']}), expected each to recover; see {plan.results}",
+            file=sys.stderr,
+        )
         return 1
     return 0
 
@@ -321,9 +355,12 @@ def cmd_demo(args) -> int:
     with staged_folder(out, overwrite=args.overwrite) as folder:
         write_range_image(folder / "range.npy", depth)
         _write_recovery(folder, recovery, title=f"demo: {scene.description}")
-    _say(args, f"demo: {scene.description}\n  true parts: {len(scene.parts)}; recovered: "
-               f"{recovery.summary()}\n  wall time {time.perf_counter() - t0:.1f} s including compilation\n"
-               f"  wrote {out}/range.npy, parts.json, model.ply, report.png")
+    _say(
+        args,
+        f"demo: {scene.description}\n  true parts: {len(scene.parts)}; recovered: "
+        f"{recovery.summary()}\n  wall time {time.perf_counter() - t0:.1f} s including compilation\n"
+        f"  wrote {out}/range.npy, parts.json, model.ply, report.png",
+    )
     return 0
 
 
@@ -337,7 +374,9 @@ def _read_inputs(args, inputs) -> list:
         depth, camera = read_range_image(path, depth_scale=args.depth_scale)
         camera = camera_arg or camera
         if camera is None:
-            raise ValueError(f"--camera: got nothing for {str(path)!r}, which carries no camera, expected --camera CAM.json")
+            raise ValueError(
+                f"--camera: got nothing for {str(path)!r}, which carries no camera, expected --camera CAM.json"
+            )
         if depth.shape != (camera.height, camera.width):
             raise ValueError(
                 f"--camera: got a {camera.width}x{camera.height} camera for {str(path)!r}, expected "
@@ -368,8 +407,11 @@ def cmd_learn(args) -> int:
         views.append(view_from_recovery(rec, source=str(path), levels=args.levels, grid=args.grid))
         _say(args, f"{path.name}: {rec.summary()}")
     db.add_views(args.name, views, replace=args.overwrite)
-    _say(args, f"learnt {args.name!r}: {len(db.objects[args.name])} view(s); {len(db.objects)} object(s) in "
-               f"{db.path}, threshold {db.threshold:.3f}")
+    _say(
+        args,
+        f"learnt {args.name!r}: {len(db.objects[args.name])} view(s); {len(db.objects)} object(s) in "
+        f"{db.path}, threshold {db.threshold:.3f}",
+    )
     return 0
 
 
@@ -418,7 +460,7 @@ def build_parser() -> argparse.ArgumentParser:
     sub = parser.add_subparsers(dest="command", required=True, metavar="COMMAND", parser_class=_Parser)
 
     p = sub.add_parser("render", help="render a scene JSON into a range image")
-    p.add_argument("scene", help="scene JSON ({\"parts\": [...]})")
+    p.add_argument("scene", help='scene JSON ({"parts": [...]})')
     p.add_argument("--camera", required=True, help="camera JSON (Open3D pinhole or orthographic)")
     p.add_argument("--out", required=True, help="output range image (.npy, .png 16-bit, .tif)")
     p.add_argument("--depth-scale", type=depth_scale, default=0.001, help="PNG units per value (m)")
@@ -427,8 +469,12 @@ def build_parser() -> argparse.ArgumentParser:
     p = sub.add_parser("mesh", help="export a scene JSON as a mesh")
     p.add_argument("scene")
     p.add_argument("--out", required=True, help="mesh file (.ply, .obj, .stl, .glb, .off)")
-    p.add_argument("--resolution", type=_number("an integer in [4, 512]", low=4, high=512, integer=True),
-                   default=32, help="samples per quarter turn")
+    p.add_argument(
+        "--resolution",
+        type=_number("an integer in [4, 512]", low=4, high=512, integer=True),
+        default=32,
+        help="samples per quarter turn",
+    )
     p.add_argument("--union", action="store_true", help="Boolean union into one body")
     p.set_defaults(func=cmd_mesh)
 
@@ -439,75 +485,140 @@ def build_parser() -> argparse.ArgumentParser:
     p.set_defaults(func=cmd_show)
 
     p = sub.add_parser("recover", help="recover parts from range images")
-    p.add_argument("input", nargs="+", help="range images (.npy .png .tif .pcd), folders of them, or glob "
-                   "patterns ('scans/**/*.png'; quote them)")
+    p.add_argument(
+        "input",
+        nargs="+",
+        help="range images (.npy .png .tif .pcd), folders of them, or glob patterns ('scans/**/*.png'; quote them)",
+    )
     p.add_argument("--camera", help="camera JSON (a .pcd carries its own)")
-    p.add_argument("--out", required=True, help="output directory (for several inputs, a folder or a pattern: "
-                   "one sub-folder per input and results.jsonl)")
+    p.add_argument(
+        "--out",
+        required=True,
+        help="output directory (for several inputs, a folder or a pattern: one sub-folder per input and results.jsonl)",
+    )
     b = p.add_argument_group("batches (many inputs)")
     b.add_argument("--recursive", action="store_true", help="folders include their sub-folders")
-    b.add_argument("--resume", action="store_true",
-                   help="skip inputs already recovered (complete folder, ok line in results.jsonl); redo the rest")
-    b.add_argument("--jobs", type=_POSITIVE_INT, default=None, metavar="N",
-                   help="recover on N local worker processes (Dask LocalCluster, one thread each)")
-    b.add_argument("--scheduler", default=None, metavar="ADDRESS",
-                   help="recover on the workers of a running Dask scheduler (tcp://HOST:8786)")
+    b.add_argument(
+        "--resume",
+        action="store_true",
+        help="skip inputs already recovered (complete folder, ok line in results.jsonl); redo the rest",
+    )
+    b.add_argument(
+        "--jobs",
+        type=_POSITIVE_INT,
+        default=None,
+        metavar="N",
+        help="recover on N local worker processes (Dask LocalCluster, one thread each)",
+    )
+    b.add_argument(
+        "--scheduler",
+        default=None,
+        metavar="ADDRESS",
+        help="recover on the workers of a running Dask scheduler (tcp://HOST:8786)",
+    )
     p.add_argument("--grid", default="coarse", choices=["coarse", "default", "fine"], help="hypothesis grid")
     p.add_argument("--max-size", type=_POSITIVE, default=None, help="largest semi-axis searched (scene units)")
     p.add_argument("--sigma", type=_POSITIVE, default=None, help="match tolerance σ (scene units)")
     p.add_argument("--selection", default="auto", choices=["auto", "exact", "best-first"])
-    p.add_argument("--refine-rounds", type=_number(f"an integer in [0, {MAX_REFINE_ROUNDS}]", low=0,
-                   high=MAX_REFINE_ROUNDS, integer=True), default=2)
+    p.add_argument(
+        "--refine-rounds",
+        type=_number(f"an integer in [0, {MAX_REFINE_ROUNDS}]", low=0, high=MAX_REFINE_ROUNDS, integer=True),
+        default=2,
+    )
     p.add_argument("--depth-scale", type=depth_scale, default=0.001, help="PNG units per value (m)")
     g = p.add_argument_group("real data (clean-up, figure/ground, prettifying)")
-    g.add_argument("--resolution", type=_number("an integer >= 0", low=0, integer=True), default=160,
-                   help="bin the image so its longest side is about this many pixels (0 = full resolution)")
-    g.add_argument("--no-clean", dest="clean", action="store_false",
-                   help="keep flying pixels and isolated outliers")
-    g.add_argument("--no-figure-ground", dest="figure_ground", action="store_false",
-                   help="no plane removal or splitting: the whole image is one figure")
-    g.add_argument("--planes", type=_number("an integer in [0, 16]", low=0, high=16, integer=True), default=3,
-                   help="background planes (table or floor and the walls of a corner) to remove")
-    g.add_argument("--tear", type=_POSITIVE, default=None,
-                   help="depth jump, in pixel footprints, that separates figures (default 8)")
+    g.add_argument(
+        "--resolution",
+        type=_number("an integer >= 0", low=0, integer=True),
+        default=160,
+        help="bin the image so its longest side is about this many pixels (0 = full resolution)",
+    )
+    g.add_argument("--no-clean", dest="clean", action="store_false", help="keep flying pixels and isolated outliers")
+    g.add_argument(
+        "--no-figure-ground",
+        dest="figure_ground",
+        action="store_false",
+        help="no plane removal or splitting: the whole image is one figure",
+    )
+    g.add_argument(
+        "--planes",
+        type=_number("an integer in [0, 16]", low=0, high=16, integer=True),
+        default=3,
+        help="background planes (table or floor and the walls of a corner) to remove",
+    )
+    g.add_argument(
+        "--tear",
+        type=_POSITIVE,
+        default=None,
+        help="depth jump, in pixel footprints, that separates figures (default 8)",
+    )
     g.add_argument("--min-figure-pixels", type=_POSITIVE_INT, default=None, help="smallest figure kept")
     g.add_argument("--max-figures", type=_POSITIVE_INT, default=None, help="recover at most this many figures")
-    g.add_argument("--max-border-fraction", type=_number("a number in [0, 1]", low=0, high=1), default=0.15,
-                   help="a piece with more of its pixels on the edge of the measured area is background (1 = keep)")
+    g.add_argument(
+        "--max-border-fraction",
+        type=_number("a number in [0, 1]", low=0, high=1),
+        default=0.15,
+        help="a piece with more of its pixels on the edge of the measured area is background (1 = keep)",
+    )
     g.add_argument("--depth-range", default=None, help="NEAR,FAR: drop returns outside (scene units)")
-    g.add_argument("--prettify", action="store_true",
-                   help="snap nearly vertical/horizontal parts to gravity (section 4.3)")
+    g.add_argument(
+        "--prettify", action="store_true", help="snap nearly vertical/horizontal parts to gravity (section 4.3)"
+    )
     g.add_argument("--up", default=None, help="x,y,z gravity up in the camera frame (default: ground normal)")
-    g.add_argument("--max-angle", type=_number("a number in [0, 90]", low=0, high=90), default=15.0,
-                   help="prettify parts within this many degrees")
-    g.add_argument("--max-bits", type=_number("a finite number >= 0", low=0), default=56.0,
-                   help="prettify only if E rises at most this (and every part still pays)")
-    p.add_argument("--rerun", default=None, metavar="FILE.rrd",
-                   help="also log the points, parts and pixel classes to a Rerun recording")
+    g.add_argument(
+        "--max-angle",
+        type=_number("a number in [0, 90]", low=0, high=90),
+        default=15.0,
+        help="prettify parts within this many degrees",
+    )
+    g.add_argument(
+        "--max-bits",
+        type=_number("a finite number >= 0", low=0),
+        default=56.0,
+        help="prettify only if E rises at most this (and every part still pays)",
+    )
+    p.add_argument(
+        "--rerun",
+        default=None,
+        metavar="FILE.rrd",
+        help="also log the points, parts and pixel classes to a Rerun recording",
+    )
     p.set_defaults(func=_recover_command)
 
     p = sub.add_parser("demo", help="recover the built-in articulated human (Figure 7)")
     p.add_argument("--out", default="sqparts-demo", help="output directory (default sqparts-demo)")
-    p.add_argument("--resolution", type=_number("an integer in [32, 1024]", low=32, high=1024, integer=True),
-                   default=128)
+    p.add_argument(
+        "--resolution", type=_number("an integer in [32, 1024]", low=32, high=1024, integer=True), default=128
+    )
     p.set_defaults(func=cmd_demo)
 
     def recognition_options(p):
         p.add_argument("--camera", help="camera JSON (a .pcd carries its own)")
         p.add_argument("--db", required=True, help="model database folder")
         p.add_argument("--grid", default="coarse", choices=["coarse", "default", "fine"], help="hypothesis grid")
-        p.add_argument("--refine-rounds", type=_number(f"an integer in [0, {MAX_REFINE_ROUNDS}]", low=0,
-                       high=MAX_REFINE_ROUNDS, integer=True), default=2)
-        p.add_argument("--resolution", type=_number("an integer >= 0", low=0, integer=True), default=160,
-                       help="bin the image so its longest side is about this many pixels (0 = full resolution)")
+        p.add_argument(
+            "--refine-rounds",
+            type=_number(f"an integer in [0, {MAX_REFINE_ROUNDS}]", low=0, high=MAX_REFINE_ROUNDS, integer=True),
+            default=2,
+        )
+        p.add_argument(
+            "--resolution",
+            type=_number("an integer >= 0", low=0, integer=True),
+            default=160,
+            help="bin the image so its longest side is about this many pixels (0 = full resolution)",
+        )
         p.add_argument("--depth-scale", type=depth_scale, default=0.001, help="PNG units per value (m)")
 
     p = sub.add_parser("learn", help="recover views of an object and add them to a model database")
     p.add_argument("name", help="the object's name (letters, digits, '.', '_', '-')")
     p.add_argument("input", nargs="+", help="range images (.npy .png .tif .pcd) or folders of them")
     recognition_options(p)
-    p.add_argument("--levels", type=_number("an integer in [1, 4]", low=1, high=4, integer=True), default=2,
-                   help="multiscale levels stored per view (1 = the recovery only)")
+    p.add_argument(
+        "--levels",
+        type=_number("an integer in [1, 4]", low=1, high=4, integer=True),
+        default=2,
+        help="multiscale levels stored per view (1 = the recovery only)",
+    )
     p.set_defaults(func=cmd_learn)
 
     p = sub.add_parser("recognize", help="recognise objects of a model database in range images")
@@ -522,8 +633,12 @@ def build_parser() -> argparse.ArgumentParser:
 
     p = sub.add_parser("view", help="view a recover output folder in 3-D in the browser (viser)")
     p.add_argument("folder", help="a sqparts recover output folder (parts.json, range.npy, camera.json, ...)")
-    p.add_argument("--port", type=_number("an integer in [1, 65535]", low=1, high=65535, integer=True),
-                   default=8080, help="serve on http://127.0.0.1:PORT (default 8080)")
+    p.add_argument(
+        "--port",
+        type=_number("an integer in [1, 65535]", low=1, high=65535, integer=True),
+        default=8080,
+        help="serve on http://127.0.0.1:PORT (default 8080)",
+    )
     p.set_defaults(func=cmd_view)
     return parser
 
@@ -643,16 +758,22 @@ def main(argv=None) -> int:
             return args.func(args)
         except OSError as e:
             if e.strerror and e.filename:  # raised by the OS, not by us: name the file
-                return _error(f"file: got {str(e.filename)!r} ({e.strerror}), expected a path that can be read or written")
+                return _error(
+                    f"file: got {str(e.filename)!r} ({e.strerror}), expected a path that can be read or written"
+                )
             return _error(str(e) or type(e).__name__)
         except (ValueError, TypeError) as e:
             return _error(str(e) or type(e).__name__)
         except MemoryError:
-            return _error("memory: got an input too large for this machine's memory, expected a smaller image or fewer parts")
+            return _error(
+                "memory: got an input too large for this machine's memory, expected a smaller image or fewer parts"
+            )
         except RuntimeError as e:  # XLA's allocation failure; anything else is a bug and keeps its traceback
             if "RESOURCE_EXHAUSTED" not in str(e):
                 raise
-            return _error("memory: got an input too large for the device's memory, expected a smaller image or fewer parts")
+            return _error(
+                "memory: got an input too large for the device's memory, expected a smaller image or fewer parts"
+            )
         except (Interrupted, KeyboardInterrupt) as e:
             signum = getattr(e, "signum", signal.SIGINT)
             print(f"sqparts: interrupted by {signal.Signals(signum).name}; no partial output left", file=sys.stderr)

@@ -19,8 +19,17 @@ from sqparts import _batch
 from sqparts.cli import main
 
 CAMERA = {"width": 32, "height": 24, "intrinsic_matrix": [40.0, 0, 0, 0, 40.0, 0, 15.5, 11.5, 1]}
-SCENE = {"parts": [{"size": [0.2, 0.15, 0.3], "squareness": [0.5, 1.0], "position": [0, 0, 2.0],
-                    "rotation": [[1, 0, 0], [0, 0, -1], [0, 1, 0]], "taper": 0.2}]}
+SCENE = {
+    "parts": [
+        {
+            "size": [0.2, 0.15, 0.3],
+            "squareness": [0.5, 1.0],
+            "position": [0, 0, 2.0],
+            "rotation": [[1, 0, 0], [0, 0, -1], [0, 1, 0]],
+            "taper": 0.2,
+        }
+    ]
+}
 FAST = ["--resolution", "0", "--refine-rounds", "0", "--quiet"]
 OUTPUTS = {"parts.json", "model.ply", "report.png", "range.npy", "camera.json", "pixels.npz"}
 KEYS = {"input", "output", "status", "parts", "E", "fraction_explained", "seconds", "error"}
@@ -31,8 +40,11 @@ def batch(tmp_path):
     """Three renders of one part at three distances in ``in/``, and ``cam.json``."""
     (tmp_path / "cam.json").write_text(json.dumps(CAMERA))
     (tmp_path / "scene.json").write_text(json.dumps(SCENE))
-    depth = np.asarray(sqparts.render_range_image(sqparts.load_scene(tmp_path / "scene.json"),
-                                                  sqparts.load_camera(tmp_path / "cam.json")))
+    depth = np.asarray(
+        sqparts.render_range_image(
+            sqparts.load_scene(tmp_path / "scene.json"), sqparts.load_camera(tmp_path / "cam.json")
+        )
+    )
     (tmp_path / "in").mkdir()
     for i in range(3):
         np.save(tmp_path / "in" / f"f{i}.npy", depth + 0.1 * i)
@@ -127,7 +139,10 @@ def test_glob_patterns_folders_and_recursive(batch, tmp_path):
     (batch / "in" / "notes.txt").write_text("not an image")
     (batch / "in" / ".hidden").mkdir()
     np.save(batch / "in" / ".hidden" / "h.npy", np.zeros((2, 2)))
-    names = lambda paths: [str(p.relative_to(batch / "in")) for p in paths]
+
+    def names(paths):
+        return [str(p.relative_to(batch / "in")) for p in paths]
+
     expand = _batch.expand_inputs
     assert names(expand([batch / "in"])) == ["f0.npy", "f1.npy", "f2.npy"]
     assert names(expand([batch / "in"], recursive=True)) == ["deeper/more/g.npy", "f0.npy", "f1.npy", "f2.npy"]
@@ -147,11 +162,14 @@ def test_glob_patterns_folders_and_recursive(batch, tmp_path):
     assert _batch.output_names([Path("a/x.npy"), Path("b/x.npy"), Path("b/y.npy")]) == ["a/x", "b/x", "y"]
 
 
-@pytest.mark.parametrize("argv_tail, start", [
-    (["--resume", "--overwrite"], "--resume: got it with --overwrite"),
-    (["--jobs", "2", "--scheduler", "tcp://127.0.0.1:1"], "--jobs: got 2 with --scheduler"),
-    (["--jobs", "0"], "--jobs: got '0', expected an integer >= 1"),
-])
+@pytest.mark.parametrize(
+    "argv_tail, start",
+    [
+        (["--resume", "--overwrite"], "--resume: got it with --overwrite"),
+        (["--jobs", "2", "--scheduler", "tcp://127.0.0.1:1"], "--jobs: got 2 with --scheduler"),
+        (["--jobs", "0"], "--jobs: got '0', expected an integer >= 1"),
+    ],
+)
 def test_batch_command_line_errors_come_before_any_work(batch, capsys, argv_tail, start):
     assert main(recover_argv(batch, batch / "in") + argv_tail) == 2
     err = capsys.readouterr().err.strip()
@@ -160,21 +178,38 @@ def test_batch_command_line_errors_come_before_any_work(batch, capsys, argv_tail
 
 
 def test_recover_many_in_python(batch):
-    records = list(sqparts.recover_many([batch / "in" / "f0.npy", batch / "in" / "f2.npy"], out=batch / "py",
-                                        camera=batch / "cam.json", resolution=0, refine_rounds=0))
+    records = list(
+        sqparts.recover_many(
+            [batch / "in" / "f0.npy", batch / "in" / "f2.npy"],
+            out=batch / "py",
+            camera=batch / "cam.json",
+            resolution=0,
+            refine_rounds=0,
+        )
+    )
     assert [r["output"] for r in records] == ["f0", "f2"] and all(r["status"] == "ok" for r in records)
     assert lines(batch / "py" / "results.jsonl") == records
     with pytest.raises(FileExistsError, match="--out: got .*results.jsonl of an earlier run"):
         sqparts.recover_many([batch / "in"], out=batch / "py", camera=batch / "cam.json")
-    assert list(sqparts.recover_many([batch / "in" / "f0.npy", batch / "in" / "f2.npy"], out=batch / "py",
-                                     camera=batch / "cam.json", resume=True)) == []
+    assert (
+        list(
+            sqparts.recover_many(
+                [batch / "in" / "f0.npy", batch / "in" / "f2.npy"],
+                out=batch / "py",
+                camera=batch / "cam.json",
+                resume=True,
+            )
+        )
+        == []
+    )
 
 
 def _run(argv):
     env = dict(os.environ, JAX_PLATFORMS="cpu")
     code = "import sys, runpy; sys.argv = ['sqparts', *sys.argv[1:]]; runpy.run_module('sqparts', run_name='__main__')"
-    return subprocess.Popen([sys.executable, "-c", code, *argv], env=env,
-                            stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+    return subprocess.Popen(
+        [sys.executable, "-c", code, *argv], env=env, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True
+    )
 
 
 @pytest.mark.slow
@@ -211,12 +246,21 @@ def test_two_dask_workers_give_the_single_process_results(batch):
 
     (batch / "in" / "f9.npy").write_bytes(b"broken")
     inputs = [batch / "in"]
-    here = {r["output"]: r for r in sqparts.recover_many(inputs, out=batch / "one", camera=batch / "cam.json",
-                                                        resolution=0, refine_rounds=0)}
-    with LocalCluster(n_workers=2, threads_per_worker=1, processes=True, dashboard_address=None) as cluster, \
-            Client(cluster) as client:
-        records = list(sqparts.recover_many(inputs, out=batch / "two", camera=batch / "cam.json", client=client,
-                                            resolution=0, refine_rounds=0))
+    here = {
+        r["output"]: r
+        for r in sqparts.recover_many(
+            inputs, out=batch / "one", camera=batch / "cam.json", resolution=0, refine_rounds=0
+        )
+    }
+    with (
+        LocalCluster(n_workers=2, threads_per_worker=1, processes=True, dashboard_address=None) as cluster,
+        Client(cluster) as client,
+    ):
+        records = list(
+            sqparts.recover_many(
+                inputs, out=batch / "two", camera=batch / "cam.json", client=client, resolution=0, refine_rounds=0
+            )
+        )
         workers = client.run(lambda: os.getpid())
     assert len(workers) == 2
     assert sorted(r["output"] for r in records) == ["f0", "f1", "f2", "f9"]

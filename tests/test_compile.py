@@ -79,12 +79,14 @@ def test_corrupt_entry_falls_back_to_tracing(export_dir, caplog, damage):
     scaled(PART, POINTS, factor=2.0)
     (entry,) = _entries(export_dir)
     blob = entry.read_bytes()
-    entry.write_bytes({
-        "garbage": b"not an export at all",
-        "truncated": blob[: len(blob) // 2],
-        "flipped": blob[:-40] + bytes(b ^ 0xFF for b in blob[-40:]),
-        "empty": b"",
-    }[damage])
+    entry.write_bytes(
+        {
+            "garbage": b"not an export at all",
+            "truncated": blob[: len(blob) // 2],
+            "flipped": blob[:-40] + bytes(b ^ 0xFF for b in blob[-40:]),
+            "empty": b"",
+        }[damage]
+    )
     _compile.forget_loaded()
     with caplog.at_level(logging.WARNING, logger="sqparts._compile"):
         _check(scaled(PART, POINTS, factor=2.0))
@@ -115,6 +117,7 @@ def test_failing_exported_call_falls_back(export_dir, monkeypatch, caplog):
     def broken(exported, skeleton):
         def run(leaves):
             raise RuntimeError("cannot run this entry")
+
         return run
 
     monkeypatch.setattr(_compile, "_make_runner", broken)
@@ -178,8 +181,9 @@ KW = dict(grid="coarse", max_size=0.14, window=48, refine_rounds=1)
 
 @pytest.fixture(scope="module")
 def one_part():
-    part = sqparts.Part(size=[0.05, 0.07, 0.11], squareness=[0.6, 1.0], position=[0.0, 0.0, 1.2],
-                        orientation=[0.3, 0.2, 0.0])
+    part = sqparts.Part(
+        size=[0.05, 0.07, 0.11], squareness=[0.6, 1.0], position=[0.0, 0.0, 1.2], orientation=[0.3, 0.2, 0.0]
+    )
     return np.asarray(sqparts.render_range_image(part, CAM))
 
 

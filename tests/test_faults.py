@@ -24,19 +24,38 @@ from sqparts import cli
 from sqparts.cli import main
 
 CAMERA = {"width": 32, "height": 24, "intrinsic_matrix": [40.0, 0, 0, 0, 40.0, 0, 15.5, 11.5, 1]}
-SCENE = {"parts": [{"size": [0.2, 0.15, 0.3], "squareness": [0.5, 1.0], "position": [0, 0, 2.0],
-                    "rotation": [[1, 0, 0], [0, 0, -1], [0, 1, 0]], "taper": 0.2}]}
+SCENE = {
+    "parts": [
+        {
+            "size": [0.2, 0.15, 0.3],
+            "squareness": [0.5, 1.0],
+            "position": [0, 0, 2.0],
+            "rotation": [[1, 0, 0], [0, 0, -1], [0, 1, 0]],
+            "taper": 0.2,
+        }
+    ]
+}
 STYLE = re.compile(r"^sqparts: error: \S.*?: got .+, expected .+$")
 FAST = ["--resolution", "0", "--refine-rounds", "0", "--quiet"]
-OUTPUTS = {"parts.json", "model.ply", "report.png", "range.npy", "camera.json", "pixels.npz"}  # the last three for the viewers
+OUTPUTS = {
+    "parts.json",
+    "model.ply",
+    "report.png",
+    "range.npy",
+    "camera.json",
+    "pixels.npz",
+}  # the last three for the viewers
 
 
 @pytest.fixture
 def files(tmp_path):
     (tmp_path / "cam.json").write_text(json.dumps(CAMERA))
     (tmp_path / "scene.json").write_text(json.dumps(SCENE))
-    depth = np.asarray(sqparts.render_range_image(sqparts.load_scene(tmp_path / "scene.json"),
-                                                  sqparts.load_camera(tmp_path / "cam.json")))
+    depth = np.asarray(
+        sqparts.render_range_image(
+            sqparts.load_scene(tmp_path / "scene.json"), sqparts.load_camera(tmp_path / "cam.json")
+        )
+    )
     np.save(tmp_path / "x.npy", depth)
     return tmp_path
 
@@ -73,8 +92,22 @@ def test_inputs_sharing_a_stem_each_get_their_folder(files, capsys):
 
     write_range_image(files / "a" / "x.png", depth)
     out = files / "out"
-    assert main(["recover", str(files / "a" / "x.npy"), str(files / "b" / "x.npy"), str(files / "a" / "x.png"),
-                 "--camera", str(files / "cam.json"), "--out", str(out), *FAST]) == 0
+    assert (
+        main(
+            [
+                "recover",
+                str(files / "a" / "x.npy"),
+                str(files / "b" / "x.npy"),
+                str(files / "a" / "x.png"),
+                "--camera",
+                str(files / "cam.json"),
+                "--out",
+                str(out),
+                *FAST,
+            ]
+        )
+        == 0
+    )
     folders = {str(p.parent.relative_to(out)) for p in out.rglob("parts.json")}
     assert folders == {"a/x.npy", "b/x", "a/x.png"}
     for folder in folders:
@@ -83,8 +116,18 @@ def test_inputs_sharing_a_stem_each_get_their_folder(files, capsys):
     za = json.loads((out / "a/x.npy/parts.json").read_text())["parts"][0]["position"][2]
     zb = json.loads((out / "b/x/parts.json").read_text())["parts"][0]["position"][2]
     assert zb - za == pytest.approx(0.5, abs=0.1)
-    assert "twice" in one_line_error(capsys, ["recover", str(files / "x.npy"), str(files / "x.npy"), "--camera",
-                                              str(files / "cam.json"), "--out", str(files / "o2")])
+    assert "twice" in one_line_error(
+        capsys,
+        [
+            "recover",
+            str(files / "x.npy"),
+            str(files / "x.npy"),
+            "--camera",
+            str(files / "cam.json"),
+            "--out",
+            str(files / "o2"),
+        ],
+    )
 
 
 def test_existing_output_is_never_overwritten_silently(files, capsys):
@@ -149,24 +192,32 @@ def _run(argv, *, ignore_sigint=False):
     """``python -m sqparts ARGV`` in a new process; ``ignore_sigint`` starts it with SIGINT
     ignored, as a shell starts a background job."""
     env = dict(os.environ, JAX_PLATFORMS="cpu")
-    code = ("import runpy, signal, sys\n"
-            f"if {ignore_sigint}: signal.signal(signal.SIGINT, signal.SIG_IGN)\n"
-            "sys.argv = ['sqparts', *sys.argv[1:]]\n"
-            "runpy.run_module('sqparts', run_name='__main__')\n")
-    return subprocess.Popen([sys.executable, "-c", code, *argv], env=env,
-                            stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+    code = (
+        "import runpy, signal, sys\n"
+        f"if {ignore_sigint}: signal.signal(signal.SIGINT, signal.SIG_IGN)\n"
+        "sys.argv = ['sqparts', *sys.argv[1:]]\n"
+        "runpy.run_module('sqparts', run_name='__main__')\n"
+    )
+    return subprocess.Popen(
+        [sys.executable, "-c", code, *argv], env=env, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True
+    )
 
 
 @pytest.mark.slow
-@pytest.mark.parametrize("signum, delay, ignore_sigint", [
-    (signal.SIGINT, 0.3, True),   # while JAX loads, with SIGINT ignored by the parent shell
-    (signal.SIGINT, 2.5, True),   # tracing / compiling
-    (signal.SIGTERM, 1.0, False),
-])
+@pytest.mark.parametrize(
+    "signum, delay, ignore_sigint",
+    [
+        (signal.SIGINT, 0.3, True),  # while JAX loads, with SIGINT ignored by the parent shell
+        (signal.SIGINT, 2.5, True),  # tracing / compiling
+        (signal.SIGTERM, 1.0, False),
+    ],
+)
 def test_signals_stop_a_run_at_any_moment(files, signum, delay, ignore_sigint):
     out = files / "out"
-    proc = _run(["recover", str(files / "x.npy"), "--camera", str(files / "cam.json"), "--out", str(out), *FAST],
-                ignore_sigint=ignore_sigint)
+    proc = _run(
+        ["recover", str(files / "x.npy"), "--camera", str(files / "cam.json"), "--out", str(out), *FAST],
+        ignore_sigint=ignore_sigint,
+    )
     time.sleep(delay)
     proc.send_signal(signum)
     _, err = proc.communicate(timeout=120)
@@ -184,8 +235,9 @@ def _random_parts(rng, n):
     scale = 10.0 ** rng.uniform(-2, 3, n)
     size = scale[:, None] * rng.uniform(0.3, 1.0, (n, 3))
     position = np.c_[rng.uniform(-0.2, 0.2, (n, 2)) * scale[:, None], 3.0 * scale]
-    return np.concatenate([position, rng.normal(size=(n, 3)) * 2, size, rng.uniform(0.1, 2, (n, 2)),
-                           rng.uniform(-1, 1, (n, 3))], axis=1).astype(np.float32)
+    return np.concatenate(
+        [position, rng.normal(size=(n, 3)) * 2, size, rng.uniform(0.1, 2, (n, 2)), rng.uniform(-1, 1, (n, 3))], axis=1
+    ).astype(np.float32)
 
 
 def test_reverse_mode_gradients_are_finite_and_equal_forward_mode():
@@ -211,8 +263,12 @@ def test_gradient_of_a_rendered_image_is_finite_for_a_boxy_part():
     camera = sqparts.PinholeCamera(24, 24, 30.0, 30.0, 11.5, 11.5)
 
     def loss(size):
-        part = sqparts.Part(size=size, squareness=jnp.array([0.1, 0.1]), position=jnp.array([0.0, 0.0, 2.0]),
-                            orientation=jnp.array([0.3, 0.5, 0.1]))
+        part = sqparts.Part(
+            size=size,
+            squareness=jnp.array([0.1, 0.1]),
+            position=jnp.array([0.0, 0.0, 2.0]),
+            orientation=jnp.array([0.3, 0.5, 0.1]),
+        )
         depth = sqparts.render_range_image(part, camera)
         return jnp.sum(jnp.where(jnp.isfinite(depth), depth, 0.0))
 
@@ -227,8 +283,19 @@ def test_gradient_of_a_rendered_image_is_finite_for_a_boxy_part():
 @pytest.mark.parametrize("scale", ["-0.001", "nan", "1e6", "inf", "0"])
 def test_render_depth_scale_that_cannot_encode_the_image_is_refused(files, capsys, scale):
     out = files / "d.png"
-    err = one_line_error(capsys, ["render", str(files / "scene.json"), "--camera", str(files / "cam.json"),
-                                  "--out", str(out), "--depth-scale", scale])
+    err = one_line_error(
+        capsys,
+        [
+            "render",
+            str(files / "scene.json"),
+            "--camera",
+            str(files / "cam.json"),
+            "--out",
+            str(out),
+            "--depth-scale",
+            scale,
+        ],
+    )
     assert "depth" in err and "scale" in err
     assert not out.exists()
 
@@ -248,8 +315,10 @@ def test_non_finite_pinhole_matrix_is_refused(files, capsys, entry):
     k = list(CAMERA["intrinsic_matrix"])
     k[entry] = float("nan")
     (files / "nan.json").write_text(json.dumps(dict(CAMERA, intrinsic_matrix=k)))  # writes NaN
-    err = one_line_error(capsys, ["render", str(files / "scene.json"), "--camera", str(files / "nan.json"),
-                                  "--out", str(files / "d.npy")])
+    err = one_line_error(
+        capsys,
+        ["render", str(files / "scene.json"), "--camera", str(files / "nan.json"), "--out", str(files / "d.npy")],
+    )
     assert "NaN" in err or "intrinsic_matrix" in err
     with pytest.raises(ValueError, match="intrinsic_matrix"):
         sqparts.camera_from_json(dict(CAMERA, intrinsic_matrix=k))
@@ -266,8 +335,9 @@ def test_depth_range_applies_without_clean_up(files):
     camera = sqparts.load_camera(files / "cam.json")
     depth = np.load(files / "x.npy")
     wall = np.where(np.isfinite(depth), depth, 3.0).astype(np.float32)  # a wall at 3 m behind the part
-    scene = sqparts.recover_scene(wall, camera, clean=False, figure_ground=False, resolution=0,
-                                  depth_range=(1.0, 2.5), refine_rounds=0)
+    scene = sqparts.recover_scene(
+        wall, camera, clean=False, figure_ground=False, resolution=0, depth_range=(1.0, 2.5), refine_rounds=0
+    )
     kept = np.isfinite(scene.depth)
     assert (kept == np.isfinite(depth)).all()
     assert int(scene.figure.sum()) == int(np.isfinite(depth).sum())
@@ -278,12 +348,15 @@ def test_depth_range_applies_without_clean_up(files):
 
 def test_deeply_nested_camera_json_is_one_line(files, capsys):
     (files / "deep.json").write_text("[" * 100_000 + "]" * 100_000)
-    err = one_line_error(capsys, ["render", str(files / "scene.json"), "--camera", str(files / "deep.json"),
-                                  "--out", str(files / "d.npy")])
+    err = one_line_error(
+        capsys,
+        ["render", str(files / "scene.json"), "--camera", str(files / "deep.json"), "--out", str(files / "d.npy")],
+    )
     assert err.startswith("sqparts: error: camera:")
     (files / "deep.json").write_text('{"parts": ' + "[" * 100_000 + "]" * 100_000 + "}")
-    assert "scene:" in one_line_error(capsys, ["render", str(files / "deep.json"), "--camera",
-                                               str(files / "cam.json"), "--out", str(files / "d.npy")])
+    assert "scene:" in one_line_error(
+        capsys, ["render", str(files / "deep.json"), "--camera", str(files / "cam.json"), "--out", str(files / "d.npy")]
+    )
 
 
 def _png_header_only(path: Path, width: int, height: int) -> None:
@@ -291,8 +364,9 @@ def _png_header_only(path: Path, width: int, height: int) -> None:
         return struct.pack(">I", len(data)) + kind + data + struct.pack(">I", zlib.crc32(kind + data))
 
     ihdr = struct.pack(">IIBBBBB", width, height, 16, 0, 0, 0, 0)
-    path.write_bytes(b"\x89PNG\r\n\x1a\n" + chunk(b"IHDR", ihdr) + chunk(b"IDAT", zlib.compress(b"\0" * 64))
-                     + chunk(b"IEND", b""))
+    path.write_bytes(
+        b"\x89PNG\r\n\x1a\n" + chunk(b"IHDR", ihdr) + chunk(b"IDAT", zlib.compress(b"\0" * 64)) + chunk(b"IEND", b"")
+    )
 
 
 @pytest.mark.parametrize("suffix", [".png", ".npy"])
@@ -310,37 +384,61 @@ def test_image_header_declaring_a_huge_image_is_refused_before_decoding(files, c
 
 def test_huge_camera_is_refused_before_allocating(files, capsys):
     (files / "big.json").write_text(json.dumps(dict(CAMERA, width=50000, height=50000)))
-    err = one_line_error(capsys, ["render", str(files / "scene.json"), "--camera", str(files / "big.json"),
-                                  "--out", str(files / "d.npy")])
+    err = one_line_error(
+        capsys,
+        ["render", str(files / "scene.json"), "--camera", str(files / "big.json"), "--out", str(files / "d.npy")],
+    )
     assert "camera: got 50000x50000" in err
     with pytest.raises(ValueError, match="camera: got 50000x50000"):
         sqparts.PinholeCamera(50000, 50000, 1.0, 1.0, 0.0, 0.0)
 
 
-@pytest.mark.parametrize("flag, value", [
-    ("--max-size", "inf"), ("--max-size", "nan"), ("--max-size", "-1"), ("--sigma", "0"), ("--tear", "inf"),
-    ("--refine-rounds", "1000000000"), ("--refine-rounds", "-1"), ("--refine-rounds", "2.5"),
-    ("--resolution", "-4"), ("--planes", "x"), ("--max-border-fraction", "2"), ("--max-angle", "nan"),
-    ("--max-bits", "inf"), ("--min-figure-pixels", "0"), ("--grid", "huge"), ("--selection", "x"),
-    ("--depth-range", "3,1"), ("--depth-range", "nan,2"), ("--up", "0,0,0"), ("--up", "1,inf,0"),
-])
+@pytest.mark.parametrize(
+    "flag, value",
+    [
+        ("--max-size", "inf"),
+        ("--max-size", "nan"),
+        ("--max-size", "-1"),
+        ("--sigma", "0"),
+        ("--tear", "inf"),
+        ("--refine-rounds", "1000000000"),
+        ("--refine-rounds", "-1"),
+        ("--refine-rounds", "2.5"),
+        ("--resolution", "-4"),
+        ("--planes", "x"),
+        ("--max-border-fraction", "2"),
+        ("--max-angle", "nan"),
+        ("--max-bits", "inf"),
+        ("--min-figure-pixels", "0"),
+        ("--grid", "huge"),
+        ("--selection", "x"),
+        ("--depth-range", "3,1"),
+        ("--depth-range", "nan,2"),
+        ("--up", "0,0,0"),
+        ("--up", "1,inf,0"),
+    ],
+)
 def test_recover_numbers_are_validated_where_they_enter(files, capsys, flag, value):
     out = files / "out"
-    err = one_line_error(capsys, ["recover", str(files / "x.npy"), "--camera", str(files / "cam.json"),
-                                  "--out", str(out), flag, value])
+    err = one_line_error(
+        capsys, ["recover", str(files / "x.npy"), "--camera", str(files / "cam.json"), "--out", str(out), flag, value]
+    )
     assert err.startswith(f"sqparts: error: {flag}: got ")
     assert not out.exists()
 
 
-@pytest.mark.parametrize("argv, start", [
-    (["render"], "scene, --camera, --out: got nothing"),
-    (["render", "s.json", "--camera"], "--camera: got nothing"),
-    (["recover", "x.npy", "--camera", "c.json", "--out", "o", "--bogus"], "arguments: got '--bogus'"),
-    (["nope"], "COMMAND: got 'nope'"),
-    (["mesh", "s.json", "--out", "m.ply", "--resolution", "two"], "--resolution: got 'two'"),
-    (["demo", "--quiet=yes"], "--quiet: got 'yes'"),
-    ([], "COMMAND: got nothing"),
-])
+@pytest.mark.parametrize(
+    "argv, start",
+    [
+        (["render"], "scene, --camera, --out: got nothing"),
+        (["render", "s.json", "--camera"], "--camera: got nothing"),
+        (["recover", "x.npy", "--camera", "c.json", "--out", "o", "--bogus"], "arguments: got '--bogus'"),
+        (["nope"], "COMMAND: got 'nope'"),
+        (["mesh", "s.json", "--out", "m.ply", "--resolution", "two"], "--resolution: got 'two'"),
+        (["demo", "--quiet=yes"], "--quiet: got 'yes'"),
+        ([], "COMMAND: got nothing"),
+    ],
+)
 def test_argparse_errors_are_in_the_one_style(capsys, argv, start):
     err = one_line_error(capsys, argv)
     assert err.startswith(f"sqparts: error: {start}"), err
@@ -361,10 +459,23 @@ def test_outputs_get_the_mode_the_umask_gives(files):
     old = os.umask(0o027)
     try:
         out = files / "out"
-        assert main(["recover", str(files / "x.npy"), "--camera", str(files / "cam.json"), "--out", str(out),
-                     *FAST]) == 0
-        assert main(["render", str(files / "scene.json"), "--camera", str(files / "cam.json"),
-                     "--out", str(files / "d.npy"), "--quiet"]) == 0
+        assert (
+            main(["recover", str(files / "x.npy"), "--camera", str(files / "cam.json"), "--out", str(out), *FAST]) == 0
+        )
+        assert (
+            main(
+                [
+                    "render",
+                    str(files / "scene.json"),
+                    "--camera",
+                    str(files / "cam.json"),
+                    "--out",
+                    str(files / "d.npy"),
+                    "--quiet",
+                ]
+            )
+            == 0
+        )
     finally:
         os.umask(old)
     assert (out.stat().st_mode & 0o777) == 0o750
@@ -374,8 +485,10 @@ def test_outputs_get_the_mode_the_umask_gives(files):
 
 def test_a_legal_long_name_can_be_written(files):
     out = files / ("d" * 250 + ".npy")  # 254 bytes: within NAME_MAX (255)
-    assert main(["render", str(files / "scene.json"), "--camera", str(files / "cam.json"), "--out", str(out),
-                 "--quiet"]) == 0
+    assert (
+        main(["render", str(files / "scene.json"), "--camera", str(files / "cam.json"), "--out", str(out), "--quiet"])
+        == 0
+    )
     assert np.load(out).shape == (24, 32) and no_staging_left(files)
 
 
@@ -384,12 +497,15 @@ def test_an_output_under_a_file_is_refused_before_any_work(files, capsys, monkey
 
     monkeypatch.setattr(sqparts._recover, "recover_scene", lambda *a, **k: pytest.fail("recovery ran"))
     (files / "afile").write_text("")
-    err = one_line_error(capsys, ["recover", str(files / "x.npy"), "--camera", str(files / "cam.json"),
-                                  "--out", str(files / "afile" / "sub")])
+    err = one_line_error(
+        capsys,
+        ["recover", str(files / "x.npy"), "--camera", str(files / "cam.json"), "--out", str(files / "afile" / "sub")],
+    )
     assert "is a file" in err
 
 
 def test_a_complex_range_image_is_refused(files, capsys):
     np.save(files / "c.npy", np.ones((24, 32), complex))
-    assert "expected a 2-D numeric range image" in one_line_error(capsys, ["show", str(files / "c.npy"), "--out",
-                                                                          str(files / "p.png")])
+    assert "expected a 2-D numeric range image" in one_line_error(
+        capsys, ["show", str(files / "c.npy"), "--out", str(files / "p.png")]
+    )

@@ -35,8 +35,15 @@ def test_gamma_matches_numpy_histogram():
         offset = rng.uniform(-0.2, 0.2)
         rendered = np.where(rng.random(n) < 0.6, measured + offset + rng.normal(0, 0.003, n), rng.uniform(0.5, 2.5, n))
         rendered = np.nan_to_num(rendered).astype(np.float32)
-        ours = sqparts.gamma(jnp.asarray(rendered), jnp.asarray(hit), jnp.asarray(measured), jnp.asarray(figure),
-                             sigma=0.02, commission_weight=4.0, num_bins=200)
+        ours = sqparts.gamma(
+            jnp.asarray(rendered),
+            jnp.asarray(hit),
+            jnp.asarray(measured),
+            jnp.asarray(figure),
+            sigma=0.02,
+            commission_weight=4.0,
+            num_bins=200,
+        )
         ref = _numpy_gamma(rendered, hit, measured, figure, 0.02, 4.0, 200)
         assert float(ours) == pytest.approx(ref), trial
 
@@ -51,8 +58,9 @@ def test_peak_straddling_a_bin_edge_is_counted_whole():
     ones = np.ones(1063, bool)
     fixed, _ = np.histogram(diff, bins=np.arange(0, 20, sigma))  # fixed σ bins split the peak
     assert fixed.max() < 1063
-    mu, eps, p, explained = sqparts.gamma_terms(jnp.asarray(rendered), jnp.asarray(ones), jnp.asarray(measured),
-                                                jnp.asarray(ones), sigma=sigma, num_bins=64)
+    mu, eps, p, explained = sqparts.gamma_terms(
+        jnp.asarray(rendered), jnp.asarray(ones), jnp.asarray(measured), jnp.asarray(ones), sigma=sigma, num_bins=64
+    )
     assert float(mu) == 1063 and float(eps) == 0 and bool(np.all(explained))
     assert abs(float(p) - 8.0) <= sigma / 2
 
@@ -83,13 +91,17 @@ def _gamma_of(part, depth, camera, enc, figure=None):
     @jax.jit
     def run(part, depth, figure):
         t, hit = cast_part(part, o, d)
-        return sqparts.gamma(t, hit, depth, figure, sigma=enc.sigma, commission_weight=enc.commission_weight, num_bins=256)
+        return sqparts.gamma(
+            t, hit, depth, figure, sigma=enc.sigma, commission_weight=enc.commission_weight, num_bins=256
+        )
 
     return float(run(part, jnp.asarray(depth), jnp.asarray(figure)))
 
 
 def test_moving_a_part_in_depth_leaves_gamma_unchanged():
-    part = sqparts.Part(size=[0.1, 0.08, 0.15], squareness=[0.5, 1.0], position=[0.01, 0, 1.0], orientation=[0.3, 0.5, 0.1])
+    part = sqparts.Part(
+        size=[0.1, 0.08, 0.15], squareness=[0.5, 1.0], position=[0.01, 0, 1.0], orientation=[0.3, 0.5, 0.1]
+    )
     depth = np.asarray(sqparts.render_range_image(part, CAM))
     enc = sqparts.encoding_for(depth)
     base = _gamma_of(part, depth, CAM, enc)
@@ -116,7 +128,10 @@ def test_commission_spares_pixels_another_figure_hides_but_not_a_surface_behind(
     part = sqparts.Part(size=[0.12, 0.12, 0.12], position=[0.0, 0.0, 1.0])
     occluder = sqparts.Part(size=[0.08, 0.2, 0.05], squareness=[0.2, 0.2], position=[0.06, 0.0, 0.8])
     wall = sqparts.Part(size=[0.5, 0.5, 0.02], squareness=[0.2, 0.2], position=[0.0, 0.0, 1.4])
-    depth, labels = (np.asarray(x) for x in sqparts.render_range_image(sqparts.stack_parts([part, occluder, wall]), CAM, return_labels=True))
+    depth, labels = (
+        np.asarray(x)
+        for x in sqparts.render_range_image(sqparts.stack_parts([part, occluder, wall]), CAM, return_labels=True)
+    )
     figure = labels == 0  # the part's own figure: the occluder and the wall are other figures
     enc = sqparts.encoding_for(depth[figure])
     visible = int(figure.sum())
@@ -134,7 +149,9 @@ def test_commission_spares_pixels_another_figure_hides_but_not_a_surface_behind(
 
 
 def test_smooth_gamma_approximates_gamma_and_has_gradients():
-    part = sqparts.Part(size=[0.1, 0.08, 0.15], squareness=[0.5, 1.0], position=[0.01, 0, 1.0], orientation=[0.3, 0.5, 0.1])
+    part = sqparts.Part(
+        size=[0.1, 0.08, 0.15], squareness=[0.5, 1.0], position=[0.01, 0, 1.0], orientation=[0.3, 0.5, 0.1]
+    )
     depth = jnp.asarray(sqparts.render_range_image(part, PIN))
     fig = jnp.isfinite(depth)
     o, d = PIN.rays()

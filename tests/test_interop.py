@@ -11,9 +11,18 @@ import pytest
 import sqparts
 from sqparts._io import ANNOTATION_KEYS, PART_KEYS
 
-SCENE = {"parts": [{"size": [0.2, 0.15, 0.3], "squareness": [0.5, 1.0], "position": [-0.25, 0, 2.0],
-                    "rotation": [[1, 0, 0], [0, 0, -1], [0, 1, 0]], "taper": 0.2},
-                   {"size": [0.12, 0.12, 0.25], "squareness": [1.0, 1.0], "position": [0.25, 0.05, 2.0]}]}
+SCENE = {
+    "parts": [
+        {
+            "size": [0.2, 0.15, 0.3],
+            "squareness": [0.5, 1.0],
+            "position": [-0.25, 0, 2.0],
+            "rotation": [[1, 0, 0], [0, 0, -1], [0, 1, 0]],
+            "taper": 0.2,
+        },
+        {"size": [0.12, 0.12, 0.25], "squareness": [1.0, 1.0], "position": [0.25, 0.05, 2.0]},
+    ]
+}
 
 
 def _open3d():
@@ -50,8 +59,16 @@ def test_sqparts_reads_the_camera_open3d_writes(tmp_path):
     assert camera == sqparts.PinholeCamera(640, 480, 525.0, 526.0, 319.5, 239.5)
 
 
-REALSENSE = {"width": 848, "height": 480, "ppx": 421.3, "ppy": 238.9, "fx": 425.1, "fy": 425.2,
-             "model": "Brown Conrady", "coeffs": [0, 0, 0, 0, 0]}
+REALSENSE = {
+    "width": 848,
+    "height": 480,
+    "ppx": 421.3,
+    "ppy": 238.9,
+    "fx": 425.1,
+    "fy": 425.2,
+    "model": "Brown Conrady",
+    "coeffs": [0, 0, 0, 0, 0],
+}
 
 
 @pytest.mark.parametrize("wrap", [lambda d: d, lambda d: {"intrinsics": d}, lambda d: {"depth": d, "serial": "1"}])
@@ -61,13 +78,16 @@ def test_realsense_intrinsics(tmp_path, wrap):
     assert camera == sqparts.PinholeCamera(848, 480, 425.1, 425.2, 421.3, 238.9)
 
 
-@pytest.mark.parametrize("change, match", [
-    ({"coeffs": [0.1, 0, 0, 0, 0]}, r"camera.coeffs: got \[0.1, .*expected zero distortion"),
-    ({"coeffs": "x"}, r"camera.coeffs: got 'x', expected 5 numbers"),
-    ({"fx": "a"}, r"camera.fx: got 'a', expected a number"),
-    ({"fx": -1.0}, r"fx: got -1.0, expected"),
-    ({"skew": 0}, r"camera: got unknown key\(s\) \['skew'\], expected only"),
-])
+@pytest.mark.parametrize(
+    "change, match",
+    [
+        ({"coeffs": [0.1, 0, 0, 0, 0]}, r"camera.coeffs: got \[0.1, .*expected zero distortion"),
+        ({"coeffs": "x"}, r"camera.coeffs: got 'x', expected 5 numbers"),
+        ({"fx": "a"}, r"camera.fx: got 'a', expected a number"),
+        ({"fx": -1.0}, r"fx: got -1.0, expected"),
+        ({"skew": 0}, r"camera: got unknown key\(s\) \['skew'\], expected only"),
+    ],
+)
 def test_realsense_intrinsics_errors(tmp_path, change, match):
     (tmp_path / "rs.json").write_text(json.dumps({**REALSENSE, **change}))
     with pytest.raises(ValueError, match=match):
@@ -119,7 +139,7 @@ def test_exr_errors(tmp_path):
     _write_exr(tmp_path / "d.exr", {"Z": np.ones((24, 32), np.float32)})
     data = bytearray((tmp_path / "d.exr").read_bytes())
     at = data.index(b"dataWindow\x00box2i\x00") + len(b"dataWindow\x00box2i\x00") + 4
-    data[at:at + 16] = struct.pack("<4i", 0, 0, 99_999, 99_999)
+    data[at : at + 16] = struct.pack("<4i", 0, 0, 99_999, 99_999)
     (tmp_path / "big.exr").write_bytes(bytes(data))
     with pytest.raises(ValueError, match=r"input: got an image of shape \(100000, 100000\) in .*, expected at most"):
         sqparts.read_range_image(tmp_path / "big.exr")
@@ -141,7 +161,7 @@ def test_scene_trimesh_glb_round_trip(tmp_path, parts):
     for i in range(2):
         geometry = back.geometry[f"part_{i}"]
         assert geometry.is_watertight
-        np.testing.assert_array_equal(np.unique(geometry.visual.vertex_attributes["color"], axis=0), colors[i:i + 1])
+        np.testing.assert_array_equal(np.unique(geometry.visual.vertex_attributes["color"], axis=0), colors[i : i + 1])
         np.testing.assert_array_equal(geometry.visual.material.baseColorFactor, colors[i])
     # each part where it is: its mesh's centre near the part's position
     for i, d in enumerate(SCENE["parts"]):
@@ -155,7 +175,9 @@ def test_part_colors_are_report_colors():
 
     labels = np.arange(25)[None]
     np.testing.assert_allclose(_label_rgb(labels)[0], sqparts.part_colors(25)[:, :3] / 255, atol=0.5 / 255)
-    assert tuple(sqparts.part_colors(1)[0]) == tuple(np.round(np.asarray(matplotlib.colormaps["tab20"](0.0)) * 255).astype(int))
+    assert tuple(sqparts.part_colors(1)[0]) == tuple(
+        np.round(np.asarray(matplotlib.colormaps["tab20"](0.0)) * 255).astype(int)
+    )
 
 
 def test_scene_trimesh_names(parts):
@@ -195,14 +217,17 @@ def test_save_scene_file_validates(tmp_path, parts):
     _validator().validate(json.loads((tmp_path / "s.json").read_text()))
 
 
-@pytest.mark.parametrize("change, path", [
-    ({"squareness": [3.0, 1.0]}, ["parts", 0, "squareness", 0]),
-    ({"size": [0.1, -0.1, 0.2]}, ["parts", 0, "size", 1]),
-    ({"colour": "red"}, ["parts", 0]),
-    ({"rotation": [[1, 0], [0, 1]]}, ["parts", 0, "rotation", 0]),
-    ({"taper": 2}, ["parts", 0, "taper"]),
-    ({"size": None}, ["parts", 0, "size"]),
-])
+@pytest.mark.parametrize(
+    "change, path",
+    [
+        ({"squareness": [3.0, 1.0]}, ["parts", 0, "squareness", 0]),
+        ({"size": [0.1, -0.1, 0.2]}, ["parts", 0, "size", 1]),
+        ({"colour": "red"}, ["parts", 0]),
+        ({"rotation": [[1, 0], [0, 1]]}, ["parts", 0, "rotation", 0]),
+        ({"taper": 2}, ["parts", 0, "taper"]),
+        ({"size": None}, ["parts", 0, "size"]),
+    ],
+)
 def test_schema_rejects_what_the_reader_rejects(tmp_path, change, path):
     data = json.loads(json.dumps(SCENE))
     data["parts"][0].update(change)
@@ -210,7 +235,9 @@ def test_schema_rejects_what_the_reader_rejects(tmp_path, change, path):
         del data["parts"][0]["size"]
         path = ["parts", 0]
     errors = list(_validator().iter_errors(data))
-    assert errors and any(list(e.absolute_path) == path for e in errors), [(e.message, list(e.absolute_path)) for e in errors]
+    assert errors and any(list(e.absolute_path) == path for e in errors), [
+        (e.message, list(e.absolute_path)) for e in errors
+    ]
     (tmp_path / "bad.json").write_text(json.dumps(data))
     with pytest.raises(ValueError, match=r"parts\[0\]"):
         sqparts.load_scene(tmp_path / "bad.json")

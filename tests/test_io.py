@@ -3,11 +3,10 @@ import json
 import numpy as np
 import pytest
 import trimesh
+from conftest import DATA, random_part_kwargs
 
 import sqparts
 from sqparts._io import intrinsics_from_points
-
-from conftest import DATA, random_part_kwargs
 
 
 def _scene(rng, n=3):
@@ -27,17 +26,32 @@ def test_scene_json_round_trip(tmp_path, rng):
     np.testing.assert_allclose(
         np.asarray(sqparts.render_range_image(back, sqparts.PinholeCamera(32, 32, 40, 40, 15.5, 15.5))),
         np.asarray(sqparts.render_range_image(parts, sqparts.PinholeCamera(32, 32, 40, 40, 15.5, 15.5))),
-        rtol=1e-4, equal_nan=True,
+        rtol=1e-4,
+        equal_nan=True,
     )
 
 
 @pytest.mark.parametrize(
     "part, match",
     [
-        ({"size": [1, 1, 1], "squareness": [1, 1], "position": [0, 0, 1], "colour": 3}, r"parts\[0\]: got unknown key\(s\) \['colour'\]"),
+        (
+            {"size": [1, 1, 1], "squareness": [1, 1], "position": [0, 0, 1], "colour": 3},
+            r"parts\[0\]: got unknown key\(s\) \['colour'\]",
+        ),
         ({"size": [1, 1, 1], "squareness": [1, 1]}, r"parts\[0\]: got no position, expected keys"),
-        ({"size": [1, -1, 1], "squareness": [1, 1], "position": [0, 0, 1]}, r"parts\[0\].size: got .*, expected semi-axes > 0"),
-        ({"size": [1, 1, 1], "squareness": [1, 1], "position": [0, 0, 1], "rotation": [[1, 0, 0], [0, 1, 0], [0, 0, 2]]}, r"parts\[0\].rotation: got .*, expected an orthonormal"),
+        (
+            {"size": [1, -1, 1], "squareness": [1, 1], "position": [0, 0, 1]},
+            r"parts\[0\].size: got .*, expected semi-axes > 0",
+        ),
+        (
+            {
+                "size": [1, 1, 1],
+                "squareness": [1, 1],
+                "position": [0, 0, 1],
+                "rotation": [[1, 0, 0], [0, 1, 0], [0, 0, 2]],
+            },
+            r"parts\[0\].rotation: got .*, expected an orthonormal",
+        ),
     ],
 )
 def test_scene_errors(tmp_path, part, match):
@@ -70,7 +84,9 @@ def test_open3d_camera_json(tmp_path):
 
 
 def test_orthographic_and_scanner_camera_json():
-    ortho = sqparts.camera_from_json({"model": "orthographic", "width": 4, "height": 3, "pixel_size": 0.5, "cx": 1.5, "cy": 1.0})
+    ortho = sqparts.camera_from_json(
+        {"model": "orthographic", "width": 4, "height": 3, "pixel_size": 0.5, "cx": 1.5, "cy": 1.0}
+    )
     o, d = ortho.rays()
     np.testing.assert_allclose(o[2, 3], [(3 - 1.5) * 0.5, (2 - 1.0) * 0.5, 0])
     np.testing.assert_allclose(d[0, 0], [0, 0, 1])
@@ -86,10 +102,22 @@ def test_orthographic_and_scanner_camera_json():
     [
         ({"model": "fisheye"}, r"camera.model: got .*, expected one of"),
         ({"width": 4, "height": 3}, r"camera: got no intrinsic_matrix, expected keys"),
-        ({"width": 4, "height": 3, "intrinsic_matrix": [1, 2, 3]}, r"camera.intrinsic_matrix: got .*, expected 9 numbers"),
-        ({"width": -4, "height": 3, "intrinsic_matrix": [1, 0, 0, 0, 1, 0, 0, 0, 1]}, r"width: got .*, expected a positive integer"),
-        ({"model": "orthographic", "width": 4, "height": 3, "pixel_size": 0, "cx": 0, "cy": 0}, r"pixel_size: got .*, expected a finite number > 0"),
-        ({"model": "orthographic", "width": 4, "height": 3, "pixel_size": 1, "cx": 0, "cy": 0, "fx": 2}, r"camera: got unknown key\(s\) \['fx'\]"),
+        (
+            {"width": 4, "height": 3, "intrinsic_matrix": [1, 2, 3]},
+            r"camera.intrinsic_matrix: got .*, expected 9 numbers",
+        ),
+        (
+            {"width": -4, "height": 3, "intrinsic_matrix": [1, 0, 0, 0, 1, 0, 0, 0, 1]},
+            r"width: got .*, expected a positive integer",
+        ),
+        (
+            {"model": "orthographic", "width": 4, "height": 3, "pixel_size": 0, "cx": 0, "cy": 0},
+            r"pixel_size: got .*, expected a finite number > 0",
+        ),
+        (
+            {"model": "orthographic", "width": 4, "height": 3, "pixel_size": 1, "cx": 0, "cy": 0, "fx": 2},
+            r"camera: got unknown key\(s\) \['fx'\]",
+        ),
     ],
 )
 def test_camera_errors(data, match):

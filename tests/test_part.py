@@ -2,13 +2,13 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
-from hypothesis import given, settings, strategies as st
+from conftest import random_part_kwargs
+from hypothesis import given, settings
+from hypothesis import strategies as st
 from scipy.spatial.transform import Rotation
 
 import sqparts
 from sqparts._part import deform, rotation_vector, undeform
-
-from conftest import random_part_kwargs
 
 
 @pytest.mark.parametrize(
@@ -139,7 +139,9 @@ def test_surface_distance_closed_forms():
     np.testing.assert_allclose(got, np.linalg.norm(x - c, axis=1) - 0.3, atol=2e-6)
     # Any superquadric: along the ray from the centre the distance is (s - 1) r(direction),
     # with r found here by bisection of the inside-outside function.
-    part = sqparts.Part(size=[0.2, 0.1, 0.35], squareness=[0.4, 1.6], position=[0.0, 0.1, 1.5], orientation=[1.0, 0.2, -0.4])
+    part = sqparts.Part(
+        size=[0.2, 0.1, 0.35], squareness=[0.4, 1.6], position=[0.0, 0.1, 1.5], orientation=[1.0, 0.2, -0.4]
+    )
     rot = np.asarray(sqparts.rotation_matrix(part.orientation))
     for u in rng.normal(size=(10, 3)):
         u /= np.linalg.norm(u)
@@ -151,7 +153,9 @@ def test_surface_distance_closed_forms():
         r = lo
         for s in (0.5, 1.0, 1.7):
             x = np.asarray(part.position) + rot @ (s * r * u)
-            assert float(sqparts.surface_distance(part, jnp.asarray(x, jnp.float32))) == pytest.approx((s - 1) * r, abs=3e-5)
+            assert float(sqparts.surface_distance(part, jnp.asarray(x, jnp.float32))) == pytest.approx(
+                (s - 1) * r, abs=3e-5
+            )
     # Finite value and gradient at the centre itself.
     g = jax.grad(lambda p: sqparts.surface_distance(sphere, p))(jnp.asarray(c, jnp.float32))
     assert np.all(np.isfinite(np.asarray(g)))

@@ -33,13 +33,19 @@ def test_snap_rotation_closed_form(rng):
         assert abs(turn - tilt) < 1e-6
         np.testing.assert_allclose(snapped.T @ snapped, np.eye(3), atol=1e-12)
     # A long axis 10 degrees off the horizontal, no axis near vertical: made horizontal.
-    r = (Rotation.from_rotvec([0, 0, np.radians(10)]) * Rotation.from_rotvec([0, np.radians(90), 0])
-         * Rotation.from_rotvec([0, 0, np.radians(45)])).as_matrix()
+    r = (
+        Rotation.from_rotvec([0, 0, np.radians(10)])
+        * Rotation.from_rotvec([0, np.radians(90), 0])
+        * Rotation.from_rotvec([0, 0, np.radians(45)])
+    ).as_matrix()
     snapped, kind, angle = sqparts.snap_rotation(r, UP)
     assert kind == "horizontal" and abs(angle - 10) < 1e-6
     assert abs(snapped[:, 2] @ UP) < 1e-12
     # 30 degrees off both: left alone.
-    r = Rotation.from_rotvec([0, 0, np.radians(30)]).as_matrix() @ Rotation.from_rotvec([np.radians(30), 0, 0]).as_matrix()
+    r = (
+        Rotation.from_rotvec([0, 0, np.radians(30)]).as_matrix()
+        @ Rotation.from_rotvec([np.radians(30), 0, 0]).as_matrix()
+    )
     snapped, kind, _ = sqparts.snap_rotation(r, UP)
     assert kind == "none" and np.allclose(snapped, r)
     with pytest.raises(ValueError, match="up"):
@@ -49,9 +55,14 @@ def test_snap_rotation_closed_form(rng):
 def gate(tilts=None):
     """A gate 8 m away: two posts, three bars, a brace (not near vertical/horizontal)."""
     z, w = 8.0, 0.05
-    members = [([-1.2, -0.6, z], [-1.2, 0.8, z]), ([1.2, -0.6, z], [1.2, 0.8, z]),
-               ([-1.2, -0.4, z], [1.2, -0.4, z]), ([-1.2, 0.15, z], [1.2, 0.15, z]),
-               ([-1.2, 0.7, z], [1.2, 0.7, z]), ([-1.1, 0.7, z], [1.1, -0.4, z])]
+    members = [
+        ([-1.2, -0.6, z], [-1.2, 0.8, z]),
+        ([1.2, -0.6, z], [1.2, 0.8, z]),
+        ([-1.2, -0.4, z], [1.2, -0.4, z]),
+        ([-1.2, 0.15, z], [1.2, 0.15, z]),
+        ([-1.2, 0.7, z], [1.2, 0.7, z]),
+        ([-1.1, 0.7, z], [1.1, -0.4, z]),
+    ]
     parts = []
     for i, (a, b) in enumerate(members):
         a, b = np.asarray(a), np.asarray(b)
@@ -150,8 +161,9 @@ def test_residual_model_on_known_texture(rng):
     texture -= texture.mean()
     depth = model + texture
     fig = np.isfinite(model)
-    fake = types.SimpleNamespace(cost=types.SimpleNamespace(rendered=model), depth=depth, figure=fig,
-                                 settings={"sigma": 0.05})
+    fake = types.SimpleNamespace(
+        cost=types.SimpleNamespace(rendered=model), depth=depth, figure=fig, settings={"sigma": 0.05}
+    )
     res = sqparts.residual_model(fake)
     np.testing.assert_allclose(res.residual[fig], texture[fig], atol=1e-5)
     assert np.isnan(res.residual[~fig]).all()

@@ -70,7 +70,10 @@ def test_downsample_keeps_geometry():
 
 
 def test_downsample_other_cameras():
-    for cam in (sqparts.OrthographicCamera(64, 48, 0.01, 31.5, 23.5), sqparts.ScannerCamera(64, 48, 0.004, 0.004, 31.5, 23.5)):
+    for cam in (
+        sqparts.OrthographicCamera(64, 48, 0.01, 31.5, 23.5),
+        sqparts.ScannerCamera(64, 48, 0.004, 0.004, 31.5, 23.5),
+    ):
         small = cam.downsampled(4)
         # The centre of binned pixel (i, j) looks along the mean ray of its 4x4 block.
         o, d = (np.asarray(a) for a in cam.rays())
@@ -153,8 +156,9 @@ def test_figure_ground_room_corner():
 def test_figure_ground_drops_background_running_off_the_image():
     # A part in the middle, a large part cut by the left edge (10% of it on the frame) and
     # a scrap of a thin one at the right edge (over 40% on the frame): the scrap is dropped.
-    parts = sqparts.stack_parts([on_table((0.0, 0.05), 0.12, 0.07), on_table((-0.8, 0.0), 0.15, 0.16),
-                                 on_table((0.95, 0.0), 0.1, 0.07)])
+    parts = sqparts.stack_parts(
+        [on_table((0.0, 0.05), 0.12, 0.07), on_table((-0.8, 0.0), 0.15, 0.16), on_table((0.95, 0.0), 0.1, 0.07)]
+    )
     depth_parts, labels = (np.asarray(a) for a in sqparts.render_range_image(parts, CAM, return_labels=True))
     table = plane_depth(CAM, TABLE_N, TABLE_D)
     depth = np.fmin(depth_parts, table).astype(np.float32)

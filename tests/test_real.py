@@ -5,17 +5,15 @@ import json
 
 import numpy as np
 import pytest
+from conftest import DATA
+from test_preprocess import CAM, TABLE_D, TABLE_N, table_scene  # noqa: F401 (fixture)
 
 import sqparts
 from sqparts._scenes import limb
 from sqparts.cli import main
 
-from conftest import DATA
 
-from test_preprocess import CAM, TABLE_D, TABLE_N, table_scene  # noqa: F401 (fixture)
-
-
-def test_cli_recovers_a_table_scene_from_png(table_scene, tmp_path, capsys):
+def test_cli_recovers_a_table_scene_from_png(table_scene, tmp_path, capsys):  # noqa: F811 (the fixture)
     depth, truth = table_scene
     # Kinect-style: 16-bit millimetres, 0 = no return, and some returns missing.
     depth = depth.copy()
@@ -23,8 +21,20 @@ def test_cli_recovers_a_table_scene_from_png(table_scene, tmp_path, capsys):
     sqparts.write_range_image(tmp_path / "frame.png", depth)
     sqparts.save_camera(tmp_path / "cam.json", CAM)
     out = tmp_path / "out"
-    argv = ["recover", str(tmp_path / "frame.png"), "--camera", str(tmp_path / "cam.json"), "--out", str(out),
-            "--grid", "coarse", "--prettify", "--refine-rounds", "1", "--quiet"]
+    argv = [
+        "recover",
+        str(tmp_path / "frame.png"),
+        "--camera",
+        str(tmp_path / "cam.json"),
+        "--out",
+        str(out),
+        "--grid",
+        "coarse",
+        "--prettify",
+        "--refine-rounds",
+        "1",
+        "--quiet",
+    ]
     assert main(argv) == 0
     result = json.loads((out / "parts.json").read_text())
     assert np.degrees(np.arccos(min(1.0, np.dot(result["ground_plane"]["normal"], TABLE_N)))) < 1.0
@@ -46,10 +56,14 @@ def test_cli_real_data_options_errors(tmp_path, capsys):
     sqparts.write_range_image(tmp_path / "d.npy", np.ones((24, 32), np.float32))
     sqparts.save_camera(tmp_path / "cam.json", sqparts.PinholeCamera(32, 24, 40.0, 40.0, 15.5, 11.5))
     base = ["recover", str(tmp_path / "d.npy"), "--camera", str(tmp_path / "cam.json"), "--out", str(tmp_path / "o")]
-    for extra, word in ((["--up", "1,2"], "--up"), (["--depth-range", "x"], "--depth-range"),
-                        (["--tear", "-1"], "--tear"), (["--planes", "-1"], "--planes"),
-                        (["--max-figures", "0"], "--max-figures"),
-                        (["--max-border-fraction", "1.5"], "--max-border-fraction")):
+    for extra, word in (
+        (["--up", "1,2"], "--up"),
+        (["--depth-range", "x"], "--depth-range"),
+        (["--tear", "-1"], "--tear"),
+        (["--planes", "-1"], "--planes"),
+        (["--max-figures", "0"], "--max-figures"),
+        (["--max-border-fraction", "1.5"], "--max-border-fraction"),
+    ):
         assert main(base + extra) == 2
         err = capsys.readouterr().err.strip()
         assert err.startswith("sqparts: error: ") and word in err and "\n" not in err

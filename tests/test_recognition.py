@@ -37,9 +37,14 @@ def test_description_is_invariant_to_the_camera_pose(scene):
 
 def test_description_is_in_the_objects_own_scale():
     parts = sqparts.builtin_scene("human").parts
-    big = sqparts.Part(size=np.asarray(parts.size) * 3, squareness=parts.squareness,
-                       position=np.asarray(parts.position) * 3, orientation=parts.orientation,
-                       bend=parts.bend, taper=parts.taper)
+    big = sqparts.Part(
+        size=np.asarray(parts.size) * 3,
+        squareness=parts.squareness,
+        position=np.asarray(parts.position) * 3,
+        orientation=parts.orientation,
+        bend=parts.bend,
+        taper=parts.taper,
+    )
     a, b = describe(parts), describe(big)
     np.testing.assert_allclose(b.scale, 3 * a.scale, rtol=1e-5)
     np.testing.assert_allclose(b.attributes, a.attributes, atol=1e-5)
@@ -65,12 +70,15 @@ def test_description_json_round_trips():
     np.testing.assert_array_equal(e.rotations, d.rotations)
 
 
-@pytest.mark.parametrize("bad, match", [
-    ({"scale": 1, "nodes": []}, r"description.nodes: got list, expected a non-empty list"),
-    ({"scale": -1, "nodes": [{}]}, r"description.scale: got -1.0, expected a number > 0"),
-    ({"scale": 1, "nodes": [{"size_1": "x"}]}, r"description.nodes\[0\].size_1: got 'x', expected a finite number"),
-    ([], r"description: got list, expected an object with 'scale', 'nodes' and 'edges'"),
-])
+@pytest.mark.parametrize(
+    "bad, match",
+    [
+        ({"scale": 1, "nodes": []}, r"description.nodes: got list, expected a non-empty list"),
+        ({"scale": -1, "nodes": [{}]}, r"description.scale: got -1.0, expected a number > 0"),
+        ({"scale": 1, "nodes": [{"size_1": "x"}]}, r"description.nodes\[0\].size_1: got 'x', expected a finite number"),
+        ([], r"description: got list, expected an object with 'scale', 'nodes' and 'edges'"),
+    ],
+)
 def test_bad_description_json_is_named(bad, match):
     with pytest.raises(ValueError, match=match):
         Description.from_json(bad)
@@ -91,8 +99,10 @@ def test_a_model_with_parts_removed_still_matches():
     human = sqparts.builtin_scene("human")
     keep = [i for i in range(16) if i not in (2, 7, 12)]  # torso, left upper arm, right calf
     query = describe(moved(stack_parts([human.parts[i] for i in keep]))[0])
-    scores = {name: sqparts.match_descriptions(query, describe(sqparts.builtin_scene(name).parts)).score
-              for name in ("human", "chair", "castings")}
+    scores = {
+        name: sqparts.match_descriptions(query, describe(sqparts.builtin_scene(name).parts)).score
+        for name in ("human", "chair", "castings")
+    }
     m = sqparts.match_descriptions(query, describe(human.parts))
     assert scores["human"] > 0.5 > max(scores["chair"], scores["castings"]) + 0.2
     assert {(keep[i], j) for i, j in m.pairs} == {(k, k) for k in keep}
@@ -115,7 +125,12 @@ def _database(path, names=("human", "chair", "castings")):
 
 def test_database_round_trips(tmp_path):
     db = _database(tmp_path / "db")
-    assert sorted(p.name for p in (tmp_path / "db").iterdir()) == ["castings.json", "chair.json", "database.json", "human.json"]
+    assert sorted(p.name for p in (tmp_path / "db").iterdir()) == [
+        "castings.json",
+        "chair.json",
+        "database.json",
+        "human.json",
+    ]
     again = ModelDatabase(tmp_path / "db")
     assert again.names == db.names and again.threshold == pytest.approx(db.threshold, abs=1e-5)
     for name in db.names:
@@ -151,7 +166,9 @@ def test_bad_object_names_are_refused(tmp_path, name):
 
 
 def test_a_broken_model_file_is_named(tmp_path):
-    (tmp_path / "x.json").write_text(json.dumps({"format": "sqparts-model/1", "name": "x", "views": [{"main": {"parts": []}}]}))
+    (tmp_path / "x.json").write_text(
+        json.dumps({"format": "sqparts-model/1", "name": "x", "views": [{"main": {"parts": []}}]})
+    )
     with pytest.raises(ValueError, match=r"x.json.views\[0\].main"):
         ModelDatabase(tmp_path)
 
@@ -161,7 +178,9 @@ def test_posed_human_keeps_its_limbs(pose):
     s = sqparts.posed_human(pose, resolution=48)
     base = sqparts.builtin_scene("human")
     assert len(s.parts) == 16 and s.part_names == base.part_names
-    np.testing.assert_allclose(np.sort(np.asarray(s.parts.size), 1)[[0, 2, 3]], np.sort(np.asarray(base.parts.size), 1)[[0, 2, 3]], rtol=1e-5)
+    np.testing.assert_allclose(
+        np.sort(np.asarray(s.parts.size), 1)[[0, 2, 3]], np.sort(np.asarray(base.parts.size), 1)[[0, 2, 3]], rtol=1e-5
+    )
     depth = np.asarray(sqparts.render_range_image(s.parts, s.camera))
     assert 100 < np.isfinite(depth).sum() < depth.size / 2
 
@@ -174,10 +193,22 @@ def test_unknown_pose_is_refused():
 CAMERA = {"width": 48, "height": 48, "intrinsic_matrix": [80.0, 0, 0, 0, 80.0, 0, 23.5, 23.5, 1]}
 FAST = ["--resolution", "0", "--refine-rounds", "0", "--quiet"]
 OBJECTS = {
-    "cigar": [{"size": [0.1, 0.1, 0.4], "squareness": [1.0, 1.0], "position": [0, 0, 2.0],
-               "rotation": [[0, 0, 1], [0, 1, 0], [-1, 0, 0]]}],
-    "slab": [{"size": [0.35, 0.35, 0.05], "squareness": [0.2, 0.2], "position": [0, 0, 2.0],
-              "rotation": [[1, 0, 0], [0, 0.8, -0.6], [0, 0.6, 0.8]]}],
+    "cigar": [
+        {
+            "size": [0.1, 0.1, 0.4],
+            "squareness": [1.0, 1.0],
+            "position": [0, 0, 2.0],
+            "rotation": [[0, 0, 1], [0, 1, 0], [-1, 0, 0]],
+        }
+    ],
+    "slab": [
+        {
+            "size": [0.35, 0.35, 0.05],
+            "squareness": [0.2, 0.2],
+            "position": [0, 0, 2.0],
+            "rotation": [[1, 0, 0], [0, 0.8, -0.6], [0, 0.6, 0.8]],
+        }
+    ],
 }
 
 
@@ -188,41 +219,102 @@ def test_learn_and_recognize_from_the_command_line(tmp_path, capsys):
     for name, parts in OBJECTS.items():
         scene, _, _ = sqparts.scene_from_dict({"parts": parts})
         np.save(tmp_path / f"{name}.npy", np.asarray(sqparts.render_range_image(scene, cam)))
-        assert main(["learn", name, str(tmp_path / f"{name}.npy"), "--camera", str(tmp_path / "cam.json"),
-                     "--db", str(tmp_path / "db"), "--levels", "1", *FAST]) == 0
+        assert (
+            main(
+                [
+                    "learn",
+                    name,
+                    str(tmp_path / f"{name}.npy"),
+                    "--camera",
+                    str(tmp_path / "cam.json"),
+                    "--db",
+                    str(tmp_path / "db"),
+                    "--levels",
+                    "1",
+                    *FAST,
+                ]
+            )
+            == 0
+        )
     assert sorted(ModelDatabase(tmp_path / "db").names) == ["cigar", "slab"]
     cigar, _, _ = sqparts.scene_from_dict({"parts": OBJECTS["cigar"]})
     r = Rotation.from_rotvec([0.0, 0.5, 0.3]).as_matrix()  # turned about its centre, moved back
     turned, _ = moved(cigar, rotvec=(0.0, 0.5, 0.3), t=np.array([0.05, 0, 2.2]) - r @ [0, 0, 2.0])
     np.save(tmp_path / "query.npy", np.asarray(sqparts.render_range_image(turned, cam)))
     out = tmp_path / "out"
-    assert main(["recognize", str(tmp_path / "query.npy"), "--camera", str(tmp_path / "cam.json"),
-                 "--db", str(tmp_path / "db"), "--out", str(out), *FAST]) == 0
+    assert (
+        main(
+            [
+                "recognize",
+                str(tmp_path / "query.npy"),
+                "--camera",
+                str(tmp_path / "cam.json"),
+                "--db",
+                str(tmp_path / "db"),
+                "--out",
+                str(out),
+                *FAST,
+            ]
+        )
+        == 0
+    )
     assert sorted(p.name for p in (out / "query").iterdir()) == ["parts.json", "recognition.json", "report.png"]
     result = json.loads((out / "query" / "recognition.json").read_text())
     assert result["best"] == "cigar" and [m["name"] for m in result["matches"]] == ["cigar", "slab"]
     assert np.asarray(result["matches"][0]["pose"]).shape == (4, 4) and result["matches"][0]["parts"]
     # Never overwritten silently; --overwrite replaces it.
-    assert main(["recognize", str(tmp_path / "query.npy"), "--camera", str(tmp_path / "cam.json"),
-                 "--db", str(tmp_path / "db"), "--out", str(out), *FAST]) == 2
+    assert (
+        main(
+            [
+                "recognize",
+                str(tmp_path / "query.npy"),
+                "--camera",
+                str(tmp_path / "cam.json"),
+                "--db",
+                str(tmp_path / "db"),
+                "--out",
+                str(out),
+                *FAST,
+            ]
+        )
+        == 2
+    )
     assert "which exists, expected a new path (or --overwrite)" in capsys.readouterr().err
 
 
 def test_recognize_with_an_empty_database_is_one_line(tmp_path, capsys):
     np.save(tmp_path / "x.npy", np.ones((4, 4), np.float32))
-    (tmp_path / "cam.json").write_text(json.dumps({"width": 4, "height": 4, "intrinsic_matrix": [4.0, 0, 0, 0, 4.0, 0, 1.5, 1.5, 1]}))
-    assert main(["recognize", str(tmp_path / "x.npy"), "--camera", str(tmp_path / "cam.json"), "--db",
-                 str(tmp_path / "none"), "--out", str(tmp_path / "o")]) == 2
+    (tmp_path / "cam.json").write_text(
+        json.dumps({"width": 4, "height": 4, "intrinsic_matrix": [4.0, 0, 0, 0, 4.0, 0, 1.5, 1.5, 1]})
+    )
+    assert (
+        main(
+            [
+                "recognize",
+                str(tmp_path / "x.npy"),
+                "--camera",
+                str(tmp_path / "cam.json"),
+                "--db",
+                str(tmp_path / "none"),
+                "--out",
+                str(tmp_path / "o"),
+            ]
+        )
+        == 2
+    )
     err = capsys.readouterr().err.strip()
     assert err.startswith("sqparts: error: --db: got") and "expected a database made by sqparts learn" in err
     assert not (tmp_path / "o").exists()
 
 
-@pytest.mark.parametrize("argv, start", [
-    (["learn", "a/b", "x.npy"], "sqparts: error: name: got 'a/b', expected 1-100 letters"),
-    (["learn", "ok", "missing.npy"], "sqparts: error: input: got"),
-    (["learn", "ok", "x.npy", "--levels", "9"], "sqparts: error: --levels: got '9', expected an integer in [1, 4]"),
-])
+@pytest.mark.parametrize(
+    "argv, start",
+    [
+        (["learn", "a/b", "x.npy"], "sqparts: error: name: got 'a/b', expected 1-100 letters"),
+        (["learn", "ok", "missing.npy"], "sqparts: error: input: got"),
+        (["learn", "ok", "x.npy", "--levels", "9"], "sqparts: error: --levels: got '9', expected an integer in [1, 4]"),
+    ],
+)
 def test_learn_errors_are_one_line_before_any_work(tmp_path, capsys, monkeypatch, argv, start):
     monkeypatch.chdir(tmp_path)
     np.save(tmp_path / "x.npy", np.ones((4, 4), np.float32))

@@ -7,10 +7,16 @@ import sqparts
 from sqparts.cli import main
 
 CAM = sqparts.PinholeCamera(64, 64, 280.0, 280.0, 31.5, 31.5)
-SCENE = sqparts.stack_parts([
-    sqparts.Part(size=[0.06, 0.06, 0.2], squareness=[0.5, 1.0], position=[-0.08, 0.0, 2.0], orientation=[0.0, 0.0, 0.3]),
-    sqparts.Part(size=[0.05, 0.05, 0.16], squareness=[1.0, 1.0], position=[0.1, -0.02, 2.05], orientation=[1.57, 0.0, 0.0]),
-])
+SCENE = sqparts.stack_parts(
+    [
+        sqparts.Part(
+            size=[0.06, 0.06, 0.2], squareness=[0.5, 1.0], position=[-0.08, 0.0, 2.0], orientation=[0.0, 0.0, 0.3]
+        ),
+        sqparts.Part(
+            size=[0.05, 0.05, 0.16], squareness=[1.0, 1.0], position=[0.1, -0.02, 2.05], orientation=[1.57, 0.0, 0.0]
+        ),
+    ]
+)
 
 
 @pytest.fixture(scope="module")
@@ -35,7 +41,9 @@ def test_recover_two_parts(recovery, depth):
     hit = np.isfinite(model)
     with np.errstate(invalid="ignore"):
         explained = hit & fig & (np.abs(model - depth) <= data.encoding.sigma / 2)
-    direct = sqparts.description_length(explained[None], (hit & ~fig)[None], costs) + costs.part * (len(recovery.parts) - 1)
+    direct = sqparts.description_length(explained[None], (hit & ~fig)[None], costs) + costs.part * (
+        len(recovery.parts) - 1
+    )
     assert recovery.description_length == pytest.approx(direct, abs=costs.omission * 3)
 
 
@@ -64,8 +72,12 @@ def test_joint_polish_grows_a_part_onto_its_unexplained_pixels(depth):
     _, truth = sqparts.render_range_image(SCENE, CAM, return_labels=True)
     own = np.asarray(truth) == 0
     p = SCENE[0]
-    short = sqparts.Part(size=np.asarray(p.size) * [1.0, 1.0, 0.6], squareness=p.squareness, position=p.position,
-                         orientation=p.orientation)
+    short = sqparts.Part(
+        size=np.asarray(p.size) * [1.0, 1.0, 0.6],
+        squareness=p.squareness,
+        position=p.position,
+        orientation=p.orientation,
+    )
     parts = sqparts.stack_parts([short, SCENE[1]])
     before = sqparts.encoding_cost(parts, data, costs)
     refined, cost, _ = sqparts.refine_parts(parts, data, costs, rounds=2, merge=False)
@@ -81,15 +93,18 @@ def test_refinement_splits_a_part_that_spans_two():
     # truth's own pixels at a lower E.
     cam = sqparts.PinholeCamera(64, 64, 280.0, 280.0, 31.5, 31.5)
     turn = [np.pi / 2, 0.0, 0.0]  # local z along the image's y axis
-    scene = sqparts.stack_parts([
-        sqparts.Part(size=[0.07, 0.04, 0.12], squareness=[0.3, 0.3], position=[0.0, -0.09, 2.0], orientation=turn),
-        sqparts.Part(size=[0.04, 0.04, 0.06], squareness=[0.3, 0.3], position=[0.0, 0.09, 2.0], orientation=turn),
-    ])
+    scene = sqparts.stack_parts(
+        [
+            sqparts.Part(size=[0.07, 0.04, 0.12], squareness=[0.3, 0.3], position=[0.0, -0.09, 2.0], orientation=turn),
+            sqparts.Part(size=[0.04, 0.04, 0.06], squareness=[0.3, 0.3], position=[0.0, 0.09, 2.0], orientation=turn),
+        ]
+    )
     depth, truth = (np.asarray(a) for a in sqparts.render_range_image(scene, cam, return_labels=True))
     data = sqparts.prepare(depth, cam)
     costs = sqparts.Costs.from_encoding(data.encoding, int(data.figure_mask.sum()))
-    one = sqparts.stack_parts([sqparts.Part(size=[0.06, 0.04, 0.18], squareness=[0.3, 0.3], position=[0.0, -0.06, 2.0],
-                                            orientation=turn)])
+    one = sqparts.stack_parts(
+        [sqparts.Part(size=[0.06, 0.04, 0.18], squareness=[0.3, 0.3], position=[0.0, -0.06, 2.0], orientation=turn)]
+    )
     kept, kept_cost, _ = sqparts.refine_parts(one, data, costs, rounds=2, split=False, merge=False)
     split, split_cost, history = sqparts.refine_parts(one, data, costs, rounds=2, split=True, merge=False)
     assert len(kept) == 1 and len(split) == 2 and dict(history)["split"] < dict(history)["polish 2"]
@@ -108,7 +123,9 @@ def test_adding_a_part_by_merging_renderings_matches_rendering_the_scene(depth):
     extra = np.stack([np.asarray(SCENE[1].to_vector()), np.asarray(SCENE[1].to_vector()) + np.r_[0.03, np.zeros(13)]])
     for vec, merged in zip(extra, costs_adding(base, extra, data, costs)):
         full = sqparts.encoding_cost(sqparts.stack_parts([SCENE[0], sqparts.Part.from_vector(vec)]), data, costs)
-        assert merged.total == full.total and merged.explained == full.explained and merged.commission == full.commission
+        assert (
+            merged.total == full.total and merged.explained == full.explained and merged.commission == full.commission
+        )
         assert np.array_equal(merged.labels, full.labels)
 
 
@@ -158,7 +175,9 @@ def test_omitted_blobs_are_not_joined_by_slivers():
     mask[15, 0:3] = True  # ...and a sliver on its own
     labels, count = omitted_blobs(mask)
     assert count == 2
-    assert set(np.unique(labels[2:8, 2:10])) == {labels[4, 4]} and set(np.unique(labels[10:17, 18:27])) == {labels[13, 22]}
+    assert set(np.unique(labels[2:8, 2:10])) == {labels[4, 4]} and set(np.unique(labels[10:17, 18:27])) == {
+        labels[13, 22]
+    }
     assert labels[4, 4] != labels[13, 22] and labels[4, 4] > 0 and labels[13, 22] > 0
     assert (labels[mask] > 0).sum() < mask.sum() and not labels[15, 0:3].any() and not labels[~mask].any()
 
@@ -169,15 +188,18 @@ def test_refinement_fills_a_gap_the_first_search_left():
     # blob again at its own scale adds the knob.
     cam = sqparts.PinholeCamera(64, 64, 280.0, 280.0, 31.5, 31.5)
     turn = [np.pi / 2, 0.0, 0.0]  # local z along the image's y axis
-    scene = sqparts.stack_parts([
-        sqparts.Part(size=[0.05, 0.04, 0.12], squareness=[0.3, 0.3], position=[0.0, -0.03, 2.0], orientation=turn),
-        sqparts.Part(size=[0.03, 0.03, 0.03], squareness=[1.0, 1.0], position=[0.0, 0.12, 1.99]),
-    ])
+    scene = sqparts.stack_parts(
+        [
+            sqparts.Part(size=[0.05, 0.04, 0.12], squareness=[0.3, 0.3], position=[0.0, -0.03, 2.0], orientation=turn),
+            sqparts.Part(size=[0.03, 0.03, 0.03], squareness=[1.0, 1.0], position=[0.0, 0.12, 1.99]),
+        ]
+    )
     depth, truth = (np.asarray(a) for a in sqparts.render_range_image(scene, cam, return_labels=True))
     data = sqparts.prepare(depth, cam)
     costs = sqparts.Costs.from_encoding(data.encoding, int(data.figure_mask.sum()))
-    settings = sqparts.make_settings(data, grid="coarse", max_size=0.12, top_k=3, polish_candidates=3,
-                                     polish_rounds=3, polish_steps=10, restarts=0)
+    settings = sqparts.make_settings(
+        data, grid="coarse", max_size=0.12, top_k=3, polish_candidates=3, polish_rounds=3, polish_steps=10, restarts=0
+    )
     kw = dict(rounds=1, split=False, merge=False)
     alone, alone_cost, _ = sqparts.refine_parts(scene[:1], data, costs, **kw)
     filled, filled_cost, history = sqparts.refine_parts(scene[:1], data, costs, search=settings, **kw)
@@ -191,8 +213,19 @@ def test_refinement_fills_a_gap_the_first_search_left():
 def test_cli_round_trip(tmp_path, depth):
     np.save(tmp_path / "range.npy", depth)
     (tmp_path / "cam.json").write_text(json.dumps(CAM.to_json()))
-    rc = main(["recover", str(tmp_path / "range.npy"), "--camera", str(tmp_path / "cam.json"),
-               "--out", str(tmp_path / "out"), "--max-size", "0.22", "--quiet"])
+    rc = main(
+        [
+            "recover",
+            str(tmp_path / "range.npy"),
+            "--camera",
+            str(tmp_path / "cam.json"),
+            "--out",
+            str(tmp_path / "out"),
+            "--max-size",
+            "0.22",
+            "--quiet",
+        ]
+    )
     assert rc == 0
     for name in ("parts.json", "model.ply", "report.png"):
         assert (tmp_path / "out" / name).stat().st_size > 100
@@ -200,8 +233,20 @@ def test_cli_round_trip(tmp_path, depth):
     assert {"description_length_bits", "timings_s", "settings", "fraction_explained"} <= set(data)
     assert all({"gamma", "bits_saved"} <= set(p) for p in data["parts"])
     # Re-render the recovered parts through the CLI and compare with the input.
-    assert main(["render", str(tmp_path / "out" / "parts.json"), "--camera", str(tmp_path / "cam.json"),
-                 "--out", str(tmp_path / "again.npy"), "--quiet"]) == 0
+    assert (
+        main(
+            [
+                "render",
+                str(tmp_path / "out" / "parts.json"),
+                "--camera",
+                str(tmp_path / "cam.json"),
+                "--out",
+                str(tmp_path / "again.npy"),
+                "--quiet",
+            ]
+        )
+        == 0
+    )
     again = np.load(tmp_path / "again.npy")
     both = np.isfinite(again) & np.isfinite(depth)
     iou = both.sum() / (np.isfinite(again) | np.isfinite(depth)).sum()
@@ -214,7 +259,19 @@ def test_cli_recover_errors(tmp_path, capsys, depth):
     assert main(["recover", str(tmp_path / "range.npy"), "--out", str(tmp_path / "o")]) == 2
     assert "which carries no camera, expected --camera CAM.json" in capsys.readouterr().err
     (tmp_path / "cam.json").write_text(json.dumps(sqparts.PinholeCamera(10, 10, 5, 5, 4.5, 4.5).to_json()))
-    assert main(["recover", str(tmp_path / "range.npy"), "--camera", str(tmp_path / "cam.json"), "--out", str(tmp_path / "o")]) == 2
+    assert (
+        main(
+            [
+                "recover",
+                str(tmp_path / "range.npy"),
+                "--camera",
+                str(tmp_path / "cam.json"),
+                "--out",
+                str(tmp_path / "o"),
+            ]
+        )
+        == 2
+    )
     assert "got a 10x10 camera for" in capsys.readouterr().err
     assert main(["recover", str(tmp_path / "nothing.npy"), "--out", str(tmp_path / "o")]) == 2
     assert "input: got" in capsys.readouterr().err
@@ -249,10 +306,12 @@ def test_joint_rendering_in_buckets_matches_one_pass():
 def _knob_scene():
     """A long block with a small knob at its lower end (a forearm and its hand)."""
     turn = [np.pi / 2, 0.0, 0.0]  # local z along the image's y axis
-    return sqparts.stack_parts([
-        sqparts.Part(size=[0.05, 0.04, 0.12], squareness=[0.3, 0.3], position=[0.0, -0.03, 2.0], orientation=turn),
-        sqparts.Part(size=[0.03, 0.03, 0.03], squareness=[1.0, 1.0], position=[0.0, 0.12, 1.99]),
-    ])
+    return sqparts.stack_parts(
+        [
+            sqparts.Part(size=[0.05, 0.04, 0.12], squareness=[0.3, 0.3], position=[0.0, -0.03, 2.0], orientation=turn),
+            sqparts.Part(size=[0.03, 0.03, 0.03], squareness=[1.0, 1.0], position=[0.0, 0.12, 1.99]),
+        ]
+    )
 
 
 def test_settling_a_small_part_removes_its_commission():
@@ -283,7 +342,9 @@ def test_settling_a_small_part_removes_its_commission():
 
 def _render_one(part, cam):
     """One part's pixel labels (0 = the part), prepared data and costs."""
-    depth, truth = (np.asarray(a) for a in sqparts.render_range_image(sqparts.stack_parts([part]), cam, return_labels=True))
+    depth, truth = (
+        np.asarray(a) for a in sqparts.render_range_image(sqparts.stack_parts([part]), cam, return_labels=True)
+    )
     data = sqparts.prepare(depth, cam)
     return truth, data, sqparts.Costs.from_encoding(data.encoding, int(data.figure_mask.sum()))
 
@@ -298,8 +359,9 @@ def test_refinement_merges_two_halves_of_a_bent_part():
     cam = sqparts.PinholeCamera(64, 64, 280.0, 280.0, 31.5, 31.5)
     c, length, bend = np.array([0.0, -0.02, 2.0]), 0.15, 0.3
     rot = np.array([[0.0, 0.0, 1.0], [1.0, 0.0, 0.0], [0.0, 1.0, 0.0]])  # local z -> image x, local x -> image y
-    truth_part = sqparts.Part(size=[0.035, 0.035, length], position=c, orientation=rotation_vector(rot),
-                              bend=[bend, 0.0])
+    truth_part = sqparts.Part(
+        size=[0.035, 0.035, length], position=c, orientation=rotation_vector(rot), bend=[bend, 0.0]
+    )
     truth, data, costs = _render_one(truth_part, cam)
     tips = [c + [-length, bend * length, 0.0], c + [length, bend * length, 0.0]]
     halves = sqparts.stack_parts([limb(tips[0], c, 0.035), limb(c, tips[1], 0.035)])
@@ -321,13 +383,20 @@ def test_refinement_summarises_a_plate_seen_as_patches():
     cam = sqparts.PinholeCamera(64, 64, 280.0, 280.0, 31.5, 31.5)
     rot = Rotation.from_euler("xy", [30, -20], degrees=True)
     centre = np.array([0.0, 0.0, 2.0])
-    truth_part = sqparts.Part(size=[0.1, 0.004, 0.14], squareness=[0.1, 0.1], position=centre, orientation=rot.as_rotvec())
+    truth_part = sqparts.Part(
+        size=[0.1, 0.004, 0.14], squareness=[0.1, 0.1], position=centre, orientation=rot.as_rotvec()
+    )
     truth, data, costs = _render_one(truth_part, cam)
     m = rot.as_matrix()
-    patches = sqparts.stack_parts([
-        sqparts.Part(size=[0.05, 0.02, 0.07], position=centre + m @ [sx * 0.05, 0.02, sz * 0.07], orientation=rot.as_rotvec())
-        for sx in (-1, 1) for sz in (-1, 1)
-    ])
+    patches = sqparts.stack_parts(
+        [
+            sqparts.Part(
+                size=[0.05, 0.02, 0.07], position=centre + m @ [sx * 0.05, 0.02, sz * 0.07], orientation=rot.as_rotvec()
+            )
+            for sx in (-1, 1)
+            for sz in (-1, 1)
+        ]
+    )
     kw = dict(rounds=1, split=False)
     four, four_cost, _ = sqparts.refine_parts(patches, data, costs, merge=False, **kw)
     one, one_cost, _ = sqparts.refine_parts(patches, data, costs, merge=True, **kw)

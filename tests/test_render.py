@@ -4,13 +4,13 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
-from hypothesis import given, settings, strategies as st
+from conftest import random_part_kwargs
+from hypothesis import given, settings
+from hypothesis import strategies as st
 from jax.test_util import check_grads
 
 import sqparts
 from sqparts._render import cast_batch, cast_part
-
-from conftest import random_part_kwargs
 
 PINHOLE = sqparts.PinholeCamera(64, 64, 100.0, 100.0, 31.5, 31.5)
 ORTHO = sqparts.OrthographicCamera(64, 64, 0.011, 31.5, 31.5)
@@ -145,7 +145,9 @@ def test_ray_tiles_equal_one_pass(rng):
     np.testing.assert_array_equal(h_tiled, h)
     np.testing.assert_allclose(t_tiled, t, rtol=1e-6)
     grad = jax.grad(lambda v: cast_part(sqparts.Part.from_vector(v), o, d)[0].sum())(parts[0].to_vector())
-    grad_tiled = jax.grad(lambda v: cast_part(sqparts.Part.from_vector(v), o, d, ray_batch_size=10)[0].sum())(parts[0].to_vector())
+    grad_tiled = jax.grad(lambda v: cast_part(sqparts.Part.from_vector(v), o, d, ray_batch_size=10)[0].sum())(
+        parts[0].to_vector()
+    )
     np.testing.assert_allclose(grad_tiled, grad, rtol=1e-5, atol=1e-6)
     full_t, full_h = jax.vmap(cast_part, in_axes=(0, None, None))(parts, o, d)
     with mock.patch("sqparts._render.CPU_TILE", 64):  # tiles of 64 // 3 = 21 rays
@@ -235,8 +237,10 @@ def test_gauge_along_ray_matches_gauge_and_its_derivative(dtype, rng):
 
     with jax.enable_x64(dtype == "float64"):
         kws = [random_part_kwargs(rng) for _ in range(6)]
-        kws += [dict(size=[0.2, 0.1, 0.3], squareness=[0.1, 0.1], position=[0, 0, 2.0], bend=[0.3, -0.2], taper=0.4),
-                dict(size=[0.2, 0.1, 0.3], squareness=[2.0, 2.0], position=[0, 0, 2.0])]
+        kws += [
+            dict(size=[0.2, 0.1, 0.3], squareness=[0.1, 0.1], position=[0, 0, 2.0], bend=[0.3, -0.2], taper=0.4),
+            dict(size=[0.2, 0.1, 0.3], squareness=[2.0, 2.0], position=[0, 0, 2.0]),
+        ]
         for kw in kws:
             part = sqparts.Part(**{k: np.asarray(v, dtype) for k, v in kw.items()})
             o = jnp.asarray(np.r_[rng.normal(size=(40, 3)) * 0.4, np.zeros((2, 3)), [[0, 0, 0.6], [3.0, 0, 0]]], dtype)

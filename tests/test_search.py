@@ -15,9 +15,19 @@ import sqparts
 from sqparts._search import _grid_arrays, _restart_starts
 
 CAM = sqparts.PinholeCamera(48, 48, 150.0, 150.0, 23.5, 23.5)
-TRUTH = sqparts.Part(size=[0.1, 0.06, 0.22], squareness=[0.6, 1.0], position=[0.01, 0.0, 2.0], orientation=[0.4, 0.9, 0.2])
-SMALL = sqparts.Grid(lengths=(0.5, 1.0), ratios1=(1.0, 0.4), ratios2=(1.0,), squareness1=(0.5,), squareness2=(1.0,),
-                     axis_step=45.0, roll_step=90.0, bends=(0.0,))
+TRUTH = sqparts.Part(
+    size=[0.1, 0.06, 0.22], squareness=[0.6, 1.0], position=[0.01, 0.0, 2.0], orientation=[0.4, 0.9, 0.2]
+)
+SMALL = sqparts.Grid(
+    lengths=(0.5, 1.0),
+    ratios1=(1.0, 0.4),
+    ratios2=(1.0,),
+    squareness1=(0.5,),
+    squareness2=(1.0,),
+    axis_step=45.0,
+    roll_step=90.0,
+    bends=(0.0,),
+)
 
 
 @pytest.fixture(scope="module")
@@ -73,8 +83,16 @@ def test_chunked_equals_unchunked(data):
 
 
 def test_pruned_search_finds_what_brute_force_finds(data):
-    grid = sqparts.Grid(lengths=(0.5, 1.0), ratios1=(1.0, 0.5, 0.3), ratios2=(1.0, 0.6), squareness1=(0.5, 1.0),
-                        squareness2=(1.0,), axis_step=30.0, roll_step=45.0, bends=(0.0,))
+    grid = sqparts.Grid(
+        lengths=(0.5, 1.0),
+        ratios1=(1.0, 0.5, 0.3),
+        ratios2=(1.0, 0.6),
+        squareness1=(0.5, 1.0),
+        squareness2=(1.0,),
+        axis_step=30.0,
+        roll_step=45.0,
+        bends=(0.0,),
+    )
     st = sqparts.make_settings(data, grid=grid, max_size=0.25, survivors=32, stride=4)
     brute, _ = sqparts.score_region(data, st, _centre(data), stride=1)
     sub, _ = sqparts.score_region(data, st, _centre(data))
@@ -121,8 +139,13 @@ def test_sharded_equals_unsharded():
     out = {}
     for n in (1, 4):
         env = dict(os.environ, JAX_PLATFORMS="cpu", XLA_FLAGS=f"--xla_force_host_platform_device_count={n}")
-        res = subprocess.run([sys.executable, "-c", _SHARD_SCRIPT.format(tests=tests)], env=env,
-                             capture_output=True, text=True, timeout=600)
+        res = subprocess.run(
+            [sys.executable, "-c", _SHARD_SCRIPT.format(tests=tests)],
+            env=env,
+            capture_output=True,
+            text=True,
+            timeout=600,
+        )
         assert res.returncode == 0, res.stderr[-2000:]
         out[n] = json.loads(res.stdout.strip().splitlines()[-1])
     assert out[4]["devices"] == 4 and out[1]["devices"] == 1
@@ -160,7 +183,9 @@ def test_ray_penetration_sphere():
     # A ray passing at distance b from a sphere's centre gets as deep as b - r.
     sphere = sqparts.Part(size=[0.2, 0.2, 0.2], squareness=[1.0, 1.0], position=[0.0, 0.0, 2.0])
     for b in (0.0, 0.05, 0.15, 0.3):
-        got = float(sqparts.ray_penetration(sphere, np.array([b, 0.0, 0.0], np.float32), np.array([0.0, 0.6, 0.8], np.float32)))
+        got = float(
+            sqparts.ray_penetration(sphere, np.array([b, 0.0, 0.0], np.float32), np.array([0.0, 0.6, 0.8], np.float32))
+        )
         o, d, c = np.array([b, 0, 0.0]), np.array([0.0, 0.6, 0.8]), np.array([0, 0, 2.0])
         t = (c - o) @ d / (d @ d)
         assert got == pytest.approx(np.linalg.norm(o + t * d - c) - 0.2, abs=1e-5)
@@ -170,21 +195,38 @@ def test_grow_polish_ignores_an_occluder():
     # A part half hidden by a plate in front: polishing a perturbed start fits the part's
     # visible surface and stays inside its silhouette, not on the plate.
     plate = sqparts.Part(size=[0.3, 0.3, 0.01], squareness=[0.2, 0.2], position=[-0.3, 0.0, 1.7])
-    depth, labels = (np.asarray(x) for x in sqparts.render_range_image(sqparts.stack_parts([TRUTH, plate]), CAM, return_labels=True))
+    depth, labels = (
+        np.asarray(x) for x in sqparts.render_range_image(sqparts.stack_parts([TRUTH, plate]), CAM, return_labels=True)
+    )
     alone = np.isfinite(np.asarray(sqparts.render_range_image(TRUTH, CAM))).sum()
     assert 0.3 < (labels == 0).sum() / alone < 0.7
-    start = sqparts.Part(size=np.asarray(TRUTH.size) * [1.2, 0.85, 1.15], squareness=[0.8, 0.8],
-                         position=np.asarray(TRUTH.position) + [0.01, -0.01, 0.01], orientation=np.asarray(TRUTH.orientation) + 0.1)
+    start = sqparts.Part(
+        size=np.asarray(TRUTH.size) * [1.2, 0.85, 1.15],
+        squareness=[0.8, 0.8],
+        position=np.asarray(TRUTH.position) + [0.01, -0.01, 0.01],
+        orientation=np.asarray(TRUTH.orientation) + 0.1,
+    )
     seed = (labels == 0) & (np.abs(np.asarray(sqparts.render_range_image(start, CAM)) - depth) < 0.02)
     o, d = CAM.rays()
-    polished = sqparts.grow_polish(start, o, d, jnp.asarray(depth), jnp.asarray(np.isfinite(depth)), jnp.asarray(seed),
-                                   scale=0.01, rounds=6, steps=15)
+    polished = sqparts.grow_polish(
+        start,
+        o,
+        d,
+        jnp.asarray(depth),
+        jnp.asarray(np.isfinite(depth)),
+        jnp.asarray(seed),
+        scale=0.01,
+        rounds=6,
+        steps=15,
+    )
     rendered = np.asarray(sqparts.render_range_image(polished, CAM))
     visible = labels == 0
     close = np.abs(rendered - depth) < 0.005
     assert close[visible].mean() > 0.95  # the part's own visible pixels are fitted
     assert not close[labels == 1].any()  # and none of the plate's
-    assert (np.isfinite(rendered) & ~np.isfinite(depth)).sum() <= 0.03 * visible.sum()  # no swelling past the silhouette
+    assert (
+        np.isfinite(rendered) & ~np.isfinite(depth)
+    ).sum() <= 0.03 * visible.sum()  # no swelling past the silhouette
     np.testing.assert_allclose(np.asarray(polished.position), np.asarray(TRUTH.position), atol=0.01)
 
 
@@ -192,12 +234,15 @@ def test_grow_polish_lets_a_part_hide_behind_another_figure():
     # The plate in front is another figure (as figure/ground gives it): its rays must not
     # push the part out of the plate's outline, only rays with no return may.
     plate = sqparts.Part(size=[0.3, 0.3, 0.01], squareness=[0.2, 0.2], position=[-0.3, 0.0, 1.7])
-    depth, labels = (np.asarray(x) for x in sqparts.render_range_image(sqparts.stack_parts([TRUTH, plate]), CAM, return_labels=True))
+    depth, labels = (
+        np.asarray(x) for x in sqparts.render_range_image(sqparts.stack_parts([TRUTH, plate]), CAM, return_labels=True)
+    )
     whole = np.isfinite(np.asarray(sqparts.render_range_image(TRUTH, CAM)))
     seed = labels == 0
     o, d = CAM.rays()
-    polished = sqparts.grow_polish(TRUTH, o, d, jnp.asarray(depth), jnp.asarray(seed), jnp.asarray(seed),
-                                   scale=0.01, rounds=3, steps=15)
+    polished = sqparts.grow_polish(
+        TRUTH, o, d, jnp.asarray(depth), jnp.asarray(seed), jnp.asarray(seed), scale=0.01, rounds=3, steps=15
+    )
     kept = np.isfinite(np.asarray(sqparts.render_range_image(polished, CAM)))
     hidden = whole & (labels == 1)
     assert hidden.sum() > 0.3 * whole.sum()
@@ -208,8 +253,14 @@ def test_grow_polish_lets_a_part_hide_behind_another_figure():
 def test_restart_starts_relabel_the_same_ellipsoid():
     # With ε = (1, 1) every relabelling of the axes is the same ellipsoid: points of the
     # original's surface (closed form) lie on each restart's surface; deformations reset.
-    part = sqparts.Part(size=[0.1, 0.06, 0.22], squareness=[0.4, 1.7], position=[0.05, -0.02, 2.0],
-                        orientation=[0.4, 0.9, 0.2], bend=[0.2, 0.0], taper=0.3)
+    part = sqparts.Part(
+        size=[0.1, 0.06, 0.22],
+        squareness=[0.4, 1.7],
+        position=[0.05, -0.02, 2.0],
+        orientation=[0.4, 0.9, 0.2],
+        bend=[0.2, 0.0],
+        taper=0.3,
+    )
     starts = _restart_starts(part, 1)
     assert starts.size.shape == (3, 3)
     np.testing.assert_allclose(np.asarray(starts.squareness), 1.0)
@@ -229,7 +280,9 @@ def test_fit_region_stays_at_its_region(data):
     # A plate beside the part covers half the window and could explain more pixels than
     # the part; the region's best part must still be the one through its centre.
     plate = sqparts.Part(size=[0.3, 0.3, 0.01], squareness=[0.2, 0.2], position=[-0.3, 0.0, 1.7])
-    depth, labels = (np.asarray(x) for x in sqparts.render_range_image(sqparts.stack_parts([TRUTH, plate]), CAM, return_labels=True))
+    depth, labels = (
+        np.asarray(x) for x in sqparts.render_range_image(sqparts.stack_parts([TRUTH, plate]), CAM, return_labels=True)
+    )
     visible = labels == 0
     assert (labels == 1).sum() > visible.sum()
     inside = distance_transform_edt(visible)
@@ -252,16 +305,29 @@ def test_pruning_scores_short_hypotheses_on_smaller_windows(data):
     # differ by multiples of 4). Reference: score_region over the full window.
     from sqparts._search import _by_window
 
-    grid = sqparts.Grid(lengths=(0.3, 1.0), ratios1=(1.0, 0.5), ratios2=(1.0,), squareness1=(0.5, 1.0),
-                        squareness2=(1.0,), axis_step=45.0, roll_step=90.0, bends=(0.0,))
+    grid = sqparts.Grid(
+        lengths=(0.3, 1.0),
+        ratios1=(1.0, 0.5),
+        ratios2=(1.0,),
+        squareness1=(0.5, 1.0),
+        squareness2=(1.0,),
+        axis_step=45.0,
+        roll_step=90.0,
+        bends=(0.0,),
+    )
     st = sqparts.make_settings(data, grid=grid, max_size=0.3, stride=4)
     hyp = _grid_arrays(grid)
     groups = _by_window(grid, st.window)
     (side, short), (side_long, long) = groups
-    assert side < st.window == side_long and np.allclose(hyp["shape"][short, 2], 0.3) and len(short) + len(long) == grid.size
+    assert (
+        side < st.window == side_long
+        and np.allclose(hyp["shape"][short, 2], 0.3)
+        and len(short) + len(long) == grid.size
+    )
     full, _ = sqparts.score_region(data, st, _centre(data))
-    small, _ = sqparts.score_region(data, dataclasses.replace(st, window=side), _centre(data),
-                                    hypotheses={k: v[short] for k, v in hyp.items()})
+    small, _ = sqparts.score_region(
+        data, dataclasses.replace(st, window=side), _centre(data), hypotheses={k: v[short] for k, v in hyp.items()}
+    )
     assert np.asarray(small).max() > 0.1 * data.figure_mask.sum()  # they do explain pixels
     np.testing.assert_allclose(np.asarray(small), np.asarray(full)[short], rtol=1e-5, atol=1e-3)
 
@@ -273,17 +339,28 @@ def test_every_matrix_product_runs_at_full_precision():
     from sqparts._render import cast_part
     from sqparts._search import polish_part, pose_hypothesis, ray_penetration
 
-    part = sqparts.Part(size=[0.1, 0.2, 0.3], squareness=[0.5, 1.2], position=[0.0, 0.0, 2.0],
-                        orientation=[0.3, -0.2, 0.1], bend=[0.1, 0.0], taper=0.2)
+    part = sqparts.Part(
+        size=[0.1, 0.2, 0.3],
+        squareness=[0.5, 1.2],
+        position=[0.0, 0.0, 2.0],
+        orientation=[0.3, -0.2, 0.1],
+        bend=[0.1, 0.0],
+        taper=0.2,
+    )
     o, d = jnp.zeros(3), jnp.array([0.05, 0.02, 1.0])
     points = jnp.asarray(np.random.default_rng(0).normal([0, 0, 1.8], 0.1, (16, 3)), jnp.float32)
     traced = {
         "cast_part": (lambda p: cast_part(p, o, d), part),
         "surface_point": (lambda p: sqparts.surface_point(p, 0.1, 0.2), part),
-        "pose_hypothesis": (lambda v: pose_hypothesis(v, jnp.array([0.5, 0.6, 1.0, 1.0, 1.0, 0.0, 0.0, 0.0]), 0.3, o, d, 2.0),
-                            jnp.array([0.1, 0.2, 0.3])),
+        "pose_hypothesis": (
+            lambda v: pose_hypothesis(v, jnp.array([0.5, 0.6, 1.0, 1.0, 1.0, 0.0, 0.0, 0.0]), 0.3, o, d, 2.0),
+            jnp.array([0.1, 0.2, 0.3]),
+        ),
         "ray_penetration": (lambda p: ray_penetration(p, o, d), part),
-        "polish_part": (lambda p: polish_part(p, points, jnp.ones(16), rays=(points, points, jnp.ones(16)), steps=2), part),
+        "polish_part": (
+            lambda p: polish_part(p, points, jnp.ones(16), rays=(points, points, jnp.ones(16)), steps=2),
+            part,
+        ),
     }
     for name, (fn, arg) in traced.items():
         products = re.findall(r"dot_general\[(.*?)\n\s*\]", str(jax.make_jaxpr(fn)(arg)), re.S)

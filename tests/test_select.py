@@ -11,7 +11,7 @@ def _random_masks(rng, n, pixels=600, triples=True):
     explained = np.zeros((n, pixels), bool)
     for i in range(n):
         start = rng.integers(0, pixels - 60)
-        explained[i, start:start + rng.integers(20, 150)] = True
+        explained[i, start : start + rng.integers(20, 150)] = True
     if not triples:  # keep every pixel in at most two masks
         count = explained.sum(0)
         for p in np.flatnonzero(count > 2):

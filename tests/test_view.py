@@ -21,9 +21,20 @@ from sqparts.cli import main
 
 ROOT = Path(__file__).resolve().parents[1]
 CAMERA = {"width": 32, "height": 24, "intrinsic_matrix": [40.0, 0, 0, 0, 40.0, 0, 15.5, 11.5, 1]}
-SCENE = {"parts": [{"size": [0.2, 0.15, 0.3], "squareness": [0.5, 1.0], "position": [-0.22, 0, 2.0],
-                    "rotation": [[1, 0, 0], [0, 0, -1], [0, 1, 0]], "gamma": 40.0, "figure": 0, "name": "torso"},
-                   {"size": [0.12, 0.12, 0.2], "squareness": [1.0, 1.0], "position": [0.22, 0.05, 2.0], "figure": 1}]}
+SCENE = {
+    "parts": [
+        {
+            "size": [0.2, 0.15, 0.3],
+            "squareness": [0.5, 1.0],
+            "position": [-0.22, 0, 2.0],
+            "rotation": [[1, 0, 0], [0, 0, -1], [0, 1, 0]],
+            "gamma": 40.0,
+            "figure": 0,
+            "name": "torso",
+        },
+        {"size": [0.12, 0.12, 0.2], "squareness": [1.0, 1.0], "position": [0.22, 0.05, 2.0], "figure": 1},
+    ]
+}
 FAST = ["--resolution", "0", "--refine-rounds", "0", "--quiet"]
 
 
@@ -108,8 +119,16 @@ def _chromium():
 
     options = webdriver.ChromeOptions()
     options.binary_location = browser
-    for a in ("--headless=new", "--no-sandbox", "--disable-dev-shm-usage", "--window-size=1024,720",
-              "--use-gl=angle", "--use-angle=swiftshader", "--enable-unsafe-swiftshader", "--ignore-gpu-blocklist"):
+    for a in (
+        "--headless=new",
+        "--no-sandbox",
+        "--disable-dev-shm-usage",
+        "--window-size=1024,720",
+        "--use-gl=angle",
+        "--use-angle=swiftshader",
+        "--enable-unsafe-swiftshader",
+        "--ignore-gpu-blocklist",
+    ):
         options.add_argument(a)
     try:
         return webdriver.Chrome(service=Service(driver), options=options)
@@ -143,8 +162,14 @@ def test_viewer_in_headless_chromium(out_dir, tmp_path):
 
     port = free_port()
     env = dict(os.environ, PYTHONPATH=str(ROOT), JAX_PLATFORMS="cpu")
-    server = subprocess.Popen([sys.executable, "-m", "sqparts", "view", str(out_dir), "--port", str(port)],
-                              stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True, env=env, cwd=tmp_path)
+    server = subprocess.Popen(
+        [sys.executable, "-m", "sqparts", "view", str(out_dir), "--port", str(port)],
+        stdout=subprocess.PIPE,
+        stderr=subprocess.STDOUT,
+        text=True,
+        env=env,
+        cwd=tmp_path,
+    )
     try:
         url = None
         for line in server.stdout:  # the viewer announces its address once it serves
@@ -191,20 +216,40 @@ def test_viewer_in_headless_chromium(out_dir, tmp_path):
 
 @pytest.mark.slow
 def test_recover_writes_view_files_and_rerun(tmp_path):
-    rerun = pytest.importorskip("rerun")
+    pytest.importorskip("rerun")
     (tmp_path / "cam.json").write_text(json.dumps(CAMERA))
-    (tmp_path / "scene.json").write_text(json.dumps({"parts": [{k: v for k, v in SCENE["parts"][0].items()
-                                                                 if k not in ("gamma", "figure", "name")}]}))
-    depth = np.asarray(sqparts.render_range_image(sqparts.load_scene(tmp_path / "scene.json"),
-                                                  sqparts.load_camera(tmp_path / "cam.json")))
+    (tmp_path / "scene.json").write_text(
+        json.dumps({"parts": [{k: v for k, v in SCENE["parts"][0].items() if k not in ("gamma", "figure", "name")}]})
+    )
+    depth = np.asarray(
+        sqparts.render_range_image(
+            sqparts.load_scene(tmp_path / "scene.json"), sqparts.load_camera(tmp_path / "cam.json")
+        )
+    )
     np.save(tmp_path / "x.npy", depth)
     np.save(tmp_path / "y.npy", depth)
     out, rrd = tmp_path / "out", tmp_path / "run.rrd"
-    assert main(["recover", str(tmp_path / "x.npy"), str(tmp_path / "y.npy"), "--camera", str(tmp_path / "cam.json"),
-                 "--out", str(out), "--rerun", str(rrd), *FAST]) == 0
+    assert (
+        main(
+            [
+                "recover",
+                str(tmp_path / "x.npy"),
+                str(tmp_path / "y.npy"),
+                "--camera",
+                str(tmp_path / "cam.json"),
+                "--out",
+                str(out),
+                "--rerun",
+                str(rrd),
+                *FAST,
+            ]
+        )
+        == 0
+    )
     for name in ("x", "y"):
         assert {"parts.json", "model.ply", "report.png", "range.npy", "camera.json", "pixels.npz"} <= {
-            p.name for p in (out / name).iterdir()}
+            p.name for p in (out / name).iterdir()
+        }
         data = load_view_data(out / name)
         assert data["camera"] == sqparts.camera_from_json(CAMERA)
         assert data["status"].max() >= STATUS["explained"]
@@ -217,20 +262,60 @@ def test_recover_writes_view_files_and_rerun(tmp_path):
     for name in ("x", "y"):
         assert {f"/{name}/points/measured", f"/{name}/parts/part_0", f"/{name}/camera/depth"} <= entities
     # --rerun: an existing recording is kept unless --overwrite
-    assert main(["recover", str(tmp_path / "x.npy"), "--camera", str(tmp_path / "cam.json"),
-                 "--out", str(tmp_path / "out2"), "--rerun", str(rrd), *FAST]) == 2
+    assert (
+        main(
+            [
+                "recover",
+                str(tmp_path / "x.npy"),
+                "--camera",
+                str(tmp_path / "cam.json"),
+                "--out",
+                str(tmp_path / "out2"),
+                "--rerun",
+                str(rrd),
+                *FAST,
+            ]
+        )
+        == 2
+    )
     assert not (tmp_path / "out2").exists()
 
 
 def test_rerun_option_errors(tmp_path, capsys):
     (tmp_path / "cam.json").write_text(json.dumps(CAMERA))
     np.save(tmp_path / "x.npy", np.ones((24, 32), np.float32))
-    assert main(["recover", str(tmp_path / "x.npy"), "--camera", str(tmp_path / "cam.json"),
-                 "--out", str(tmp_path / "o"), "--rerun", str(tmp_path / "r.txt")]) == 2
+    assert (
+        main(
+            [
+                "recover",
+                str(tmp_path / "x.npy"),
+                "--camera",
+                str(tmp_path / "cam.json"),
+                "--out",
+                str(tmp_path / "o"),
+                "--rerun",
+                str(tmp_path / "r.txt"),
+            ]
+        )
+        == 2
+    )
     assert "--rerun: got " in capsys.readouterr().err
     (tmp_path / "r.rrd").write_bytes(b"x")
-    assert main(["recover", str(tmp_path / "x.npy"), "--camera", str(tmp_path / "cam.json"),
-                 "--out", str(tmp_path / "o"), "--rerun", str(tmp_path / "r.rrd")]) == 2
+    assert (
+        main(
+            [
+                "recover",
+                str(tmp_path / "x.npy"),
+                "--camera",
+                str(tmp_path / "cam.json"),
+                "--out",
+                str(tmp_path / "o"),
+                "--rerun",
+                str(tmp_path / "r.rrd"),
+            ]
+        )
+        == 2
+    )
     assert "--rerun: got " in capsys.readouterr().err and (tmp_path / "r.rrd").read_bytes() == b"x"
 
 
