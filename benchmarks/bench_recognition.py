@@ -241,9 +241,9 @@ def main():
     ap = argparse.ArgumentParser()
     ap.add_argument("--from-cache", action="store_true", help="reuse results/recognition_cache.json's recoveries")
     args = ap.parse_args()
-    import sqparts.cli
+    import sqparts._compile
 
-    sqparts.cli._enable_compilation_cache()
+    sqparts._compile.enable_caches()
     views = plan()
     meshes = {name: normalised_mesh(DATA / "models" / f"{name}.obj") for name in MESHES}
     meshes["teapot"] = normalised_mesh(DATA / "teapot.obj")

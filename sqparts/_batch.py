@@ -255,19 +255,12 @@ def _run_on_worker(task: _Task) -> dict:
 
 
 def enable_compilation_cache() -> None:
-    """JAX's persistent compilation cache in ``$SQPARTS_CACHE_DIR`` (default
-    ``~/.cache/sqparts/jax``), for every program however small; once per process."""
+    """:func:`sqparts._compile.enable_caches`, once per (worker) process."""
     if _cache_state["enabled"]:
         return
-    import jax
+    from ._compile import enable_caches
 
-    cache = os.environ.get("SQPARTS_CACHE_DIR", str(Path.home() / ".cache" / "sqparts" / "jax"))
-    try:
-        Path(cache).mkdir(parents=True, exist_ok=True)
-        jax.config.update("jax_compilation_cache_dir", cache)
-        jax.config.update("jax_persistent_cache_min_compile_time_secs", 0.0)
-    except OSError:
-        pass
+    enable_caches()
     _cache_state["enabled"] = True
 
 

@@ -42,12 +42,27 @@ from pathlib import Path
 import jax
 import jax.core
 
-__all__ = ["persistent_jit", "set_export_dir", "export_dir", "forget_loaded"]
+__all__ = ["persistent_jit", "set_export_dir", "export_dir", "forget_loaded", "enable_caches"]
 
 _log = logging.getLogger(__name__)
 _MAGIC = b"sqparts-export-1\n"
 _state: dict[str, Path | None] = {"dir": None}
 _loaded_tables: list[dict] = []  # every persistent_jit's loaded programs (see forget_loaded)
+
+
+def enable_caches() -> None:
+    """What the command line and its Dask workers turn on: JAX's persistent compilation
+    cache in ``$SQPARTS_CACHE_DIR`` (default ``~/.cache/sqparts/jax``), for every program
+    however small, and the exported programs beside it (``exported/``), so that a later
+    process neither compiles nor traces them. An unwritable cache folder leaves both off."""
+    cache = Path(os.environ.get("SQPARTS_CACHE_DIR", str(Path.home() / ".cache" / "sqparts" / "jax")))
+    try:
+        cache.mkdir(parents=True, exist_ok=True)
+        jax.config.update("jax_compilation_cache_dir", str(cache))
+        jax.config.update("jax_persistent_cache_min_compile_time_secs", 0.0)
+        set_export_dir(cache / "exported")
+    except OSError:
+        pass
 
 
 def set_export_dir(directory) -> None:

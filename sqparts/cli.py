@@ -17,7 +17,6 @@ from __future__ import annotations
 
 import argparse
 import contextlib
-import os
 import signal
 import sys
 import threading
@@ -723,23 +722,6 @@ def _signals_deferred():
             raise Interrupted(_signal_state["pending"])
 
 
-def _enable_compilation_cache() -> None:
-    import jax
-
-    cache = os.environ.get("SQPARTS_CACHE_DIR", str(Path.home() / ".cache" / "sqparts" / "jax"))
-    try:
-        Path(cache).mkdir(parents=True, exist_ok=True)
-        jax.config.update("jax_compilation_cache_dir", cache)
-        # Every program, however small: a later run then compiles nothing.
-        jax.config.update("jax_persistent_cache_min_compile_time_secs", 0.0)
-        # And the big programs exported, so a later run does not trace them either.
-        from ._compile import set_export_dir
-
-        set_export_dir(Path(cache) / "exported")
-    except OSError:
-        pass
-
-
 def _error(message: str) -> int:
     print(f"sqparts: error: {message.splitlines()[0] if message else 'unknown error'}", file=sys.stderr)
     return 2
@@ -751,10 +733,10 @@ def main(argv=None) -> int:
     with _signals_stop_the_run():
         try:
             with _signals_deferred():
-                from . import _io, _mesh, _plot, _recover  # noqa: F401  (JAX, trimesh, matplotlib)
+                from . import _compile, _io, _mesh, _plot, _recover  # noqa: F401  (JAX, trimesh, matplotlib)
 
                 args = build_parser().parse_args(argv)
-                _enable_compilation_cache()
+                _compile.enable_caches()
             return args.func(args)
         except OSError as e:
             if e.strerror and e.filename:  # raised by the OS, not by us: name the file
