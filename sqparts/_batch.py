@@ -147,6 +147,26 @@ def write_recovery(folder, recovery, *, title: str, names=None) -> None:
         )
 
 
+def read_input(path, *, camera=None, depth_scale: float = 0.001):
+    """One range image and the camera it is recovered with: ``camera`` replaces the
+    file's own (a ``.pcd`` carries one). Raises ``ValueError`` for an image without a
+    camera or of another size than the camera."""
+    from ._io import read_range_image
+
+    depth, own = read_range_image(path, depth_scale=depth_scale)
+    camera = camera or own
+    if camera is None:
+        raise ValueError(
+            f"--camera: got nothing for {str(path)!r}, which carries no camera, expected --camera CAM.json"
+        )
+    if depth.shape != (camera.height, camera.width):
+        raise ValueError(
+            f"--camera: got a {camera.width}x{camera.height} camera for {str(path)!r}, expected "
+            f"{depth.shape[1]}x{depth.shape[0]} (the image's size)"
+        )
+    return depth, camera
+
+
 def recover_file(
     path,
     target,
@@ -169,21 +189,11 @@ def recover_file(
     import numpy as np
 
     from ._fit import encoding_for
-    from ._io import read_range_image, staged_folder
+    from ._io import staged_folder
     from ._recover import recover_scene
 
     path = Path(path)
-    depth, own = read_range_image(path, depth_scale=depth_scale)
-    camera = camera or own
-    if camera is None:
-        raise ValueError(
-            f"--camera: got nothing for {str(path)!r}, which carries no camera, expected --camera CAM.json"
-        )
-    if depth.shape != (camera.height, camera.width):
-        raise ValueError(
-            f"--camera: got a {camera.width}x{camera.height} camera for {str(path)!r}, expected "
-            f"{depth.shape[1]}x{depth.shape[0]} (the image's size)"
-        )
+    depth, camera = read_input(path, camera=camera, depth_scale=depth_scale)
     encoding = encoding_for(depth[np.isfinite(depth)], sigma=sigma) if sigma else None
     recovery = recover_scene(depth, camera, encoding=encoding, progress=progress, **options)
     with staged_folder(target, overwrite=overwrite) as folder:

@@ -141,13 +141,6 @@ def cmd_show(args) -> int:
     return 0
 
 
-def _write_recovery(folder: Path, recovery, *, title: str, names=None) -> None:
-    """parts.json, model.ply and report.png into ``folder`` (a staged folder)."""
-    from ._batch import write_recovery
-
-    write_recovery(folder, recovery, title=title, names=names)
-
-
 def _recover_options(args) -> dict:
     opts = dict(
         grid=args.grid,
@@ -341,6 +334,7 @@ def cmd_view(args) -> int:
 
 
 def cmd_demo(args) -> int:
+    from ._batch import write_recovery
     from ._io import check_new_output, staged_folder, write_range_image
     from ._recover import recover
     from ._render import render_range_image
@@ -353,7 +347,7 @@ def cmd_demo(args) -> int:
     recovery = recover(np.asarray(depth), scene.camera, progress=_progress(args, "regions", "region"))
     with staged_folder(out, overwrite=args.overwrite) as folder:
         write_range_image(folder / "range.npy", depth)
-        _write_recovery(folder, recovery, title=f"demo: {scene.description}")
+        write_recovery(folder, recovery, title=f"demo: {scene.description}")
     _say(
         args,
         f"demo: {scene.description}\n  true parts: {len(scene.parts)}; recovered: "
@@ -365,24 +359,11 @@ def cmd_demo(args) -> int:
 
 def _read_inputs(args, inputs) -> list:
     """(path, depth, camera) per input, every one read and checked before any work."""
-    from ._io import load_camera, read_range_image
+    from ._batch import read_input
+    from ._io import load_camera
 
-    camera_arg = load_camera(args.camera) if args.camera else None
-    loaded = []
-    for path in inputs:
-        depth, camera = read_range_image(path, depth_scale=args.depth_scale)
-        camera = camera_arg or camera
-        if camera is None:
-            raise ValueError(
-                f"--camera: got nothing for {str(path)!r}, which carries no camera, expected --camera CAM.json"
-            )
-        if depth.shape != (camera.height, camera.width):
-            raise ValueError(
-                f"--camera: got a {camera.width}x{camera.height} camera for {str(path)!r}, expected "
-                f"{depth.shape[1]}x{depth.shape[0]} (the image's size)"
-            )
-        loaded.append((path, depth, camera))
-    return loaded
+    camera = load_camera(args.camera) if args.camera else None
+    return [(path, *read_input(path, camera=camera, depth_scale=args.depth_scale)) for path in inputs]
 
 
 def _recognition_options(args) -> dict:
