@@ -93,7 +93,12 @@ def main():
     rows = []
     for name, what, depth, cam, extra in inputs(args.only):
         t0 = time.perf_counter()
-        rec = sqparts.recover_scene(depth, cam, grid=args.grid, prettify=True, **extra)
+        rec = sqparts.recover_scene(
+            depth,
+            cam,
+            scene=sqparts.SceneSettings(prettify=True, **extra),
+            search=sqparts.SearchSettings(grid=args.grid),
+        )
         wall = time.perf_counter() - t0
         resid = sqparts.residual_model(rec)
         save_report(DOCS / f"real_{name}.png", rec, title=f"{what}: {name}")

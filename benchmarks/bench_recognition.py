@@ -52,7 +52,7 @@ RESOLUTION = 64
 DISTANCE = 2.5  # m, learning distance
 FOCAL = RESOLUTION * DISTANCE / 1.1
 NOISE = 0.001  # m
-RECOVER = dict(refine_rounds=1)
+RECOVER = dict(refine=sqparts.RefineSettings(rounds=1))
 LEARN_VIEWS = [(0, 20), (120, 20), (240, 20)]
 HUMAN_LEARN = [("standing", 0), ("standing", 40), ("standing", -40)]
 HUMAN_TEST = [

@@ -136,7 +136,7 @@ def candidate_problem(name):
 
     s = sqparts.builtin_scene(name)
     depth = np.asarray(sqparts.render_range_image(s.parts, s.camera))
-    fits, data, _ = sqparts.fit_image(depth, s.camera, grid="coarse", top_k=3)
+    fits, data, _ = sqparts.fit_image(depth, s.camera, "fast")  # the candidates recover selects from
     parts, _, explained, commission = _candidates(fits, data)
     costs = sqparts.Costs.from_encoding(data.encoding, int(data.figure_mask.sum()))
     return sqparts.SelectionProblem.from_masks(explained, commission, costs)

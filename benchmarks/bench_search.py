@@ -18,6 +18,7 @@ Case i cycles through the 16 combinations (pinhole or not, variant, deformed or 
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import statistics
 import sys
 import time
@@ -172,15 +173,18 @@ def throughput(repeats: int = 3):
         centre = np.array([52, 63])
         res = {}
         for label, prune in (("pruned", True), ("brute", False)):
-            sqparts.fit_region(data, st, centre, prune=prune)  # compile
+            st = dataclasses.replace(st, prune=prune)
+            sqparts.fit_region(data, st, centre)  # compile
             times = []
             for _ in range(repeats if (grid == "coarse" or prune) else 1):
                 t0 = time.perf_counter()
-                jax.block_until_ready(sqparts.fit_region(data, st, centre, prune=prune).gamma)
+                jax.block_until_ready(sqparts.fit_region(data, st, centre).gamma)
                 times.append(time.perf_counter() - t0)
             res[label] = statistics.median(times)
         t0 = time.perf_counter()
-        fits, _, _ = sqparts.fit_image(depth, s.camera, grid=grid)
+        fits, _, _ = sqparts.fit_image(
+            depth, s.camera, dataclasses.replace(sqparts.SEARCH_PRESETS["region"], grid=grid)
+        )
         jax.block_until_ready([f.gamma for f in fits])
         per_image = time.perf_counter() - t0
         out[grid] = {

@@ -65,6 +65,7 @@ _EXPORTS = {
     "_search": (
         "RangeData",
         "RegionFit",
+        "SEARCH_PRESETS",
         "SearchSettings",
         "convex_width",
         "expanding_grid",
@@ -78,9 +79,11 @@ _EXPORTS = {
         "ray_penetration",
         "region_centers",
         "score_region",
+        "search_preset",
     ),
     "_select": (
         "Costs",
+        "SelectSettings",
         "SelectionProblem",
         "area_matrix",
         "description_length",
@@ -91,17 +94,21 @@ _EXPORTS = {
     ),
     "_refine": (
         "EncodingCost",
+        "RefineSettings",
         "encoding_cost",
         "refine_parts",
         "select_rendered",
     ),
     "_recover": (
+        "SCENE_PRESETS",
         "MultiscaleRecovery",
         "Recovery",
         "SceneRecovery",
+        "SceneSettings",
         "recover",
         "recover_multiscale",
         "recover_scene",
+        "scene_preset",
     ),
     "_postprocess": (
         "FractalSurface",

@@ -499,7 +499,8 @@ def recover_many(
     overwrite : replace existing outputs and start ``results.jsonl`` afresh.
     resume : skip the inputs whose sub-folder is complete and whose latest line says
         ``ok``; redo the others (failed, missing, or finished without a line).
-    depth_scale, sigma, options : as for ``sqparts recover`` / :func:`~sqparts.recover_scene`.
+    depth_scale, sigma : as for ``sqparts recover``.
+    options : :func:`~sqparts.recover_scene`'s settings (``scene``, ``search``, ``select``, ``refine``).
     progress : show a progress bar over the inputs (rate and time left).
 
     Returns

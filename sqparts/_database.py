@@ -387,11 +387,13 @@ def _figure_recoveries(recovery) -> list:
     return list(getattr(recovery, "figures", None) or [recovery])
 
 
-def _coarse_levels(recovery, levels: int, **recover_kwargs) -> list[Part]:
+def _coarse_levels(recovery, levels: int) -> list[Part]:
     """Parts of the largest figure recovered on its image binned by 2^(levels-1) ... 2
-    (section 4.1's coarser levels), each with parts up to half the figure's extent / 2^k."""
+    (section 4.1's coarser levels), each with parts up to half the figure's extent / 2^k,
+    with the figure's own search settings and without refinement."""
     from ._preprocess import downsample, downsample_mask
     from ._recover import recover
+    from ._refine import RefineSettings
 
     fig = _figure_recoveries(recovery)[0]
     depth = np.where(fig.figure, fig.depth, np.nan).astype(np.float32)
@@ -405,12 +407,13 @@ def _coarse_levels(recovery, levels: int, **recover_kwargs) -> list[Part]:
         mask = downsample_mask(fig.figure, f) & np.isfinite(d)
         if mask.sum() < 16:
             continue
-        rec = recover(d, cam, figure=mask, max_size=max_size / 2**k, refine_rounds=0, **recover_kwargs)
+        search = dataclasses.replace(fig.search, max_size=max_size / 2**k, window=None)
+        rec = recover(d, cam, search=search, refine=RefineSettings.none(), figure=mask)
         out.append(rec.parts)
     return out
 
 
-def view_from_recovery(recovery, *, source: str = "", levels: int = 2, **recover_kwargs) -> StoredView:
+def view_from_recovery(recovery, *, source: str = "", levels: int = 2) -> StoredView:
     """A :class:`StoredView` from a recovery of a view that shows one object: all its
     figures together are the object (depth jumps inside an object, a fin in front of a
     body, tear it into several figures). The variants: the largest figure's selection
@@ -419,7 +422,7 @@ def view_from_recovery(recovery, *, source: str = "", levels: int = 2, **recover
     figures = _figure_recoveries(recovery)
     others = [p for r in figures[1:] for p in r.parts]
     parts = stack_parts([p for r in figures for p in r.parts])
-    coarse = _coarse_levels(recovery, levels, **recover_kwargs) if levels > 1 else []
+    coarse = _coarse_levels(recovery, levels) if levels > 1 else []
     return view_from_parts(
         parts,
         source=source,
@@ -438,7 +441,8 @@ def learn(name: str, views, *, database, levels: int = 2, progress=None, **recov
         :class:`~sqparts.Recovery` already made; the largest figure of each is the object.
     database : a :class:`ModelDatabase` or a folder path.
     levels : multiscale levels stored per view (1: only the recovery itself).
-    recover_kwargs : passed to :func:`sqparts.recover_scene`.
+    recover_kwargs : :func:`sqparts.recover_scene`'s settings (``scene``, ``search``,
+        ``select``, ``refine``).
 
     Returns the database, written and recalibrated.
     """
@@ -464,7 +468,7 @@ def learn(name: str, views, *, database, levels: int = 2, progress=None, **recov
             )
         db.add_view(
             name,
-            view_from_recovery(rec, source=source, levels=levels, grid=recover_kwargs.get("grid", "coarse")),
+            view_from_recovery(rec, source=source, levels=levels),
             calibrate=k == len(views) - 1,
         )
     return db

@@ -27,16 +27,16 @@ from ._fit import Encoding
 from ._part import Part, stack_parts
 from ._refine import (
     EncodingCost,
+    RefineSettings,
     encoding_cost,
     layer_errors,
     part_statistics,
-    refine_parts,
     render_each,
     select_rendered,
 )
 from ._render import render_range_image
-from ._search import RangeData, camera_points, fit_image
-from ._select import Costs, SelectionProblem, select_parts
+from ._search import RangeData, SearchSettings, camera_points, fit_image, search_preset
+from ._select import Costs, SelectionProblem, SelectSettings
 
 if TYPE_CHECKING:
     from ._preprocess import CleanedRange, FigureGround
@@ -80,9 +80,10 @@ class _Meshes:
         return scene_open3d(self.parts, resolution=resolution)
 
 
-@dataclasses.dataclass
+@dataclasses.dataclass(frozen=True)
 class Recovery(_Fractions, _Meshes):
-    """What :func:`recover` found.
+    """What :func:`recover` found (immutable: later stages derive a new one with
+    ``dataclasses.replace``).
 
     Attributes
     ----------
@@ -98,14 +99,18 @@ class Recovery(_Fractions, _Meshes):
         The selection before refinement (Figure 7c's "initial explanation").
     candidates : int
         Candidates found by the local search (regions × top_k).
+    regions : int
+        Regions searched.
     selection_method : str
     timings : dict
         Seconds per stage: ``search``, ``selection``, ``refinement``, ``total``.
-    settings : dict
-        The settings used (grid, max_size, window, σ, λ, bit costs...).
+    search, select, refine :
+        The settings objects it ran with (``search`` resolved on the data: its
+        ``max_size`` and ``window``); :attr:`settings` is their JSON form with σ, λ and
+        the bit costs.
     depth, figure :
         The input range image and figure mask (pixels with a return).
-    history : list of (stage, E)
+    history : tuple of (stage, E)
     data, costs :
         The prepared data and bit costs, for later stages (prettifying, residuals).
     """
@@ -116,14 +121,39 @@ class Recovery(_Fractions, _Meshes):
     initial_parts: Part
     initial_cost: EncodingCost
     candidates: int
+    regions: int
     selection_method: str
     timings: dict
-    settings: dict
+    search: SearchSettings
+    select: SelectSettings
+    refine: RefineSettings
     depth: np.ndarray
     figure: np.ndarray
-    history: list
-    data: RangeData | None = None
-    costs: Costs | None = None
+    history: tuple
+    data: RangeData
+    costs: Costs
+
+    @property
+    def settings(self) -> dict:
+        """The settings as JSON: ``search``, ``select``, ``refine``, σ, quantum, λ, the
+        bit costs and the raw data's bits (what parts.json records)."""
+        enc, costs = self.data.encoding, self.costs
+        return {
+            "search": self.search.to_json(),
+            "select": dataclasses.asdict(self.select),
+            "refine": dataclasses.asdict(self.refine),
+            "regions": self.regions,
+            "sigma": enc.sigma,
+            "quantum": enc.quantum,
+            "commission_weight": enc.commission_weight,
+            "bits": {
+                "part": costs.part,
+                "explained_pixel": costs.explained,
+                "commission_pixel": costs.commission,
+                "omitted_pixel": costs.omission,
+            },
+            "raw_bits": costs.omission * costs.figure_pixels,
+        }
 
     @property
     def description_length(self) -> float:
@@ -166,78 +196,50 @@ class Recovery(_Fractions, _Meshes):
         )
 
 
-MAX_REFINE_ROUNDS = 100
-"""Most rounds of joint refinement a recovery may ask for (a bound on its work)."""
+def _settings(value, kind, name: str):
+    if value is None:
+        return kind()
+    if not isinstance(value, kind):
+        raise TypeError(f"{name}: got {value!r:.60} ({type(value).__name__}), expected a sqparts.{kind.__name__}")
+    return value
 
 
 def recover(
     depth,
     camera: Camera,
     *,
+    search: SearchSettings | str = "fast",
+    select: SelectSettings | None = None,
+    refine: RefineSettings | None = None,
     figure=None,
-    grid="coarse",
-    max_size: float | None = None,
-    window: int | None = None,
     encoding: Encoding | None = None,
-    top_k: int = 3,
-    selection: str = "auto",
-    refine_rounds: int = 2,
-    split: bool = True,
-    fill: bool = True,
-    merge: bool = True,
     centres=None,
     progress=None,
-    **search_kwargs,
 ) -> Recovery:
-    """Recover a part model from a range image.
+    """Recover a part model from a range image (sections 3.3-3.5).
 
     Parameters
     ----------
     depth : (H, W) float array, NaN where there is no return.
     camera : the camera that took it (``depth.shape == (camera.height, camera.width)``).
+    search : a :class:`~sqparts.SearchSettings` or a preset name of
+        :data:`~sqparts.SEARCH_PRESETS` (``"fast"``: the coarse grid, light polishing;
+        ``"paper"``: the paper's ~2^16 grid; ``"region"``: one region's long polishing
+        and restarts, for boxy, rigid objects).
+    select : how Eq. (7) is minimised (:class:`~sqparts.SelectSettings`).
+    refine : joint refinement (:class:`~sqparts.RefineSettings`; ``RefineSettings.none()``
+        to stop after selection).
     figure : optional (H, W) bool mask of the figure (default: every return).
-    grid : a :class:`~sqparts.Grid` or preset name (``"coarse"``, ``"default"``, ``"fine"``).
-    max_size : largest semi-axis searched (default: a quarter of the figure's largest extent).
-    selection : ``"auto"``, ``"exact"`` or ``"best-first"``: how Eq. (7)'s quadratic is
-        minimised; its choice is then corrected on E counted in the candidates' joint
-        rendering (:func:`~sqparts.select_rendered`).
-    refine_rounds : rounds of joint polishing (0 = none); then ``split`` allows a part to
-        be split in two along its axis, ``fill`` searches the blobs of pixels still
-        unexplained again at their own scale (for small parts: hands, feet), ``merge``
-        allows two parts to be merged into one bent part; each only when E falls.
+    encoding : σ, λ and the bit costs (default: :func:`~sqparts.encoding_for` the figure).
+    centres : optional (n, 2) region centres (row, col) replacing the skeleton's.
     progress : optional wrapper for the region loop (e.g. ``tqdm.tqdm``).
-    **search_kwargs : :class:`~sqparts.SearchSettings` fields. Unlike a single
-        :func:`~sqparts.fit_region`, recovery polishes only the ``top_k`` best starts per
-        region, lightly and without restarts (``polish_candidates=top_k, polish_rounds=3,
-        polish_steps=10, restarts=0``): selection and joint refinement follow, and on the
-        built-in scenes longer region-growing polishes let a part spread onto its
-        neighbours (human: 73% of the figure explained with 6 rounds of 15 steps, 83% with
-        3 of 10), while restarts cost 2.4× the time for 2 points (85%, 22 s warm).
-        Boxy, rigid objects want the single-region settings instead
-        (``restarts=3, polish_rounds=6, polish_steps=15``): flat boxes then come back
-        with ε ≈ 0.1 rather than as rounded blobs (see ``benchmarks/README.md``).
     """
-    if (
-        isinstance(refine_rounds, bool)
-        or not isinstance(refine_rounds, (int, np.integer))
-        or not (0 <= refine_rounds <= MAX_REFINE_ROUNDS)
-    ):
-        raise ValueError(f"refine_rounds: got {refine_rounds!r}, expected an integer in [0, {MAX_REFINE_ROUNDS}]")
-    for name, value in (("polish_candidates", top_k), ("polish_rounds", 3), ("polish_steps", 10), ("restarts", 0)):
-        search_kwargs.setdefault(name, value)
+    search = search_preset(search)
+    select = _settings(select, SelectSettings, "select")
+    refine = _settings(refine, RefineSettings, "refine")
     t0 = time.perf_counter()
-    fits, data, settings = fit_image(
-        depth,
-        camera,
-        grid=grid,
-        figure=figure,
-        encoding=encoding,
-        max_size=max_size,
-        window=window,
-        top_k=top_k,
-        centres=centres,
-        progress=progress,
-        **search_kwargs,
+    fits, data, resolved = fit_image(
+        depth, camera, search, figure=figure, encoding=encoding, centres=centres, progress=progress
     )
     jax.block_until_ready([f.gamma for f in fits])
     t1 = time.perf_counter()
@@ -249,21 +251,18 @@ def recover(
         )
     assert layers is not None and explained is not None  # None only together with parts
     problem = SelectionProblem.from_masks(explained, commission, costs)
-    chosen, method = select_parts(problem, method=selection)
+    chosen, method = select.select(problem)
     chosen = select_rendered(layers, data, costs, start=chosen)
     if not chosen.any():
         chosen[int(np.argmax([f.sum() for f in explained]))] = True
     initial = parts[np.flatnonzero(chosen)]
     t2 = time.perf_counter()
     initial_cost = encoding_cost(initial, data, costs)
-    if refine_rounds > 0 or split or fill or merge:
-        final, cost, history = refine_parts(
-            initial, data, costs, rounds=refine_rounds, split=split, merge=merge, search=settings if fill else None
-        )
+    if refine.active:
+        final, cost, history = refine.refine(initial, data, costs, search=resolved)
     else:
         final, cost, history = initial, initial_cost, [("initial", initial_cost.total)]
     t3 = time.perf_counter()
-    enc = data.encoding
     return Recovery(
         parts=final,
         part_stats=part_statistics(final, data, cost),
@@ -271,34 +270,15 @@ def recover(
         initial_parts=initial,
         initial_cost=initial_cost,
         candidates=len(parts),
+        regions=len(fits),
         selection_method=method,
         timings={"search": t1 - t0, "selection": t2 - t1, "refinement": t3 - t2, "total": t3 - t0},
-        settings={
-            "grid": dataclasses.asdict(settings.grid),
-            "hypotheses_per_region": settings.grid.size,
-            "regions": len(fits),
-            "max_size": settings.max_size,
-            "window": settings.window,
-            "top_k": settings.top_k,
-            "stride": settings.stride,
-            "survivors": settings.survivors,
-            "polish_candidates": settings.polish_candidates,
-            "restarts": settings.restarts,
-            "refinement": {"rounds": refine_rounds, "split": split, "fill": fill, "merge": merge},
-            "sigma": enc.sigma,
-            "quantum": enc.quantum,
-            "commission_weight": enc.commission_weight,
-            "bits": {
-                "part": costs.part,
-                "explained_pixel": costs.explained,
-                "commission_pixel": costs.commission,
-                "omitted_pixel": costs.omission,
-            },
-            "raw_bits": costs.omission * costs.figure_pixels,
-        },
+        search=resolved,
+        select=select,
+        refine=refine,
         depth=np.asarray(data.image),
         figure=np.asarray(data.figure_mask),
-        history=history,
+        history=tuple(history),
         data=data,
         costs=costs,
     )
@@ -347,9 +327,95 @@ def _composite_cost(recoveries, shape) -> EncodingCost:
     return EncodingCost(float(t), int(n), int(e), int(c), int(o), rendered, labels, explained, commission)
 
 
-@dataclasses.dataclass
+@dataclasses.dataclass(frozen=True)
+class SceneSettings:
+    """How :func:`recover_scene` prepares real data and finishes its parts; presets in
+    :data:`SCENE_PRESETS`.
+
+    Binning: ``resolution`` (bin the image, NaN-aware median, so its longest side is
+    about this; None or 0: full resolution). The cube of data: ``depth_range`` (near,
+    far): returns outside are dropped. Clean-up (``clean``): missing returns, flying
+    pixels and outliers (:func:`~sqparts.clean_range_image`, with ``tear``).
+    Figure/ground (``figure_ground``): up to ``planes`` background planes removed
+    (``plane_threshold``) and the rest split into figures (``min_figure_pixels``,
+    ``max_figures``, ``max_height``, ``max_border_fraction``: see
+    :func:`~sqparts.figure_ground`); off: the whole image is one figure. Prettifying
+    (``prettify``): near-vertical and near-horizontal parts snapped to gravity ``up``
+    (default: the ground plane's normal) within ``max_angle`` degrees when E rises by at
+    most ``max_bits`` (:func:`~sqparts.prettify`).
+    """
+
+    resolution: int | None = 160
+    depth_range: tuple[float, float] | None = None
+    clean: bool = True
+    tear: float | None = None
+    figure_ground: bool = True
+    planes: int = 3
+    plane_threshold: float | None = None
+    min_figure_pixels: int | None = None
+    max_figures: int | None = None
+    max_height: float | None = None
+    max_border_fraction: float = 0.15
+    prettify: bool = False
+    up: tuple[float, float, float] | None = None
+    max_angle: float = 15.0
+    max_bits: float = 56.0
+
+    def __post_init__(self):
+        r = self.resolution
+        if r is not None and (isinstance(r, bool) or not isinstance(r, (int, np.integer)) or r < 0):
+            raise ValueError(f"resolution: got {r!r}, expected an integer >= 0 or None")
+        for name in ("clean", "figure_ground", "prettify"):
+            if not isinstance(getattr(self, name), bool):
+                raise ValueError(f"{name}: got {getattr(self, name)!r}, expected True or False")
+        if self.depth_range is not None:
+            try:
+                near, far = (float(x) for x in self.depth_range)
+            except (TypeError, ValueError):
+                near = far = np.nan
+            if not (0 <= near < far):
+                raise ValueError(f"depth_range: got {self.depth_range!r}, expected (near, far) with 0 <= near < far")
+            object.__setattr__(self, "depth_range", (near, far))
+        if self.up is not None:
+            try:
+                up = tuple(float(x) for x in self.up)
+            except (TypeError, ValueError):
+                up = ()
+            if len(up) != 3 or not np.all(np.isfinite(up)) or not any(up):
+                raise ValueError(f"up: got {self.up!r}, expected three finite numbers (x, y, z), not all 0")
+            object.__setattr__(self, "up", up)
+        if not (isinstance(self.max_angle, (int, float)) and 0 < self.max_angle <= 90):
+            raise ValueError(f"max_angle: got {self.max_angle!r}, expected degrees in (0, 90]")
+        if not (isinstance(self.max_bits, (int, float)) and np.isfinite(self.max_bits) and self.max_bits >= 0):
+            raise ValueError(f"max_bits: got {self.max_bits!r}, expected a finite number >= 0")
+        if not (isinstance(self.max_border_fraction, (int, float)) and 0 <= self.max_border_fraction <= 1):
+            raise ValueError(f"max_border_fraction: got {self.max_border_fraction!r}, expected a number in [0, 1]")
+
+
+SCENE_PRESETS = {
+    "real": SceneSettings(),
+    "prettified": SceneSettings(prettify=True),
+    "synthetic": SceneSettings(resolution=None, clean=False, figure_ground=False),
+}
+"""Named scene settings: ``"real"`` (recover_scene's default: binned to ~160 pixels,
+cleaned, figure/ground), ``"prettified"`` (the same, then prettified), ``"synthetic"``
+(a clean render: full resolution, no clean-up, the whole image one figure)."""
+
+
+def scene_preset(name_or_settings) -> SceneSettings:
+    """:class:`SceneSettings` from a preset name or a SceneSettings (returned as is)."""
+    if isinstance(name_or_settings, SceneSettings):
+        return name_or_settings
+    if not isinstance(name_or_settings, str) or name_or_settings not in SCENE_PRESETS:
+        raise ValueError(
+            f"scene: got {name_or_settings!r:.60}, expected a SceneSettings or one of {sorted(SCENE_PRESETS)}"
+        )
+    return SCENE_PRESETS[name_or_settings]
+
+
+@dataclasses.dataclass(frozen=True)
 class SceneRecovery(_Fractions, _Meshes):
-    """What :func:`recover_scene` found: one :class:`Recovery` per figure.
+    """What :func:`recover_scene` found: one :class:`Recovery` per figure (immutable).
 
     Attributes
     ----------
@@ -361,6 +427,8 @@ class SceneRecovery(_Fractions, _Meshes):
     figure_ground : the :class:`~sqparts.FigureGround` result, or None.
     prettify : per figure, per part: what prettifying tried and kept (or None).
     timings : seconds: ``preprocess``, ``recovery`` (all figures), ``total``.
+    scene : the :class:`SceneSettings` it ran with (each figure's :class:`Recovery`
+        records its search, select and refine settings).
     """
 
     figures: list
@@ -371,6 +439,7 @@ class SceneRecovery(_Fractions, _Meshes):
     figure_ground: FigureGround | None
     prettify: list | None
     timings: dict
+    scene: SceneSettings
 
     @property
     def parts(self) -> Part:
@@ -401,7 +470,11 @@ class SceneRecovery(_Fractions, _Meshes):
 
     @property
     def settings(self) -> dict:
-        return {"sigma": max(r.settings["sigma"] for r in self.figures), "figures": [r.settings for r in self.figures]}
+        return {
+            "scene": dataclasses.asdict(self.scene),
+            "sigma": max(r.settings["sigma"] for r in self.figures),
+            "figures": [r.settings for r in self.figures],
+        }
 
     def summary(self) -> str:
         n = len(self.parts)
@@ -457,42 +530,19 @@ def recover_scene(
     depth,
     camera: Camera,
     *,
-    resolution: int | None = 160,
-    clean: bool = True,
-    figure_ground: bool = True,
-    tear: float | None = None,
-    planes: int = 3,
-    plane_threshold: float | None = None,
-    min_figure_pixels: int | None = None,
-    max_figures: int | None = None,
-    max_height: float | None = None,
-    max_border_fraction: float = 0.15,
-    depth_range=None,
-    prettify: bool = False,
-    up=None,
-    max_angle: float = 15.0,
-    max_bits: float = 56.0,
+    scene: SceneSettings | str = "real",
+    search: SearchSettings | str = "fast",
+    select: SelectSettings | None = None,
+    refine: RefineSettings | None = None,
+    encoding: Encoding | None = None,
     progress=None,
-    **recover_kwargs,
 ) -> SceneRecovery:
-    """Recover a real scene: bin, clean, separate figures from ground, recover each
-    figure on its own (the searches compiled once, shared by all figures), optionally
-    prettify.
-
-    Parameters
-    ----------
-    resolution : bin the image (NaN-aware median) so its longest side is about this
-        (None or 0: full resolution).
-    clean : remove missing returns, flying pixels and outliers (:func:`~sqparts.clean_range_image`).
-    figure_ground : remove background planes and split the rest into figures
-        (:func:`~sqparts.figure_ground`); off: the whole image is one figure.
-    tear, planes, plane_threshold, min_figure_pixels, max_figures, max_height, max_border_fraction :
-        passed to the clean-up and figure/ground stages.
-    depth_range : (near, far): drop returns outside (the paper's "cube of data").
-    prettify : snap near-vertical / near-horizontal parts to gravity
-        (:func:`~sqparts.prettify`) with ``up`` (default: the ground plane's normal),
-        ``max_angle`` degrees and ``max_bits``.
-    recover_kwargs : passed to :func:`recover` for every figure (grid, max_size, ...).
+    """Recover a real scene: bin, clean, separate figures from ground (``scene``, a
+    :class:`SceneSettings` or preset name), recover each figure on its own with
+    ``search``, ``select`` and ``refine`` as for :func:`recover` (the searches compiled
+    once, shared by all figures), optionally prettify. Unless ``search`` fixes them, each
+    figure's σ covers the sensor's noise (:func:`~sqparts.estimate_noise`) and its window
+    is snapped to a few sizes so that figures share compiled programs.
     """
     from ._fit import encoding_for
     from ._postprocess import prettify as _prettify
@@ -500,34 +550,36 @@ def recover_scene(
     from ._preprocess import figure_ground as _figure_ground
     from ._search import default_max_size, prepare, window_for
 
+    st = scene_preset(scene)
+    search = search_preset(search)
+    select = _settings(select, SelectSettings, "select")
+    refine = _settings(refine, RefineSettings, "refine")
     t0 = time.perf_counter()
-    tear = DEFAULT_TEAR if tear is None else tear
+    tear = DEFAULT_TEAR if st.tear is None else st.tear
     d = np.asarray(depth, np.float32)
     if d.ndim != 2:
         raise ValueError(f"depth: got shape {d.shape}, expected a 2-D range image")
-    if resolution is not None and not (isinstance(resolution, (int, np.integer)) and resolution >= 0):
-        raise ValueError(f"resolution: got {resolution!r}, expected an integer >= 0 or None")
-    factor = auto_factor(d.shape, resolution) if resolution else 1
+    factor = auto_factor(d.shape, st.resolution) if st.resolution else 1
     if factor > 1:
         d, camera = downsample(d, camera, factor)
-    if clean:
-        cleaned = clean_range_image(d, camera, tear=tear, depth_range=depth_range)
+    if st.clean:
+        cleaned = clean_range_image(d, camera, tear=tear, depth_range=st.depth_range)
         d = cleaned.depth
     else:
         cleaned = None
-        d = crop_depth_range(d, depth_range)
+        d = crop_depth_range(d, st.depth_range)
     fg = None
-    if figure_ground:
+    if st.figure_ground:
         fg = _figure_ground(
             d,
             camera,
-            planes=planes,
-            plane_threshold=plane_threshold,
+            planes=st.planes,
+            plane_threshold=st.plane_threshold,
             tear=tear,
-            min_pixels=min_figure_pixels,
-            max_figures=max_figures,
-            max_height=max_height,
-            max_border_fraction=max_border_fraction,
+            min_pixels=st.min_figure_pixels,
+            max_figures=st.max_figures,
+            max_height=st.max_height,
+            max_border_fraction=st.max_border_fraction,
         )
         masks = fg.figures
         if not masks:
@@ -540,16 +592,26 @@ def recover_scene(
     recoveries, reports = [], []
     noise = estimate_noise(d)
     for mask in masks:
-        kw = dict(recover_kwargs)
-        if kw.get("encoding") is None:  # σ covers the sensor's noise: ±σ/2 is ±2 sd
-            enc = encoding_for(d[mask & np.isfinite(d)])
-            kw["encoding"] = encoding_for(d[mask & np.isfinite(d)], sigma=max(enc.sigma, 4.0 * noise))
-        if kw.get("window") is None:
-            data = prepare(d, camera, figure=mask, encoding=kw.get("encoding"))
-            size = kw.get("max_size") or default_max_size(data)
-            kw["window"] = _snap_window(window_for(data, size))
+        enc = encoding
+        if enc is None:  # σ covers the sensor's noise: ±σ/2 is ±2 sd
+            base = encoding_for(d[mask & np.isfinite(d)])
+            enc = encoding_for(d[mask & np.isfinite(d)], sigma=max(base.sigma, 4.0 * noise))
+        figure_search = search
+        if search.window is None:
+            data = prepare(d, camera, figure=mask, encoding=enc)
+            size = search.max_size or default_max_size(data)
+            figure_search = dataclasses.replace(search, window=_snap_window(window_for(data, size)))
         try:
-            rec = recover(d, camera, figure=mask, progress=progress, **kw)
+            rec = recover(
+                d,
+                camera,
+                search=figure_search,
+                select=select,
+                refine=refine,
+                figure=mask,
+                encoding=enc,
+                progress=progress,
+            )
         except ValueError as e:
             if "found no part" in str(e):
                 continue
@@ -557,20 +619,28 @@ def recover_scene(
         recoveries.append(rec)
     if not recoveries:
         raise ValueError("depth: got figures on which the search found no part, expected at least one part")
-    if prettify:
-        gravity = up if up is not None else (fg.up if fg is not None else None)
+    if st.prettify:
+        gravity = st.up if st.up is not None else (fg.up if fg is not None else None)
         if gravity is None:
             raise ValueError(
                 "up: got nothing and no ground plane was found, expected the gravity direction up=(x, y, z) for prettifying"
             )
+        finished = []
         for rec in recoveries:
             parts, cost, report = _prettify(
-                rec.parts, rec.data, rec.costs, up=gravity, max_angle=max_angle, max_bits=max_bits
+                rec.parts, rec.data, rec.costs, up=gravity, max_angle=st.max_angle, max_bits=st.max_bits
             )
-            rec.parts, rec.cost = parts, cost
-            rec.part_stats = part_statistics(parts, rec.data, cost)
-            rec.history.append(("prettify", cost.total))
+            finished.append(
+                dataclasses.replace(
+                    rec,
+                    parts=parts,
+                    cost=cost,
+                    part_stats=part_statistics(parts, rec.data, cost),
+                    history=(*rec.history, ("prettify", cost.total)),
+                )
+            )
             reports.append(report)
+        recoveries = finished
     t2 = time.perf_counter()
     return SceneRecovery(
         recoveries,
@@ -579,8 +649,9 @@ def recover_scene(
         factor,
         cleaned,
         fg,
-        reports if prettify else None,
+        reports if st.prettify else None,
         {"preprocess": t1 - t0, "recovery": t2 - t1, "total": t2 - t0},
+        st,
     )
 
 
@@ -637,15 +708,17 @@ def recover_multiscale(
     camera: Camera,
     *,
     levels: int = 3,
+    search: SearchSettings | str = "fast",
+    select: SelectSettings | None = None,
+    refine: RefineSettings | None = None,
     figure=None,
-    max_size: float | None = None,
     progress=None,
-    **recover_kwargs,
 ) -> MultiscaleRecovery:
     """Recover a coarse-to-fine hierarchy of part models.
 
     Level k of ``levels`` (0 = coarsest) searches parts up to ``max_size`` / 2^k
-    (default ``max_size``: half the figure's largest extent) on the image binned by
+    (``search.max_size``, default: half the figure's largest extent; ``search``,
+    ``select`` and ``refine`` as for :func:`recover`) on the image binned by
     2^(levels-1-k). Small images give "summarizing" descriptions, since each part must
     still pay its κ0 bits from fewer pixels: a person as one blob; as head, torso and
     limbs; with hands and feet. Each part is linked to its parent one level up.
@@ -655,8 +728,10 @@ def recover_multiscale(
 
     if not (isinstance(levels, (int, np.integer)) and 1 <= levels <= 6):
         raise ValueError(f"levels: got {levels!r}, expected an integer in [1, 6]")
+    search = search_preset(search)
     d0 = np.asarray(depth, np.float32)
     data0 = prepare(d0, camera, figure=figure)
+    max_size = search.max_size
     if max_size is None:
         pts = camera_points(camera, data0.image)[data0.figure_mask]
         max_size = float(np.max(np.ptp(pts, axis=0))) / 2.0
@@ -670,7 +745,8 @@ def recover_multiscale(
         else:
             d, cam, fig = d0, camera, fig0
         size = max_size / 2**k
-        rec = recover(d, cam, figure=fig, max_size=size, progress=progress, **recover_kwargs)
+        level = dataclasses.replace(search, max_size=size, window=None)
+        rec = recover(d, cam, search=level, select=select, refine=refine, figure=fig, progress=progress)
         if out_levels:
             _, coarse = render_range_image(out_levels[-1].parts, cam, return_labels=True)
             coarse = np.asarray(coarse)

@@ -949,3 +949,54 @@ def refine_parts(
         parts, cost, stages = ends[k]
         history.append(("fill gaps", fills[k][1].total))
     return Part.from_vector(_vectors(parts)), cost, history + stages
+
+
+MAX_REFINE_ROUNDS = 100
+"""Most rounds of joint polishing a recovery may ask for (a bound on its work)."""
+
+
+@dataclasses.dataclass(frozen=True)
+class RefineSettings:
+    """Joint refinement after selection (:func:`refine_parts`): ``rounds`` of joint
+    polishing of ``steps`` solver steps each (0 = none), then ``split`` (a part split in
+    two along its axis), ``fill`` (the blobs still unexplained searched again at their own
+    scale, for small parts: hands, feet), and ``merge`` (two adjacent parts merged into one
+    bent part), each kept only when E falls. ``RefineSettings.none()``: no refinement."""
+
+    rounds: int = 2
+    steps: int = 20
+    split: bool = True
+    fill: bool = True
+    merge: bool = True
+
+    def __post_init__(self):
+        r = self.rounds
+        if isinstance(r, bool) or not isinstance(r, (int, np.integer)) or not (0 <= r <= MAX_REFINE_ROUNDS):
+            raise ValueError(f"rounds: got {r!r}, expected an integer in [0, {MAX_REFINE_ROUNDS}]")
+        if isinstance(self.steps, bool) or not isinstance(self.steps, (int, np.integer)) or not 1 <= self.steps <= 1000:
+            raise ValueError(f"steps: got {self.steps!r}, expected an integer in [1, 1000]")
+        for name in ("split", "fill", "merge"):
+            if not isinstance(getattr(self, name), bool):
+                raise ValueError(f"{name}: got {getattr(self, name)!r}, expected True or False")
+
+    @classmethod
+    def none(cls) -> RefineSettings:
+        return cls(rounds=0, split=False, fill=False, merge=False)
+
+    @property
+    def active(self) -> bool:
+        return self.rounds > 0 or self.split or self.fill or self.merge
+
+    def refine(self, parts: Part, data: RangeData, costs: Costs, search=None):
+        """:func:`refine_parts` with these settings; ``search`` (the first search's
+        resolved settings) is used for filling gaps."""
+        return refine_parts(
+            parts,
+            data,
+            costs,
+            rounds=self.rounds,
+            steps=self.steps,
+            split=self.split,
+            merge=self.merge,
+            search=search if self.fill else None,
+        )

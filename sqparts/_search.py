@@ -72,40 +72,111 @@ POLISH_STRIDE = 2
 
 @dataclasses.dataclass(frozen=True)
 class SearchSettings:
-    """Static settings of a search (part of the compiled computation's key).
+    """How the local search runs (sections 3.3-3.4, 3.6): the settings object of
+    :func:`fit_image` and :func:`~sqparts.recover`; named presets in
+    :data:`SEARCH_PRESETS`.
 
+    ``grid`` is a :class:`~sqparts.Grid` or a preset name (``"coarse"``, ``"default"``,
+    ``"fine"``). ``max_size`` is the largest semi-axis searched (None: a quarter of the
+    figure's largest extent) and ``window`` the region's side in pixels (None: the
+    projected diameter of a ``max_size`` part); :meth:`resolve` fills both from the data.
     ``top_k`` candidates are returned per region; hypotheses are first scored on every
-    ``stride``-th pixel and the best ``survivors`` rescored at full resolution; the
-    ``polish_candidates`` best distinct survivors are polished (``polish_rounds`` of
-    region growing × ``polish_steps`` Levenberg-Marquardt steps); the best polished part
-    is restarted from 3 · ``restarts``² starts (axis labellings × squareness values; 0:
-    none) and polished again.
+    ``stride``-th pixel and the best ``survivors`` rescored at full resolution
+    (``prune=False``: every hypothesis at full resolution); the ``polish_candidates`` best
+    distinct survivors are polished (``polish_rounds`` of region growing ×
+    ``polish_steps`` Levenberg-Marquardt steps); the best polished part is restarted from
+    3 · ``restarts``² starts (axis labellings × squareness values; 0: none) and polished
+    again. Regions are centred on the figure's skeleton (``region_method``, see
+    :func:`region_centers`) no two closer than ``spacing`` pixels (None: a seventh of the
+    window). The resolved settings are part of the compiled computation's key.
     """
 
-    grid: Grid
-    max_size: float
-    window: int
-    top_k: int = 4
+    grid: Grid | str = "coarse"
+    max_size: float | None = None
+    window: int | None = None
+    top_k: int = 3
     stride: int = 4
     survivors: int = 64
     batch_size: int = 256
     newton_steps: int = SEARCH_NEWTON_STEPS
-    polish_steps: int = 15
-    polish_rounds: int = 6
-    polish_candidates: int = 24
-    restarts: int = 3
+    polish_steps: int = 10
+    polish_rounds: int = 3
+    polish_candidates: int = 3
+    restarts: int = 0
+    region_method: str = "skeleton"
+    spacing: float | None = None
+    prune: bool = True
 
     def __post_init__(self):
-        for name in ("window", "top_k", "stride", "survivors", "batch_size", "newton_steps"):
+        object.__setattr__(self, "grid", grid_preset(self.grid))
+        for name in ("top_k", "stride", "survivors", "batch_size", "newton_steps"):
             v = getattr(self, name)
             if not isinstance(v, (int, np.integer)) or isinstance(v, bool) or v <= 0:
                 raise ValueError(f"{name}: got {v!r}, expected a positive integer")
         for name in ("polish_steps", "polish_rounds", "polish_candidates", "restarts"):
             v = getattr(self, name)
-            if not (isinstance(v, int) and v >= 0):
+            if not (isinstance(v, (int, np.integer)) and not isinstance(v, bool) and v >= 0):
                 raise ValueError(f"{name}: got {v!r}, expected an integer >= 0")
-        if not (math.isfinite(self.max_size) and self.max_size > 0):
-            raise ValueError(f"max_size: got {self.max_size!r}, expected a finite number > 0")
+        if self.max_size is not None:
+            object.__setattr__(self, "max_size", check_max_size(self.max_size))
+        if self.window is not None and (
+            not isinstance(self.window, (int, np.integer)) or isinstance(self.window, bool) or self.window <= 0
+        ):
+            raise ValueError(f"window: got {self.window!r}, expected a positive integer or None")
+        if self.region_method not in ("skeleton", "grid", "both"):
+            raise ValueError(f"region_method: got {self.region_method!r}, expected 'skeleton', 'grid' or 'both'")
+        if self.spacing is not None and not (
+            isinstance(self.spacing, (int, float, np.number)) and math.isfinite(self.spacing) and self.spacing > 0
+        ):
+            raise ValueError(f"spacing: got {self.spacing!r}, expected a finite number > 0 or None")
+
+    def resolve(self, data: RangeData) -> SearchSettings:
+        """These settings with ``max_size`` and ``window`` derived from ``data`` where
+        they are None."""
+        max_size = self.max_size if self.max_size is not None else default_max_size(data)
+        window = int(self.window) if self.window is not None else window_for(data, max_size)
+        if window > 2 * data.pad:
+            raise ValueError(f"window: got {window}, expected at most {2 * data.pad} pixels (twice the padding)")
+        return dataclasses.replace(self, max_size=max_size, window=window)
+
+    @property
+    def side(self) -> int:
+        """The window's side in pixels, of settings resolved on the data."""
+        if self.window is None:
+            raise ValueError("window: got None, expected settings resolved on the data (SearchSettings.resolve)")
+        return int(self.window)
+
+    def to_json(self) -> dict:
+        """The settings as JSON (the grid by its fields)."""
+        out = dataclasses.asdict(self)
+        out["hypotheses_per_region"] = self.grid.size  # type: ignore[union-attr]
+        return out
+
+
+SEARCH_PRESETS = {
+    "fast": SearchSettings(),
+    "paper": SearchSettings(grid="default"),
+    "region": SearchSettings(
+        grid="default", top_k=4, polish_steps=15, polish_rounds=6, polish_candidates=24, restarts=3
+    ),
+}
+"""Named search settings. ``"fast"`` (recovery's default): the coarse grid (3 168
+hypotheses), the few best starts per region polished lightly and without restarts, since
+selection and joint refinement follow. ``"paper"``: the same on the paper's ~2^16 grid
+(70 848 hypotheses). ``"region"``: one region on its own (:func:`fit_region`), polished
+long and restarted: boxy, rigid objects come back with ε ≈ 0.1 rather than as rounded
+blobs (figures in ``benchmarks/README.md``)."""
+
+
+def search_preset(name_or_settings) -> SearchSettings:
+    """:class:`SearchSettings` from a preset name or a SearchSettings (returned as is)."""
+    if isinstance(name_or_settings, SearchSettings):
+        return name_or_settings
+    if not isinstance(name_or_settings, str) or name_or_settings not in SEARCH_PRESETS:
+        raise ValueError(
+            f"search: got {name_or_settings!r:.60}, expected a SearchSettings or one of {sorted(SEARCH_PRESETS)}"
+        )
+    return SEARCH_PRESETS[name_or_settings]
 
 
 @dataclasses.dataclass(frozen=True)
@@ -416,7 +487,7 @@ def score_region(data: RangeData, settings: SearchSettings, centre, *, hypothese
     n = len(hyp["orientation"])
     stride = stride or settings.stride
     # Chunks of about 2^16 rays keep temporaries in cache (one huge vmap is slower).
-    pixels = len(range(stride // 2, settings.window, stride)) ** 2
+    pixels = len(range(stride // 2, settings.side, stride)) ** 2
     devices = len(jax.devices())
     cap = int(max(1, min(settings.batch_size, CHUNK_RAYS // pixels)))
     batch_size = -(-n // (-(-n // (cap * devices)) * devices))  # as few chunks as the cap allows, least padding
@@ -668,13 +739,13 @@ def grow_polish(
     return part
 
 
-def fit_region(data: RangeData, settings: SearchSettings, centre, *, prune: bool = True) -> RegionFit:
+def fit_region(data: RangeData, settings: SearchSettings, centre) -> RegionFit:
     """The best ``top_k`` parts at one region: score every hypothesis (on a subsample
     when ``prune``), rescore the survivors at full resolution, polish the best."""
     hyp = _grid_arrays(settings.grid)
     corner, centre_j = _corner(settings, centre)
     n = len(hyp["orientation"])
-    if prune and settings.stride > 1 and settings.survivors < n:
+    if settings.prune and settings.stride > 1 and settings.survivors < n:
         gam = np.empty(n, np.float32)
         for side, sel in _by_window(settings.grid, settings.window):
             g, _ = score_region(
@@ -773,42 +844,35 @@ def _to_image(masks, corner, shape) -> np.ndarray:
     return out
 
 
-def make_settings(data: RangeData, *, grid="default", max_size=None, window=None, **kwargs) -> SearchSettings:
-    """:class:`SearchSettings` with the scale and window derived from the data."""
-    max_size = check_max_size(max_size) if max_size is not None else default_max_size(data)
-    window = int(window) if window is not None else window_for(data, max_size)
-    if window > 2 * data.pad:
-        raise ValueError(f"window: got {window}, expected at most {2 * data.pad} pixels (twice the padding)")
-    return SearchSettings(grid=grid_preset(grid), max_size=max_size, window=window, **kwargs)
+def make_settings(data: RangeData, base="region", **fields) -> SearchSettings:
+    """The preset (or settings) ``base`` with ``fields`` replaced, resolved on ``data``
+    (:meth:`SearchSettings.resolve`)."""
+    return dataclasses.replace(search_preset(base), **fields).resolve(data)
 
 
 def fit_image(
     depth,
     camera: Camera,
+    search: SearchSettings | str = "region",
     *,
-    grid="default",
     figure=None,
     encoding: Encoding | None = None,
     centres=None,
-    max_size: float | None = None,
-    window: int | None = None,
-    region_method: str = "skeleton",
-    spacing: float | None = None,
-    prune: bool = True,
     progress=None,
-    **settings_kwargs,
 ) -> tuple[list[RegionFit], RangeData, SearchSettings]:
-    """Fit every region of a range image (section 3.3): returns the region fits, the
-    prepared data and the settings used. ``progress`` wraps the region iterator (e.g.
-    ``tqdm.tqdm``)."""
+    """Fit every region of a range image (section 3.3) with ``search`` (a
+    :class:`SearchSettings` or preset name): returns the region fits, the prepared data and
+    the resolved settings. ``centres`` (n, 2) replaces the regions' centres;
+    ``progress`` wraps the region iterator (e.g. ``tqdm.tqdm``)."""
     data = prepare(depth, camera, figure=figure, encoding=encoding)
-    settings = make_settings(data, grid=grid, max_size=max_size, window=window, **settings_kwargs)
+    settings = search_preset(search).resolve(data)
     if centres is None:
-        px = settings.window / 2.2
-        centres = region_centers(data.figure_region, spacing=spacing or max(3.0, px / 3), method=region_method)
+        px = settings.side / 2.2
+        spacing = settings.spacing or max(3.0, px / 3)
+        centres = region_centers(data.figure_region, spacing=spacing, method=settings.region_method)
     centres = np.asarray(centres, np.int32).reshape(-1, 2)
     it = progress(centres) if progress else centres
-    return [fit_region(data, settings, c, prune=prune) for c in it], data, settings
+    return [fit_region(data, settings, c) for c in it], data, settings
 
 
 # --- the expanding grid method (Appendix) ----------------------------------------------

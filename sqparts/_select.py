@@ -302,3 +302,27 @@ def select_parts(
         return x, "exact"
     greedy = select_best_first(problem)
     return (greedy, "best-first") if problem.energy(greedy) < problem.energy(x) else (x, "exact (time limit)")
+
+
+@dataclasses.dataclass(frozen=True)
+class SelectSettings:
+    """How :func:`~sqparts.recover` chooses among the candidates (Eq. 7): ``method``
+    ``"auto"``, ``"exact"`` or ``"best-first"``, with ``exact_limit`` and ``time_limit`` as
+    for :func:`select_parts`. The choice is then corrected on E counted in the
+    candidates' joint rendering (:func:`~sqparts.select_rendered`)."""
+
+    method: str = "auto"
+    exact_limit: int = 200
+    time_limit: float = 5.0
+
+    def __post_init__(self):
+        if self.method not in ("auto", "exact", "best-first"):
+            raise ValueError(f"method: got {self.method!r}, expected 'auto', 'exact' or 'best-first'")
+        if not (isinstance(self.exact_limit, int) and not isinstance(self.exact_limit, bool) and self.exact_limit >= 0):
+            raise ValueError(f"exact_limit: got {self.exact_limit!r}, expected an integer >= 0")
+        if not (isinstance(self.time_limit, (int, float)) and 0 < self.time_limit < float("inf")):
+            raise ValueError(f"time_limit: got {self.time_limit!r}, expected a finite number of seconds > 0")
+
+    def select(self, problem: SelectionProblem) -> tuple[np.ndarray, str]:
+        """:func:`select_parts` with these settings."""
+        return select_parts(problem, method=self.method, exact_limit=self.exact_limit, time_limit=self.time_limit)

@@ -142,23 +142,13 @@ def cmd_show(args) -> int:
 
 
 def _recover_options(args) -> dict:
-    opts = dict(
-        grid=args.grid,
-        max_size=args.max_size,
-        selection=args.selection,
-        refine_rounds=args.refine_rounds,
-        resolution=args.resolution,
-        clean=args.clean,
-        figure_ground=args.figure_ground,
-        planes=args.planes,
-        tear=args.tear,
-        min_figure_pixels=args.min_figure_pixels,
-        max_figures=args.max_figures,
-        max_border_fraction=args.max_border_fraction,
-        prettify=args.prettify,
-        max_angle=args.max_angle,
-        max_bits=args.max_bits,
-    )
+    """The settings objects of ``recover`` (:func:`~sqparts.recover_scene`'s keywords)."""
+    from ._recover import SceneSettings
+    from ._refine import RefineSettings
+    from ._search import SearchSettings
+    from ._select import SelectSettings
+
+    up = depth_range = None
     if args.up is not None:
         try:
             up = [float(x) for x in args.up.split(",")]
@@ -166,7 +156,6 @@ def _recover_options(args) -> dict:
             up = []
         if len(up) != 3 or not np.all(np.isfinite(up)) or not any(up):
             raise ValueError(f"--up: got {args.up!r}, expected three finite numbers x,y,z, not all 0 (camera frame)")
-        opts["up"] = up
     if args.depth_range is not None:
         try:
             near, far = (float(x) for x in args.depth_range.split(","))
@@ -174,8 +163,28 @@ def _recover_options(args) -> dict:
             near = far = np.nan
         if not (0 <= near < far):
             raise ValueError(f"--depth-range: got {args.depth_range!r}, expected NEAR,FAR with 0 <= NEAR < FAR")
-        opts["depth_range"] = (near, far)
-    return opts
+        depth_range = (near, far)
+    scene = SceneSettings(
+        resolution=args.resolution,
+        depth_range=depth_range,
+        clean=args.clean,
+        tear=args.tear,
+        figure_ground=args.figure_ground,
+        planes=args.planes,
+        min_figure_pixels=args.min_figure_pixels,
+        max_figures=args.max_figures,
+        max_border_fraction=args.max_border_fraction,
+        prettify=args.prettify,
+        up=None if up is None else (up[0], up[1], up[2]),
+        max_angle=args.max_angle,
+        max_bits=args.max_bits,
+    )
+    return dict(
+        scene=scene,
+        search=SearchSettings(grid=args.grid, max_size=args.max_size),
+        select=SelectSettings(method=args.selection),
+        refine=RefineSettings(rounds=args.refine_rounds),
+    )
 
 
 def _inputs(paths, *, recursive: bool = False) -> list[Path]:
@@ -367,7 +376,16 @@ def _read_inputs(args, inputs) -> list:
 
 
 def _recognition_options(args) -> dict:
-    return dict(grid=args.grid, refine_rounds=args.refine_rounds, resolution=args.resolution)
+    """The settings objects of ``learn`` and ``recognize`` (:func:`~sqparts.recover_scene`'s keywords)."""
+    from ._recover import SceneSettings
+    from ._refine import RefineSettings
+    from ._search import SearchSettings
+
+    return dict(
+        scene=SceneSettings(resolution=args.resolution),
+        search=SearchSettings(grid=args.grid),
+        refine=RefineSettings(rounds=args.refine_rounds),
+    )
 
 
 def cmd_learn(args) -> int:
@@ -384,7 +402,7 @@ def cmd_learn(args) -> int:
         rec = recover_scene(depth, camera, progress=progress, **_recognition_options(args))
         if not rec.figures:
             raise ValueError(f"input: got {str(path)!r}, in which nothing was recovered, expected a view of the object")
-        views.append(view_from_recovery(rec, source=str(path), levels=args.levels, grid=args.grid))
+        views.append(view_from_recovery(rec, source=str(path), levels=args.levels))
         _say(args, f"{path.name}: {rec.summary()}")
     db.add_views(args.name, views, replace=args.overwrite)
     _say(
@@ -430,7 +448,7 @@ def _say(args, msg: str) -> None:
 
 
 def build_parser() -> argparse.ArgumentParser:
-    from ._recover import MAX_REFINE_ROUNDS
+    from ._refine import MAX_REFINE_ROUNDS
 
     depth_scale = _number("a finite number > 0 (metres per PNG unit)", low=0, open_low=True)
     parser = _Parser(

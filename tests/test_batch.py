@@ -184,7 +184,7 @@ def test_recover_many_in_python(batch):
             out=batch / "py",
             camera=batch / "cam.json",
             resolution=0,
-            refine_rounds=0,
+            refine=sqparts.RefineSettings.none(),
         )
     )
     assert [r["output"] for r in records] == ["f0", "f2"] and all(r["status"] == "ok" for r in records)
@@ -249,7 +249,11 @@ def test_two_dask_workers_give_the_single_process_results(batch):
     here = {
         r["output"]: r
         for r in sqparts.recover_many(
-            inputs, out=batch / "one", camera=batch / "cam.json", resolution=0, refine_rounds=0
+            inputs,
+            out=batch / "one",
+            camera=batch / "cam.json",
+            scene=sqparts.SceneSettings(resolution=0),
+            refine=sqparts.RefineSettings.none(),
         )
     }
     with (
@@ -258,7 +262,12 @@ def test_two_dask_workers_give_the_single_process_results(batch):
     ):
         records = list(
             sqparts.recover_many(
-                inputs, out=batch / "two", camera=batch / "cam.json", client=client, resolution=0, refine_rounds=0
+                inputs,
+                out=batch / "two",
+                camera=batch / "cam.json",
+                client=client,
+                scene=sqparts.SceneSettings(resolution=0),
+                refine=sqparts.RefineSettings.none(),
             )
         )
         workers = client.run(lambda: os.getpid())

@@ -176,7 +176,7 @@ CAM = sqparts.PinholeCamera(48, 48, 180.0, 180.0, 23.5, 23.5)
 # of its own and 4 that equinox makes while tracing (constants of its error enumeration);
 # loaded from exported programs, only its own.
 TRACED_BOUND, EXPORTED_BOUND = 15, 11
-KW = dict(grid="coarse", max_size=0.14, window=48, refine_rounds=1)
+KW = dict(search=sqparts.SearchSettings(max_size=0.14, window=48), refine=sqparts.RefineSettings(rounds=1))
 
 
 @pytest.fixture(scope="module")

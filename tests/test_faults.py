@@ -190,17 +190,29 @@ def test_demo_with_a_bad_resolution_leaves_no_folder(tmp_path, capsys):
 
 def _run(argv, *, ignore_sigint=False):
     """``python -m sqparts ARGV`` in a new process; ``ignore_sigint`` starts it with SIGINT
-    ignored, as a shell starts a background job."""
+    ignored, as a shell starts a background job (so the interpreter installs no handler of
+    its own: the first one is the CLI's)."""
     env = dict(os.environ, JAX_PLATFORMS="cpu")
     code = (
-        "import runpy, signal, sys\n"
-        f"if {ignore_sigint}: signal.signal(signal.SIGINT, signal.SIG_IGN)\n"
-        "sys.argv = ['sqparts', *sys.argv[1:]]\n"
-        "runpy.run_module('sqparts', run_name='__main__')\n"
+        "import runpy, sys\nsys.argv = ['sqparts', *sys.argv[1:]]\nrunpy.run_module('sqparts', run_name='__main__')\n"
     )
-    return subprocess.Popen(
-        [sys.executable, "-c", code, *argv], env=env, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True
-    )
+
+    command = [sys.executable, "-c", code, *argv]
+    if ignore_sigint:  # the shell's way (no preexec_fn: forking a process that runs JAX may deadlock)
+        command = ["sh", "-c", 'trap "" INT; exec "$0" "$@"', *command]
+    return subprocess.Popen(command, env=env, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+
+
+def _wait_for_handler(proc, signum, timeout: float = 60.0) -> None:
+    """Wait until ``proc`` catches ``signum`` (Linux: the SigCgt mask of /proc/PID/status),
+    so that a loaded machine's slow interpreter start-up is not mistaken for the CLI's."""
+    status = Path(f"/proc/{proc.pid}/status")
+    t0 = time.monotonic()
+    while status.exists() and time.monotonic() - t0 < timeout and proc.poll() is None:
+        caught = next((ln.split()[1] for ln in status.read_text().splitlines() if ln.startswith("SigCgt:")), "0")
+        if int(caught, 16) >> (int(signum) - 1) & 1:
+            return
+        time.sleep(0.01)
 
 
 @pytest.mark.slow
@@ -218,6 +230,7 @@ def test_signals_stop_a_run_at_any_moment(files, signum, delay, ignore_sigint):
         ["recover", str(files / "x.npy"), "--camera", str(files / "cam.json"), "--out", str(out), *FAST],
         ignore_sigint=ignore_sigint,
     )
+    _wait_for_handler(proc, signum)  # a process started with SIGINT ignored cannot stop before
     time.sleep(delay)
     proc.send_signal(signum)
     _, err = proc.communicate(timeout=120)
@@ -336,7 +349,10 @@ def test_depth_range_applies_without_clean_up(files):
     depth = np.load(files / "x.npy")
     wall = np.where(np.isfinite(depth), depth, 3.0).astype(np.float32)  # a wall at 3 m behind the part
     scene = sqparts.recover_scene(
-        wall, camera, clean=False, figure_ground=False, resolution=0, depth_range=(1.0, 2.5), refine_rounds=0
+        wall,
+        camera,
+        scene=sqparts.SceneSettings(clean=False, figure_ground=False, resolution=0, depth_range=(1.0, 2.5)),
+        refine=sqparts.RefineSettings.none(),
     )
     kept = np.isfinite(scene.depth)
     assert (kept == np.isfinite(depth)).all()
@@ -448,8 +464,8 @@ def test_library_rejects_a_bad_encoding_by_name(files):
     depth = np.load(files / "x.npy")
     with pytest.raises(TypeError, match="encoding: got 'x'"):
         sqparts.recover(depth, sqparts.load_camera(files / "cam.json"), encoding="x")
-    with pytest.raises(ValueError, match="refine_rounds: got 10000000"):
-        sqparts.recover(depth, sqparts.load_camera(files / "cam.json"), refine_rounds=10_000_000)
+    with pytest.raises(ValueError, match="rounds: got 10000000"):
+        sqparts.RefineSettings(rounds=10_000_000)
 
 
 # --- files -------------------------------------------------------------------------------------

@@ -256,7 +256,9 @@ def test_recovery_meshes_and_schema(tmp_path):
     camera = sqparts.PinholeCamera(32, 24, 40.0, 40.0, 15.5, 11.5)
     (tmp_path / "scene.json").write_text(json.dumps(SCENE))
     depth = np.asarray(sqparts.render_range_image(sqparts.load_scene(tmp_path / "scene.json"), camera))
-    scene = sqparts.recover_scene(depth, camera, resolution=None, refine_rounds=0)
+    scene = sqparts.recover_scene(
+        depth, camera, scene=sqparts.SceneSettings(resolution=None), refine=sqparts.RefineSettings.none()
+    )
     n = len(scene.parts)
     for result in (scene, scene.figures[0]):
         meshes = result.to_trimesh(resolution=6)

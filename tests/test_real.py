@@ -79,7 +79,7 @@ def test_multiscale_two_scales():
     body = limb([0, -0.3, 3], [0, 0.5, 3], 0.22, 0.18, (0.6, 1.0))
     head = limb([0, -0.47, 3], [0, -0.33, 3], 0.07, 0.07, (1.0, 1.0))
     depth = np.asarray(sqparts.render_range_image(sqparts.stack_parts([body, head]), cam))
-    ms = sqparts.recover_multiscale(depth, cam, levels=2, refine_rounds=1)
+    ms = sqparts.recover_multiscale(depth, cam, levels=2, refine=sqparts.RefineSettings(rounds=1))
     assert ms.factors == [2, 1] and [c.width for c in ms.cameras] == [32, 64]
     assert ms.max_sizes[0] == pytest.approx(2 * ms.max_sizes[1])
     coarse, fine = ms.levels
@@ -118,7 +118,12 @@ def test_teapot_side_view_gives_body_lid_handle_and_spout():
     depth = np.fmin.reduce(layers)
     piece = np.where(np.isfinite(depth), np.argmin(np.where(np.isfinite(layers), layers, np.inf), axis=0), -1)
 
-    rec = sqparts.recover_scene(depth, cam, grid="default", prettify=True, up=rot.as_matrix() @ [0.0, 1.0, 0.0])
+    rec = sqparts.recover_scene(
+        depth,
+        cam,
+        scene=sqparts.SceneSettings(prettify=True, up=rot.as_matrix() @ [0.0, 1.0, 0.0]),
+        search="paper",
+    )
     assert len(rec.figures) == 1
     r = rec.figures[0]
     labels, explained = np.asarray(r.cost.labels), np.asarray(r.cost.explained_mask)

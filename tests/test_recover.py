@@ -26,7 +26,7 @@ def depth():
 
 @pytest.fixture(scope="module")
 def recovery(depth):
-    return sqparts.recover(depth, CAM, max_size=0.22)
+    return sqparts.recover(depth, CAM, search=sqparts.SearchSettings(max_size=0.22))
 
 
 def test_recover_two_parts(recovery, depth):
@@ -197,9 +197,7 @@ def test_refinement_fills_a_gap_the_first_search_left():
     depth, truth = (np.asarray(a) for a in sqparts.render_range_image(scene, cam, return_labels=True))
     data = sqparts.prepare(depth, cam)
     costs = sqparts.Costs.from_encoding(data.encoding, int(data.figure_mask.sum()))
-    settings = sqparts.make_settings(
-        data, grid="coarse", max_size=0.12, top_k=3, polish_candidates=3, polish_rounds=3, polish_steps=10, restarts=0
-    )
+    settings = sqparts.make_settings(data, "fast", max_size=0.12)
     kw = dict(rounds=1, split=False, merge=False)
     alone, alone_cost, _ = sqparts.refine_parts(scene[:1], data, costs, **kw)
     filled, filled_cost, history = sqparts.refine_parts(scene[:1], data, costs, search=settings, **kw)

@@ -117,7 +117,8 @@ def test_fit_region_recovers_the_part(data):
 
 
 def test_fit_image_runs_on_every_region(data):
-    fits, d, st = sqparts.fit_image(data.image, CAM, grid=SMALL, max_size=0.25, polish_rounds=1)
+    search = dataclasses.replace(sqparts.SEARCH_PRESETS["region"], grid=SMALL, max_size=0.25, polish_rounds=1)
+    fits, d, st = sqparts.fit_image(data.image, CAM, search)
     assert len(fits) >= 1 and all(f.parts.size.shape == (min(st.top_k, SMALL.size), 3) for f in fits)
 
 
