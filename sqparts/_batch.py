@@ -340,9 +340,29 @@ def plan_batch(
     **options,
 ) -> BatchPlan:
     """Check a batch before any work (see :func:`recover_many`): inputs exist, names and
-    output folders are distinct, nothing would be overwritten silently."""
+    output folders are distinct, nothing would be overwritten silently, the settings are
+    :func:`~sqparts.recover_scene`'s."""
     from ._io import check_new_output, load_camera
+    from ._recover import scene_preset
+    from ._refine import RefineSettings
+    from ._search import search_preset
+    from ._select import SelectSettings
 
+    checks = {
+        "scene": scene_preset,
+        "search": search_preset,
+        "select": SelectSettings,
+        "refine": RefineSettings,
+    }
+    for name, value in options.items():
+        if name not in checks:
+            raise TypeError(f"{name}: got it as a setting, expected one of {sorted(checks)} (recover_scene's settings)")
+        kind = checks[name]
+        if isinstance(kind, type):
+            if value is not None and not isinstance(value, kind):
+                raise TypeError(f"{name}: got {value!r:.60}, expected a sqparts.{kind.__name__} or None")
+        else:
+            kind(value)
     if resume and overwrite:
         raise ValueError(
             "--resume: got it with --overwrite, expected one of them (resume keeps finished inputs, overwrite redoes all)"

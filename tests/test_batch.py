@@ -183,7 +183,7 @@ def test_recover_many_in_python(batch):
             [batch / "in" / "f0.npy", batch / "in" / "f2.npy"],
             out=batch / "py",
             camera=batch / "cam.json",
-            resolution=0,
+            scene=sqparts.SceneSettings(resolution=0),
             refine=sqparts.RefineSettings.none(),
         )
     )
