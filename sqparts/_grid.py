@@ -175,10 +175,16 @@ PRESETS = {
 """Named grids: ``coarse`` (~3 k hypotheses), ``default`` (~2^16, the paper's), ``fine``."""
 
 
+def lookup_preset(value, kind: type, presets: dict, argument: str):
+    """``value`` itself if it is a ``kind`` (a settings class), else the preset of that
+    name in ``presets``; any other value is refused in the one message style."""
+    if isinstance(value, kind):
+        return value
+    if not isinstance(value, str) or value not in presets:
+        raise ValueError(f"{argument}: got {value!r:.60}, expected a {kind.__name__} or one of {sorted(presets)}")
+    return presets[value]
+
+
 def grid_preset(name_or_grid) -> Grid:
     """A :class:`Grid` from a preset name or a Grid (returned as is)."""
-    if isinstance(name_or_grid, Grid):
-        return name_or_grid
-    if name_or_grid not in PRESETS:
-        raise ValueError(f"grid: got {name_or_grid!r}, expected a Grid or one of {sorted(PRESETS)}")
-    return PRESETS[name_or_grid]
+    return lookup_preset(name_or_grid, Grid, PRESETS, "grid")

@@ -24,6 +24,7 @@ import numpy as np
 
 from ._camera import Camera
 from ._fit import Encoding
+from ._grid import lookup_preset
 from ._part import Part, stack_parts
 from ._refine import (
     EncodingCost,
@@ -404,13 +405,7 @@ cleaned, figure/ground), ``"prettified"`` (the same, then prettified), ``"synthe
 
 def scene_preset(name_or_settings) -> SceneSettings:
     """:class:`SceneSettings` from a preset name or a SceneSettings (returned as is)."""
-    if isinstance(name_or_settings, SceneSettings):
-        return name_or_settings
-    if not isinstance(name_or_settings, str) or name_or_settings not in SCENE_PRESETS:
-        raise ValueError(
-            f"scene: got {name_or_settings!r:.60}, expected a SceneSettings or one of {sorted(SCENE_PRESETS)}"
-        )
-    return SCENE_PRESETS[name_or_settings]
+    return lookup_preset(name_or_settings, SceneSettings, SCENE_PRESETS, "scene")
 
 
 @dataclasses.dataclass(frozen=True)

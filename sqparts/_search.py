@@ -36,7 +36,7 @@ from jax.sharding import PartitionSpec as P
 from ._camera import Camera, check_range_image
 from ._compile import persistent_jit
 from ._fit import Encoding, commission_mask, encoding_for, gamma_terms
-from ._grid import Grid, grid_preset
+from ._grid import Grid, grid_preset, lookup_preset
 from ._part import (
     Part,
     from_unconstrained,
@@ -170,13 +170,7 @@ blobs (figures in ``benchmarks/README.md``)."""
 
 def search_preset(name_or_settings) -> SearchSettings:
     """:class:`SearchSettings` from a preset name or a SearchSettings (returned as is)."""
-    if isinstance(name_or_settings, SearchSettings):
-        return name_or_settings
-    if not isinstance(name_or_settings, str) or name_or_settings not in SEARCH_PRESETS:
-        raise ValueError(
-            f"search: got {name_or_settings!r:.60}, expected a SearchSettings or one of {sorted(SEARCH_PRESETS)}"
-        )
-    return SEARCH_PRESETS[name_or_settings]
+    return lookup_preset(name_or_settings, SearchSettings, SEARCH_PRESETS, "search")
 
 
 @dataclasses.dataclass(frozen=True)
