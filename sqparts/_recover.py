@@ -653,7 +653,7 @@ def recover_scene(
 # --- multiscale ---------------------------------------------------------------------
 
 
-@dataclasses.dataclass
+@dataclasses.dataclass(frozen=True)
 class MultiscaleRecovery:
     """Recoveries at several scales, coarse to fine (paper sections 1 and 4.1).
 
