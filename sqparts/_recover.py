@@ -468,6 +468,7 @@ def recover_scene(
     max_height: float | None = None,
     max_border_fraction: float = 0.15,
     depth_range=None,
+    holes: str = "auto",
     prettify: bool = False,
     up=None,
     max_angle: float = 15.0,
@@ -489,6 +490,11 @@ def recover_scene(
     tear, planes, plane_threshold, min_figure_pixels, max_figures, max_height, max_border_fraction :
         passed to the clean-up and figure/ground stages.
     depth_range : (near, far): drop returns outside (the paper's "cube of data").
+    holes : what a pixel without a return inside a figure's outline means
+        (:func:`~sqparts.missing_returns`): ``"auto"`` (default: small interior holes are
+        missing data, wide ones and those a farther surface shows through are free space),
+        ``"free"`` (every pixel without a return is free space: a part drawn there pays
+        commission) or ``"missing"`` (every enclosed one is missing data).
     prettify : snap near-vertical / near-horizontal parts to gravity
         (:func:`~sqparts.prettify`) with ``up`` (default: the ground plane's normal),
         ``max_angle`` degrees and ``max_bits``.
@@ -496,12 +502,22 @@ def recover_scene(
     """
     from ._fit import encoding_for
     from ._postprocess import prettify as _prettify
-    from ._preprocess import DEFAULT_TEAR, auto_factor, clean_range_image, crop_depth_range, downsample, estimate_noise
+    from ._preprocess import (
+        DEFAULT_TEAR,
+        auto_factor,
+        check_holes,
+        clean_range_image,
+        crop_depth_range,
+        downsample,
+        estimate_noise,
+        missing_returns,
+    )
     from ._preprocess import figure_ground as _figure_ground
     from ._search import default_max_size, prepare, window_for
 
     t0 = time.perf_counter()
     tear = DEFAULT_TEAR if tear is None else tear
+    check_holes(holes)
     d = np.asarray(depth, np.float32)
     if d.ndim != 2:
         raise ValueError(f"depth: got shape {d.shape}, expected a 2-D range image")
@@ -528,6 +544,7 @@ def recover_scene(
             max_figures=max_figures,
             max_height=max_height,
             max_border_fraction=max_border_fraction,
+            holes=holes,
         )
         masks = fg.figures
         if not masks:
@@ -535,7 +552,7 @@ def recover_scene(
                 "depth: got no figure left after removing the background, expected at least one (try figure_ground=False or a smaller min_figure_pixels)"
             )
     else:
-        masks = [np.isfinite(d)]
+        masks = [np.isfinite(d) | missing_returns(d, camera, np.isfinite(d), holes=holes, tear=tear)]
     t1 = time.perf_counter()
     recoveries, reports = [], []
     noise = estimate_noise(d)
