@@ -93,8 +93,12 @@ def human(resolution: int = 128) -> BuiltinScene:
     )
 
 
-def chair(resolution: int = 96) -> BuiltinScene:
-    """A chair as in Figure 2(c): seat, bent back, four legs; seen from above at an angle."""
+def chair(resolution: int = 96, *, leg_width: float = 0.025) -> BuiltinScene:
+    """A chair as in Figure 2(c): seat, bent back, four legs of semi-axis ``leg_width``
+    (metres; the default's legs are 4 pixels across at 96x96, ``leg_width=0.015`` gives
+    legs 2.4 pixels across); seen from above at an angle."""
+    if not (isinstance(leg_width, (int, float)) and 0 < leg_width <= 0.1):
+        raise ValueError(f"leg_width: got {leg_width!r}, expected metres in (0, 0.1]")
     parts = {
         "seat": limb([0, 0, -0.03], [0, 0, 0.03], 0.24, 0.22, (0.2, 0.3), roll=0.0),
         "back": Part(
@@ -105,7 +109,7 @@ def chair(resolution: int = 96) -> BuiltinScene:
         ),
     }
     for i, (x, y) in enumerate([(-0.2, -0.18), (-0.2, 0.18), (0.2, -0.18), (0.2, 0.18)]):
-        parts[f"leg {i + 1}"] = limb([x, y, -0.03], [x, y, -0.45], 0.025, squareness=(0.3, 0.3))
+        parts[f"leg {i + 1}"] = limb([x, y, -0.03], [x, y, -0.45], leg_width, squareness=(0.3, 0.3))
     # Chair frame: z up. Pose it in the camera frame: seen from above and from the side.
     tilt = _compose(np.array([2.4, 0.0, 0.0]), np.array([0.0, 0.0, 0.6]))
     rot = np.asarray(_rot(tilt))
