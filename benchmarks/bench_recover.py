@@ -9,8 +9,8 @@ compile time. The human is also recovered from four copies of its depth with 3 Â
 noise, to show how far float rounding alone moves the result.
 
 The built-in scenes go through :func:`sqparts.recover`'s defaults (``thin-chair``: the
-chair with legs 2.4 pixels across, all four in view; issue #27), and ``gate-scene`` is
-the gate (Figure 10: members two pixels across, nothing behind them)
+chair with legs 2.4 pixels across, all four in view; issue #27); ``thin-chair-scene``
+is that chair and ``gate-scene`` the gate (Figure 10: members two pixels across, nothing behind them)
 through :func:`sqparts.recover_scene`'s defaults (what ``sqparts recover`` runs: hole
 policy ``auto``) with prettifying (``up`` = -y). Each row also says which true parts were
 found (some recovered part, rendered alone, has silhouette IoU >= 0.5 with the true
@@ -38,6 +38,7 @@ SCENE_OPTIONS = {"human": {}, "chair": {}, "castings": {}, "gate": {}, "thin-cha
 """Options of :func:`sqparts.recover` per built-in scene."""
 EXTRA_ROWS = {
     "gate-scene": ("gate", {}, {"prettify": True, "up": (0.0, -1.0, 0.0)}),
+    "thin-chair-scene": ("thin-chair", {}, {}),
 }
 """Issue #27's rows: (built-in scene, its keyword arguments, :func:`sqparts.recover_scene`
 options or None for :func:`sqparts.recover`'s defaults)."""

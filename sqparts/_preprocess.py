@@ -290,7 +290,15 @@ def missing_returns(depth, camera: Camera, figure, *, holes: str = "auto", tear:
       footprint at its own depth, so this needs no metric threshold); the rest, small
       interior holes, are missing data.
 
-    Returns an (H, W) bool mask, a subset of the enclosed pixels without a return.
+    **Mixed pixels.** Except under ``"free"``, the pixels without a return that touch
+    the figure's returns (8-neighbours) are missing data too: a sensor's pixel is a
+    footprint, not a point, and one that the silhouette crosses sees the figure and what
+    lies beyond at once (it reports nothing, or a mixed depth that clean-up removes), so
+    the silhouette is known to a pixel and a part that overlaps it by less than one
+    pays nothing for that. A member two pixels across is all edge: without this, a part
+    a fraction of a pixel too wide would pay commission along its whole length.
+
+    Returns an (H, W) bool mask of pixels without a return.
     """
     check_holes(holes)
     d = _check_depth(depth, camera)
@@ -298,11 +306,14 @@ def missing_returns(depth, camera: Camera, figure, *, holes: str = "auto", tear:
     piece = np.asarray(figure, bool) & valid
     if piece.shape != d.shape:
         raise ValueError(f"figure: got shape {piece.shape}, expected {d.shape}")
-    inside = ndimage.binary_fill_holes(piece) & ~piece  # pyright: ignore[reportOptionalOperand]
-    if holes == "free" or not inside.any():
+    if holes == "free":
         return np.zeros(d.shape, bool)
+    rim = ndimage.binary_dilation(piece, structure=np.ones((3, 3), bool)) & ~valid
+    inside = ndimage.binary_fill_holes(piece) & ~piece  # pyright: ignore[reportOptionalOperand]
     if holes == "missing":
-        return inside & ~valid
+        return (inside & ~valid) | rim
+    if not inside.any():
+        return rim
     labels, count = ndimage.label(inside)  # pyright: ignore[reportGeneralTypeIssues]
     width = ndimage.distance_transform_edt(inside & ~valid)  # distance to the nearest return or edge
     size = footprint(d, camera)
@@ -316,12 +327,12 @@ def missing_returns(depth, camera: Camera, figure, *, holes: str = "auto", tear:
             continue  # too wide for a dropout: free space
         seen = hole & valid
         if seen.any():
-            rim = ndimage.binary_dilation(hole, structure=np.ones((3, 3), bool)) & piece
-            near = float(np.median(d[rim])) if rim.any() else float(np.median(d[piece]))
+            around = ndimage.binary_dilation(hole, structure=np.ones((3, 3), bool)) & piece
+            near = float(np.median(d[around])) if around.any() else float(np.median(d[piece]))
             if np.any(d[seen] - near > tear * size[seen]):
                 continue  # a farther surface is seen through it: free space
         missing |= gap
-    return missing
+    return missing | rim
 
 
 # --- 3. figure / ground --------------------------------------------------------------

@@ -21,9 +21,9 @@ def box(r0, r1, c0, c1):
 DROPOUT = box(15, 17, 15, 17)  # 2x2: a sensor dropout
 SLIT = box(40, 41, 12, 18)  # 1x6: a crack, one footprint wide
 WINDOW = box(30, 38, 30, 38)  # 8x8: an opening far wider than a dropout
-SEE_THROUGH = box(15, 18, 40, 43)  # 3x3 whose centre shows a wall behind
+SEE_THROUGH = box(15, 18, 38, 45)  # 3x7 whose centre shows a wall behind
 SEEN = box(16, 17, 41, 42)
-OCCLUDED = box(45, 48, 40, 43)  # 3x3 whose centre shows something in front
+OCCLUDED = box(45, 48, 38, 45)  # 3x7 whose centre shows something in front
 NEAR = box(46, 47, 41, 42)
 NOTCH = box(8, 12, 25, 28)  # cut into the plate's edge: open to the outside
 
@@ -40,28 +40,61 @@ def plate():
     return depth, figure
 
 
-def test_constants_make_the_construction_unambiguous():
+def rim_of(returns):
+    """No-return pixels with a return among their 8 neighbours (explicit shifts)."""
+    padded = np.pad(returns, 1)
+    near = np.zeros_like(returns)
+    for dy in (-1, 0, 1):
+        for dx in (-1, 0, 1):
+            near |= padded[1 + dy : 65 + dy, 1 + dx : 65 + dx]
+    return near & ~returns
+
+
+def test_constants_make_the_construction_unambiguous(plate):
     # The window is far wider than a dropout, the others no wider than one.
     assert 8 > DROPOUT_WIDTH >= 3
+    depth, figure = plate
+    rim = rim_of(figure) & ~np.isfinite(depth)
+    # Each 3x7 hole keeps four pixels off the rim (its middle row, but for its ends and
+    # the return in its centre), the notch three (its middle column but for its foot).
+    for hole, middle in ((SEE_THROUGH, SEEN), (OCCLUDED, NEAR)):
+        assert int((hole & ~rim & ~middle).sum()) == 4
+    assert int((NOTCH & ~rim).sum()) == 3
 
 
-@pytest.mark.parametrize(
-    "policy, expected",
-    [
-        ("auto", DROPOUT | SLIT | (OCCLUDED & ~NEAR)),
-        ("missing", DROPOUT | SLIT | WINDOW | (SEE_THROUGH & ~SEEN) | (OCCLUDED & ~NEAR)),
-        ("free", np.zeros((64, 64), bool)),
-    ],
-)
-def test_missing_returns_by_policy(plate, policy, expected):
+def expected_missing(policy, depth, figure):
+    """From the construction: which holes each policy calls missing data, and, except
+    under "free", the one-pixel rim of no-return pixels around the plate's returns."""
+    if policy == "free":
+        return np.zeros((64, 64), bool)
+    rim = rim_of(figure) & ~np.isfinite(depth)
+    holes = DROPOUT | SLIT | (OCCLUDED & ~NEAR)  # "auto": the narrow ones nothing shows through
+    if policy == "missing":
+        holes = holes | WINDOW | (SEE_THROUGH & ~SEEN)
+    return holes | rim
+
+
+@pytest.mark.parametrize("policy", ["auto", "missing", "free"])
+def test_missing_returns_by_policy(plate, policy):
     depth, figure = plate
     got = missing_returns(depth, CAM, figure, holes=policy)
-    np.testing.assert_array_equal(got, expected)
-    assert not (got & NOTCH).any()  # open to the outside: free under every policy
+    np.testing.assert_array_equal(got, expected_missing(policy, depth, figure))
+    assert not (got & NOTCH & ~rim_of(figure)).any()  # open to the outside: free under every policy
 
 
-@pytest.mark.parametrize("policy, commission", [("auto", 64 + 9 + 12), ("missing", 1 + 12), ("free", 103)])
-def test_a_part_over_free_space_pays_commission(plate, policy, commission):
+# A part covering the plate's square: commission on the free pixels it covers (by count
+# from the construction) and on the wall pixel it stands in front of.
+ALL_HOLES = 4 + 6 + 64 + (21 - 1) + (21 - 1) + 12
+WINDOW_OFF_RIM = 36  # its 6x6 middle
+COMMISSION = {
+    "auto": WINDOW_OFF_RIM + 4 + 3 + 1,  # window, the see-through hole's middle, the notch's, the wall
+    "missing": 3 + 1,  # the notch's middle column, the wall
+    "free": ALL_HOLES + 1,
+}
+
+
+@pytest.mark.parametrize("policy", ["auto", "missing", "free"])
+def test_a_part_over_free_space_pays_commission(plate, policy):
     """A part covering the whole plate, holes and notch included, pays commission on the
     free pixels it covers and where it stands in front of the wall, not on missing data
     nor where the twig hides it."""
@@ -70,8 +103,8 @@ def test_a_part_over_free_space_pays_commission(plate, policy, commission):
     hit = box(8, 56, 8, 56)
     rendered = np.where(hit, 2.0, np.inf)
     got = sqparts.commission_mask(hit, rendered, depth.astype(np.float64), fig, 0.01)
-    free = (DROPOUT | SLIT | WINDOW | (SEE_THROUGH & ~SEEN) | (OCCLUDED & ~NEAR) | NOTCH) & ~fig
-    assert int(got.sum()) == commission == int(free.sum()) + 1  # + the wall pixel
+    free = hit & ~np.isfinite(depth) & ~expected_missing(policy, depth, figure)
+    assert int(got.sum()) == COMMISSION[policy] == int(free.sum()) + 1  # + the wall pixel
     assert not got[NEAR].any() and got[SEEN].all()
 
 
