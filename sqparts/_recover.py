@@ -513,7 +513,7 @@ def recover_scene(
         missing_returns,
     )
     from ._preprocess import figure_ground as _figure_ground
-    from ._search import default_max_size, prepare, window_for
+    from ._search import default_max_size, figure_footprint, prepare, window_for
 
     t0 = time.perf_counter()
     tear = DEFAULT_TEAR if tear is None else tear
@@ -559,7 +559,7 @@ def recover_scene(
     for mask in masks:
         kw = dict(recover_kwargs)
         if kw.get("encoding") is None:  # σ covers the sensor's noise: ±σ/2 is ±2 sd
-            enc = encoding_for(d[mask & np.isfinite(d)])
+            enc = encoding_for(d[mask & np.isfinite(d)], footprint=figure_footprint(d, mask, camera))
             kw["encoding"] = encoding_for(d[mask & np.isfinite(d)], sigma=max(enc.sigma, 4.0 * noise))
         if kw.get("window") is None:
             data = prepare(d, camera, figure=mask, encoding=kw.get("encoding"))

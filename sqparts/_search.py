@@ -155,7 +155,8 @@ def prepare(depth, camera: Camera, *, figure=None, encoding: Encoding | None = N
     ``figure`` (bool, same shape) marks the figure of interest; default: every pixel with
     a return. Figure pixels without a return (holes in a sensor's data) are *unknown*: a
     part drawn there is neither an explained pixel nor an error of commission.
-    ``encoding`` defaults to :func:`~sqparts.encoding_for` of the figure.
+    ``encoding`` defaults to :func:`~sqparts.encoding_for` of the figure, σ at least
+    half a pixel footprint at the figure's depth (:func:`figure_footprint`).
     """
     d = check_range_image(depth, camera).astype(np.float32)
     fig = np.isfinite(d) if figure is None else np.asarray(figure, bool)
@@ -169,7 +170,7 @@ def prepare(depth, camera: Camera, *, figure=None, encoding: Encoding | None = N
         raise TypeError(
             f"encoding: got {encoding!r:.60} ({type(encoding).__name__}), expected a sqparts.Encoding or None"
         )
-    enc = encoding or encoding_for(d[fig & np.isfinite(d)])
+    enc = encoding or encoding_for(d[fig & np.isfinite(d)], footprint=figure_footprint(d, fig, camera))
     h, w = d.shape
     grow = ((pad, pad + _bucket(h) - h), (pad, pad + _bucket(w) - w))
     # device_put, not jnp.asarray: a transfer, not a compiled program per shape.
@@ -180,6 +181,13 @@ def prepare(depth, camera: Camera, *, figure=None, encoding: Encoding | None = N
         camera,
         enc,
     )
+
+
+def figure_footprint(depth, figure, camera: Camera) -> float:
+    """Metric width of one pixel at the median depth of the figure's returns (NaN if it
+    has none): the least σ of :func:`~sqparts.encoding_for` is half of it."""
+    d = np.asarray(depth)[np.asarray(figure, bool) & np.isfinite(depth)]
+    return float(np.asarray(camera.pixel_size_at(np.float32(np.median(d))))) if d.size else math.nan
 
 
 def _bucket(n: int) -> int:
