@@ -335,6 +335,21 @@ def missing_returns(depth, camera: Camera, figure, *, holes: str = "auto", tear:
     return missing | rim
 
 
+def pruning_stride(figure, least_pixels: float, *, largest: int = 4) -> int:
+    """The largest pruning stride (every stride-th row and column scored first, at most
+    ``largest``) that still sees every member of ``figure`` able to pay for a part: the
+    largest s such that the figure's pixels outside its opening by an s × s square (the
+    members thinner than s pixels, which an s-lattice can miss altogether) number fewer
+    than ``least_pixels`` (the pixels a part needs to pay for its κ0 bits). A member s
+    pixels across always has a pixel on the lattice, whatever its position."""
+    fig = np.asarray(figure, bool)
+    for s in range(int(largest), 1, -1):
+        kept = ndimage.binary_opening(fig, structure=np.ones((s, s), bool))
+        if (fig & ~kept).sum() < least_pixels:
+            return s
+    return 1
+
+
 # --- 3. figure / ground --------------------------------------------------------------
 
 

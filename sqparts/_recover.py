@@ -511,6 +511,7 @@ def recover_scene(
         downsample,
         estimate_noise,
         missing_returns,
+        pruning_stride,
     )
     from ._preprocess import figure_ground as _figure_ground
     from ._search import default_max_size, figure_footprint, prepare, window_for
@@ -561,6 +562,9 @@ def recover_scene(
         if kw.get("encoding") is None:  # σ covers the sensor's noise: ±σ/2 is ±2 sd
             enc = encoding_for(d[mask & np.isfinite(d)], footprint=figure_footprint(d, mask, camera))
             kw["encoding"] = encoding_for(d[mask & np.isfinite(d)], sigma=max(enc.sigma, 4.0 * noise))
+        if kw.get("stride") is None:  # thin members: a lattice that sees them
+            coding = kw["encoding"] or encoding_for(d[mask & np.isfinite(d)])
+            kw["stride"] = pruning_stride(mask & np.isfinite(d), coding.part_bits / coding.saved_per_pixel)
         if kw.get("window") is None:
             data = prepare(d, camera, figure=mask, encoding=kw.get("encoding"))
             size = kw.get("max_size") or default_max_size(data)

@@ -127,3 +127,69 @@ def test_hole_policy_is_checked():
 
     args = build_parser().parse_args(["recover", "x.npy", "--out", "o", "--holes", "free"])
     assert args.holes == "free"
+
+
+# --- thin parts ---------------------------------------------------------------------
+
+
+def test_sigma_at_edges_is_half_a_footprint():
+    """σ defaults to 4 quanta of 6-bit data, but never under half a pixel footprint: a
+    flat figure's depth range says nothing about how well its rims can be matched."""
+    flat = np.full(100, 20.0) + np.linspace(0.0, 0.24, 100)  # the gate's depth range
+    plain = sqparts.encoding_for(flat)
+    assert plain.sigma == pytest.approx(4 * 0.24 / 64)
+    assert sqparts.encoding_for(flat, footprint=0.087).sigma == pytest.approx(0.0435)
+    assert sqparts.encoding_for(flat, footprint=0.01).sigma == pytest.approx(plain.sigma)  # 4q is more
+    assert sqparts.encoding_for(flat, sigma=0.005, footprint=0.087).sigma == 0.005  # given: as given
+    cam = sqparts.ScannerCamera(64, 32, np.radians(0.25), np.radians(0.25), 31.5, 15.5)
+    depth = np.full((32, 64), np.nan, np.float32)
+    depth[10:12, 5:60] = 20.0 + np.linspace(0.0, 0.24, 55)
+    data = prepare_data(depth, cam)
+    assert data.encoding.sigma == pytest.approx(0.5 * 20.0 * np.radians(0.25), rel=0.01)
+
+
+def prepare_data(depth, cam):
+    from sqparts._search import prepare
+
+    return prepare(depth, cam)
+
+
+@pytest.mark.slow
+def test_one_pixel_wide_bar():
+    """A bar one pixel across and 40 long, receding in depth, seen against nothing:
+    recovered by recover_scene's defaults as a part along its axis, of its length."""
+    from sqparts._scenes import limb
+
+    cam = sqparts.OrthographicCamera(64, 32, 0.01, 31.5, 16.0)  # row 16's centre on the axis
+    start, end = np.array([-0.2, 0.0, 1.0]), np.array([0.2, 0.0, 1.25])
+    truth = limb(start, end, 0.006, 0.006, (0.3, 0.3))  # 1.2 pixels across
+    depth = np.asarray(sqparts.render_range_image(truth, cam))
+    assert set(np.nonzero(np.isfinite(depth))[0]) == {16} and np.isfinite(depth).sum() >= 38
+    rec = sqparts.recover_scene(depth, cam)
+    assert rec.fraction_explained > 0.8
+    sizes, rot = np.asarray(rec.parts.size), np.asarray(rec.parts.rotation())
+    best = int(np.argmax([s["pixels"] for s in rec.part_stats]))
+    axis = rot[best][:, int(np.argmax(sizes[best]))]
+    true_axis = (end - start) / np.linalg.norm(end - start)
+    in_image = lambda v: v[:2] / np.linalg.norm(v[:2])  # noqa: E731 (the axis as seen)
+    assert np.degrees(np.arccos(min(1.0, abs(in_image(axis) @ in_image(true_axis))))) < 3.0
+    seen_length = 2 * sizes[best].max() * np.linalg.norm(axis[:2])  # projected on the image
+    assert seen_length == pytest.approx(0.4, rel=0.15)
+
+
+@pytest.mark.parametrize("width, stride", [(1, 1), (2, 2), (3, 3), (5, 4)])
+def test_pruning_stride_sees_every_member(width, stride):
+    """A blob with a bar ``width`` pixels across and 30 long: the stride is the bar's
+    width (at most 4), and a lattice of that stride has a pixel on the bar wherever it
+    lies; a bar too short to pay for a part does not lower the stride."""
+    from sqparts._preprocess import pruning_stride
+
+    fig = box(20, 44, 4, 28)
+    fig[30 : 30 + width, 28:58] = True
+    assert pruning_stride(fig, least_pixels=20) == stride
+    for r0 in range(stride):  # every offset of the lattice sees the bar
+        for c0 in range(stride):
+            assert fig[30 : 30 + width, 28:58][(r0 - 30) % stride :: stride, (c0 - 28) % stride :: stride].any()
+    short = box(20, 44, 4, 28)
+    short[30 : 30 + width, 28:31] = True  # 3 pixels long: fewer than a part needs
+    assert pruning_stride(short, least_pixels=4 * width) == 4
