@@ -308,14 +308,14 @@ def missing_returns(depth, camera: Camera, figure, *, holes: str = "auto", tear:
         raise ValueError(f"figure: got shape {piece.shape}, expected {d.shape}")
     if holes == "free":
         return np.zeros(d.shape, bool)
-    rim = ndimage.binary_dilation(piece, structure=np.ones((3, 3), bool)) & ~valid
-    inside = ndimage.binary_fill_holes(piece) & ~piece  # pyright: ignore[reportOptionalOperand]
+    rim = np.asarray(ndimage.binary_dilation(piece, structure=np.ones((3, 3), bool)), bool) & ~valid
+    inside = np.asarray(ndimage.binary_fill_holes(piece), bool) & ~piece
     if holes == "missing":
         return (inside & ~valid) | rim
     if not inside.any():
         return rim
     labels, count = ndimage.label(inside)  # pyright: ignore[reportGeneralTypeIssues]
-    width = ndimage.distance_transform_edt(inside & ~valid)  # distance to the nearest return or edge
+    width = np.asarray(ndimage.distance_transform_edt(inside & ~valid))  # to the nearest return or edge
     size = footprint(d, camera)
     missing = np.zeros(d.shape, bool)
     for k in range(1, count + 1):
@@ -323,11 +323,11 @@ def missing_returns(depth, camera: Camera, figure, *, holes: str = "auto", tear:
         gap = hole & ~valid
         if not gap.any():
             continue
-        if 2 * float(width[gap].max()) - 1 > DROPOUT_WIDTH:  # pyright: ignore[reportIndexIssue]
+        if 2 * float(width[gap].max()) - 1 > DROPOUT_WIDTH:
             continue  # too wide for a dropout: free space
         seen = hole & valid
         if seen.any():
-            around = ndimage.binary_dilation(hole, structure=np.ones((3, 3), bool)) & piece
+            around = np.asarray(ndimage.binary_dilation(hole, structure=np.ones((3, 3), bool)), bool) & piece
             near = float(np.median(d[around])) if around.any() else float(np.median(d[piece]))
             if np.any(d[seen] - near > tear * size[seen]):
                 continue  # a farther surface is seen through it: free space
@@ -344,7 +344,7 @@ def pruning_stride(figure, least_pixels: float, *, largest: int = 4) -> int:
     pixels across always has a pixel on the lattice, whatever its position."""
     fig = np.asarray(figure, bool)
     for s in range(int(largest), 1, -1):
-        kept = ndimage.binary_opening(fig, structure=np.ones((s, s), bool))
+        kept = np.asarray(ndimage.binary_opening(fig, structure=np.ones((s, s), bool)), bool)
         if (fig & ~kept).sum() < least_pixels:
             return s
     return 1

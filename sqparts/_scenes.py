@@ -113,8 +113,8 @@ def chair(resolution: int = 96, *, leg_width: float = 0.025, tilt: float = 2.4, 
     for i, (x, y) in enumerate([(-0.2, -0.18), (-0.2, 0.18), (0.2, -0.18), (0.2, 0.18)]):
         parts[f"leg {i + 1}"] = limb([x, y, -0.03], [x, y, -0.45], leg_width, squareness=(0.3, 0.3))
     # Chair frame: z up. Pose it in the camera frame: seen from above and from the side.
-    tilt = _compose(np.array([float(tilt), 0.0, 0.0]), np.array([0.0, 0.0, float(turn)]))
-    rot = np.asarray(_rot(tilt))
+    pose = _compose(np.array([float(tilt), 0.0, 0.0]), np.array([0.0, 0.0, float(turn)]))
+    rot = np.asarray(_rot(pose))
     posed = []
     for p in parts.values():
         pos = rot @ np.asarray(p.position, float) + np.array([0.0, 0.0, 3.0])
@@ -123,7 +123,7 @@ def chair(resolution: int = 96, *, leg_width: float = 0.025, tilt: float = 2.4, 
                 size=p.size,
                 squareness=p.squareness,
                 position=pos.astype(np.float32),
-                orientation=_compose(tilt, np.asarray(p.orientation, float)).astype(np.float32),
+                orientation=_compose(pose, np.asarray(p.orientation, float)).astype(np.float32),
                 bend=p.bend,
                 taper=p.taper,
             )
@@ -143,7 +143,9 @@ def thin_chair(resolution: int = 96) -> BuiltinScene:
     """The chair of :func:`chair` with legs 2.4 pixels across (``leg_width=0.015``), seen
     from 19 degrees above the seat's plane so that all four legs show (47-97 pixels each)."""
     s = chair(resolution, leg_width=0.015, tilt=1.9, turn=-0.6)
-    return dataclasses.replace(s, name="thin-chair", description="the chair with legs 2.4 pixels across, all four in view")
+    return dataclasses.replace(
+        s, name="thin-chair", description="the chair with legs 2.4 pixels across, all four in view"
+    )
 
 
 def _rot(rv):
