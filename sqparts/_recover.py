@@ -498,7 +498,10 @@ def recover_scene(
     prettify : snap near-vertical / near-horizontal parts to gravity
         (:func:`~sqparts.prettify`) with ``up`` (default: the ground plane's normal),
         ``max_angle`` degrees and ``max_bits``.
-    recover_kwargs : passed to :func:`recover` for every figure (grid, max_size, ...).
+    recover_kwargs : passed to :func:`recover` for every figure (grid, max_size, ...);
+        the pruning ``stride`` defaults, per figure, to the widest lattice that sees every
+        member able to pay for a part (``sqparts._preprocess.pruning_stride``: 2 for the
+        built-in gate's two-pixel bars, 1 for a one-pixel one, at most 4).
     """
     from ._fit import encoding_for
     from ._postprocess import prettify as _prettify
