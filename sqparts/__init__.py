@@ -39,6 +39,7 @@ _EXPORTS = {
         "figure_ground",
         "fit_plane",
         "flying_pixels",
+        "missing_returns",
         "torn_components",
     ),
     "_render": (

@@ -250,6 +250,106 @@ def clean_range_image(
     return CleanedRange(d.astype(np.float32), missing, flying, small, quantum, estimate_noise(d))
 
 
+# --- holes: free space or missing data -----------------------------------------------
+
+
+HOLE_POLICIES = ("auto", "free", "missing")
+"""What a pixel with no return means (:func:`missing_returns`)."""
+DROPOUT_WIDTH = 3
+"""Widest sensor dropout, in pixel footprints: a no-return hole that holds a disc wider
+than this is free space under the ``"auto"`` hole policy."""
+
+
+def check_holes(holes) -> str:
+    """``holes`` checked: one of :data:`HOLE_POLICIES`."""
+    if not (isinstance(holes, str) and holes in HOLE_POLICIES):
+        raise ValueError(f"holes: got {holes!r}, expected one of {', '.join(map(repr, HOLE_POLICIES))}")
+    return holes
+
+
+def missing_returns(depth, camera: Camera, figure, *, holes: str = "auto", tear: float = DEFAULT_TEAR) -> np.ndarray:
+    """The pixels without a return that are *missing data* for ``figure`` (its pixels
+    with a return); every other pixel without a return is *free space*.
+
+    A pixel with no return says something: on a synthetic render, or where a scanner
+    sees the sky, there is nothing along its ray, and a part drawn there is an error of
+    commission; on a real sensor a small hole may be a dropout (a specular spot, a dark
+    patch), which says nothing, and a part drawn there is neither explained nor an error.
+    Only no-return pixels inside the figure's outline (enclosed by its returns,
+    4-connected) can be missing; a no-return region that reaches the image border, or
+    the image frame's no-return area beyond the outline, is free space under every policy.
+
+    ``holes``:
+
+    - ``"free"``: every pixel without a return is free space (nothing is missing);
+    - ``"missing"``: every enclosed no-return pixel is missing data;
+    - ``"auto"``: each enclosed hole (a 4-connected piece of the outline's interior that
+      is not the figure) is free space when a return farther than the figure around it
+      (by more than ``tear`` pixel footprints) is seen through it, or when its no-return
+      pixels hold a disc more than :data:`DROPOUT_WIDTH` footprints wide (a pixel is one
+      footprint at its own depth, so this needs no metric threshold); the rest, small
+      interior holes, are missing data.
+
+    **Mixed pixels.** Except under ``"free"``, the pixels without a return that touch
+    the figure's returns (8-neighbours) are missing data too: a sensor's pixel is a
+    footprint, not a point, and one that the silhouette crosses sees the figure and what
+    lies beyond at once (it reports nothing, or a mixed depth that clean-up removes), so
+    the silhouette is known to a pixel and a part that overlaps it by less than one
+    pays nothing for that. A member two pixels across is all edge: without this, a part
+    a fraction of a pixel too wide would pay commission along its whole length.
+
+    Returns an (H, W) bool mask of pixels without a return.
+    """
+    check_holes(holes)
+    d = _check_depth(depth, camera)
+    valid = np.isfinite(d)
+    piece = np.asarray(figure, bool) & valid
+    if piece.shape != d.shape:
+        raise ValueError(f"figure: got shape {piece.shape}, expected {d.shape}")
+    if holes == "free":
+        return np.zeros(d.shape, bool)
+    rim = np.asarray(ndimage.binary_dilation(piece, structure=np.ones((3, 3), bool)), bool) & ~valid
+    inside = np.asarray(ndimage.binary_fill_holes(piece), bool) & ~piece
+    if holes == "missing":
+        return (inside & ~valid) | rim
+    if not inside.any():
+        return rim
+    labels, count = ndimage.label(inside)  # pyright: ignore[reportGeneralTypeIssues]
+    width = np.asarray(ndimage.distance_transform_edt(inside & ~valid))  # to the nearest return or edge
+    size = footprint(d, camera)
+    missing = np.zeros(d.shape, bool)
+    for k in range(1, count + 1):
+        hole = labels == k
+        gap = hole & ~valid
+        if not gap.any():
+            continue
+        if 2 * float(width[gap].max()) - 1 > DROPOUT_WIDTH:
+            continue  # too wide for a dropout: free space
+        seen = hole & valid
+        if seen.any():
+            around = np.asarray(ndimage.binary_dilation(hole, structure=np.ones((3, 3), bool)), bool) & piece
+            near = float(np.median(d[around])) if around.any() else float(np.median(d[piece]))
+            if np.any(d[seen] - near > tear * size[seen]):
+                continue  # a farther surface is seen through it: free space
+        missing |= gap
+    return missing | rim
+
+
+def pruning_stride(figure, least_pixels: float, *, largest: int = 4) -> int:
+    """The largest pruning stride (every stride-th row and column scored first, at most
+    ``largest``) that still sees every member of ``figure`` able to pay for a part: the
+    largest s such that the figure's pixels outside its opening by an s × s square (the
+    members thinner than s pixels, which an s-lattice can miss altogether) number fewer
+    than ``least_pixels`` (the pixels a part needs to pay for its κ0 bits). A member s
+    pixels across always has a pixel on the lattice, whatever its position."""
+    fig = np.asarray(figure, bool)
+    for s in range(int(largest), 1, -1):
+        kept = np.asarray(ndimage.binary_opening(fig, structure=np.ones((s, s), bool)), bool)
+        if (fig & ~kept).sum() < least_pixels:
+            return s
+    return 1
+
+
 # --- 3. figure / ground --------------------------------------------------------------
 
 
@@ -356,8 +456,8 @@ class FigureGround:
     Attributes
     ----------
     figures : list of (H, W) bool masks, largest first. A mask may include pixels with no
-        return inside the figure's outline (holes): those are neither explained nor
-        errors of commission.
+        return inside the figure's outline that the hole policy calls missing data
+        (:func:`missing_returns`): those are neither explained nor errors of commission.
     planes : the background planes removed (table, floor, wall), largest first.
     ground : the supporting plane (the removed plane whose normal points most nearly up
         in the image, -y), or None.
@@ -389,6 +489,7 @@ def figure_ground(
     max_figures: int | None = None,
     max_height: float | None = None,
     max_border_fraction: float = 0.15,
+    holes: str = "auto",
     seed: int = 0,
 ) -> FigureGround:
     """Separate figures from ground.
@@ -407,9 +508,13 @@ def figure_ground(
     measured area (a band 1/40 of the image's shorter side wide, at least 3 pixels): that
     is background running off the image, like the planes (a wall's edge where two planes
     meet, a cable, the end of a shelf), not an object; 1 keeps such pieces. ``max_figures``
-    keeps the largest figures.
+    keeps the largest figures. Each figure's mask also holds the pixels without a return
+    that ``holes`` (:func:`missing_returns`) calls missing data: neither explained nor
+    errors of commission; a part drawn on any other pixel without a return pays
+    commission there.
     """
     d = _check_depth(depth, camera)
+    check_holes(holes)
     if not (isinstance(planes, (int, np.integer)) and planes >= 0):
         raise ValueError(f"planes: got {planes!r}, expected an integer >= 0")
     if not (0 < min_plane_fraction <= 1):
@@ -467,8 +572,7 @@ def figure_ground(
         piece = pieces == i
         if border is not None and (piece & border).sum() > max_border_fraction * sizes[i]:
             continue
-        holes = ndimage.binary_fill_holes(piece) & ~valid  # no return inside the outline
-        mask = piece | holes
+        mask = piece | missing_returns(d, camera, piece, holes=holes, tear=tear)
         labels[mask & (labels < 0)] = len(figures)
         figures.append(mask)
     return FigureGround(figures, found, ground, background, labels)

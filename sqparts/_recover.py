@@ -336,7 +336,11 @@ class SceneSettings:
     Binning: ``resolution`` (bin the image, NaN-aware median, so its longest side is
     about this; None or 0: full resolution). The cube of data: ``depth_range`` (near,
     far): returns outside are dropped. Clean-up (``clean``): missing returns, flying
-    pixels and outliers (:func:`~sqparts.clean_range_image`, with ``tear``).
+    pixels and outliers (:func:`~sqparts.clean_range_image`, with ``tear``). Pixels
+    without a return (``holes``, :func:`~sqparts.missing_returns`): ``"auto"`` (small
+    interior holes are missing data, wide ones and those a farther surface shows through
+    are free space), ``"free"`` (every one is free space: a part drawn there pays
+    commission) or ``"missing"`` (every enclosed one is missing data).
     Figure/ground (``figure_ground``): up to ``planes`` background planes removed
     (``plane_threshold``) and the rest split into figures (``min_figure_pixels``,
     ``max_figures``, ``max_height``, ``max_border_fraction``: see
@@ -350,6 +354,7 @@ class SceneSettings:
     depth_range: tuple[float, float] | None = None
     clean: bool = True
     tear: float | None = None
+    holes: str = "auto"
     figure_ground: bool = True
     planes: int = 3
     plane_threshold: float | None = None
@@ -363,6 +368,9 @@ class SceneSettings:
     max_bits: float = 56.0
 
     def __post_init__(self):
+        from ._preprocess import check_holes
+
+        check_holes(self.holes)
         r = self.resolution
         if r is not None and (isinstance(r, bool) or not isinstance(r, (int, np.integer)) or r < 0):
             raise ValueError(f"resolution: got {r!r}, expected an integer >= 0 or None")
@@ -541,9 +549,17 @@ def recover_scene(
     """
     from ._fit import encoding_for
     from ._postprocess import prettify as _prettify
-    from ._preprocess import DEFAULT_TEAR, auto_factor, clean_range_image, crop_depth_range, downsample, estimate_noise
+    from ._preprocess import (
+        DEFAULT_TEAR,
+        auto_factor,
+        clean_range_image,
+        crop_depth_range,
+        downsample,
+        estimate_noise,
+        missing_returns,
+    )
     from ._preprocess import figure_ground as _figure_ground
-    from ._search import default_max_size, prepare, window_for
+    from ._search import default_max_size, figure_footprint, prepare, window_for
 
     st = scene_preset(scene)
     search = search_preset(search)
@@ -575,6 +591,7 @@ def recover_scene(
             max_figures=st.max_figures,
             max_height=st.max_height,
             max_border_fraction=st.max_border_fraction,
+            holes=st.holes,
         )
         masks = fg.figures
         if not masks:
@@ -582,14 +599,14 @@ def recover_scene(
                 "depth: got no figure left after removing the background, expected at least one (try figure_ground=False or a smaller min_figure_pixels)"
             )
     else:
-        masks = [np.isfinite(d)]
+        masks = [np.isfinite(d) | missing_returns(d, camera, np.isfinite(d), holes=st.holes, tear=tear)]
     t1 = time.perf_counter()
     recoveries, reports = [], []
     noise = estimate_noise(d)
     for mask in masks:
         enc = encoding
-        if enc is None:  # σ covers the sensor's noise: ±σ/2 is ±2 sd
-            base = encoding_for(d[mask & np.isfinite(d)])
+        if enc is None:  # σ covers the sensor's noise (±σ/2 is ±2 sd) and half a pixel footprint
+            base = encoding_for(d[mask & np.isfinite(d)], footprint=figure_footprint(d, mask, camera))
             enc = encoding_for(d[mask & np.isfinite(d)], sigma=max(base.sigma, 4.0 * noise))
         figure_search = search
         if search.window is None:

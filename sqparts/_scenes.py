@@ -93,8 +93,14 @@ def human(resolution: int = 128) -> BuiltinScene:
     )
 
 
-def chair(resolution: int = 96) -> BuiltinScene:
-    """A chair as in Figure 2(c): seat, bent back, four legs; seen from above at an angle."""
+def chair(resolution: int = 96, *, leg_width: float = 0.025, tilt: float = 2.4, turn: float = 0.6) -> BuiltinScene:
+    """A chair as in Figure 2(c): seat, bent back, four legs of semi-axis ``leg_width``
+    metres (4 pixels across at 96x96 by default), 3 m away, turned by ``turn`` radians
+    about its own vertical and tilted by ``tilt`` about the camera's x axis (pi/2: seen
+    from the side; more: from above). The default view is from above at an angle, and
+    hides one leg behind the seat; :func:`thin_chair` sees all four."""
+    if not (isinstance(leg_width, (int, float)) and 0 < leg_width <= 0.1):
+        raise ValueError(f"leg_width: got {leg_width!r}, expected metres in (0, 0.1]")
     parts = {
         "seat": limb([0, 0, -0.03], [0, 0, 0.03], 0.24, 0.22, (0.2, 0.3), roll=0.0),
         "back": Part(
@@ -105,10 +111,10 @@ def chair(resolution: int = 96) -> BuiltinScene:
         ),
     }
     for i, (x, y) in enumerate([(-0.2, -0.18), (-0.2, 0.18), (0.2, -0.18), (0.2, 0.18)]):
-        parts[f"leg {i + 1}"] = limb([x, y, -0.03], [x, y, -0.45], 0.025, squareness=(0.3, 0.3))
+        parts[f"leg {i + 1}"] = limb([x, y, -0.03], [x, y, -0.45], leg_width, squareness=(0.3, 0.3))
     # Chair frame: z up. Pose it in the camera frame: seen from above and from the side.
-    tilt = _compose(np.array([2.4, 0.0, 0.0]), np.array([0.0, 0.0, 0.6]))
-    rot = np.asarray(_rot(tilt))
+    pose = _compose(np.array([float(tilt), 0.0, 0.0]), np.array([0.0, 0.0, float(turn)]))
+    rot = np.asarray(_rot(pose))
     posed = []
     for p in parts.values():
         pos = rot @ np.asarray(p.position, float) + np.array([0.0, 0.0, 3.0])
@@ -117,7 +123,7 @@ def chair(resolution: int = 96) -> BuiltinScene:
                 size=p.size,
                 squareness=p.squareness,
                 position=pos.astype(np.float32),
-                orientation=_compose(tilt, np.asarray(p.orientation, float)).astype(np.float32),
+                orientation=_compose(pose, np.asarray(p.orientation, float)).astype(np.float32),
                 bend=p.bend,
                 taper=p.taper,
             )
@@ -130,6 +136,15 @@ def chair(resolution: int = 96) -> BuiltinScene:
         PinholeCamera(resolution, resolution, f, f, c, c),
         tuple(parts),
         "a chair (Figure 2c): square seat, bent back, four legs, seen from above at an angle",
+    )
+
+
+def thin_chair(resolution: int = 96) -> BuiltinScene:
+    """The chair of :func:`chair` with legs 2.4 pixels across (``leg_width=0.015``), seen
+    from 19 degrees above the seat's plane so that all four legs show (47-97 pixels each)."""
+    s = chair(resolution, leg_width=0.015, tilt=1.9, turn=-0.6)
+    return dataclasses.replace(
+        s, name="thin-chair", description="the chair with legs 2.4 pixels across, all four in view"
     )
 
 
@@ -275,7 +290,7 @@ def posed_human(pose: str = "standing", resolution: int = 128) -> BuiltinScene:
     )
 
 
-BUILTIN_SCENES = {"human": human, "chair": chair, "castings": castings, "gate": gate}
+BUILTIN_SCENES = {"human": human, "chair": chair, "castings": castings, "gate": gate, "thin-chair": thin_chair}
 
 
 def builtin_scene(name: str, **kwargs) -> BuiltinScene:

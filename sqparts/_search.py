@@ -81,8 +81,10 @@ class SearchSettings:
     figure's largest extent) and ``window`` the region's side in pixels (None: the
     projected diameter of a ``max_size`` part); :meth:`resolve` fills both from the data.
     ``top_k`` candidates are returned per region; hypotheses are first scored on every
-    ``stride``-th pixel and the best ``survivors`` rescored at full resolution
-    (``prune=False``: every hypothesis at full resolution); the ``polish_candidates`` best
+    ``stride``-th pixel (None: the widest lattice, at most 4, that still sees every member
+    of the figure able to pay for a part, :func:`~sqparts._preprocess.pruning_stride`) and
+    the best ``survivors`` rescored at full resolution (``prune=False``: every hypothesis
+    at full resolution); the ``polish_candidates`` best
     distinct survivors are polished (``polish_rounds`` of region growing ×
     ``polish_steps`` Levenberg-Marquardt steps); the best polished part is restarted from
     3 · ``restarts``² starts (axis labellings × squareness values; 0: none) and polished
@@ -95,7 +97,7 @@ class SearchSettings:
     max_size: float | None = None
     window: int | None = None
     top_k: int = 3
-    stride: int = 4
+    stride: int | None = None
     survivors: int = 64
     batch_size: int = 256
     newton_steps: int = SEARCH_NEWTON_STEPS
@@ -111,6 +113,8 @@ class SearchSettings:
         object.__setattr__(self, "grid", grid_preset(self.grid))
         for name in ("top_k", "stride", "survivors", "batch_size", "newton_steps"):
             v = getattr(self, name)
+            if name == "stride" and v is None:
+                continue
             if not isinstance(v, (int, np.integer)) or isinstance(v, bool) or v <= 0:
                 raise ValueError(f"{name}: got {v!r}, expected a positive integer")
         for name in ("polish_steps", "polish_rounds", "polish_candidates", "restarts"):
@@ -131,13 +135,19 @@ class SearchSettings:
             raise ValueError(f"spacing: got {self.spacing!r}, expected a finite number > 0 or None")
 
     def resolve(self, data: RangeData) -> SearchSettings:
-        """These settings with ``max_size`` and ``window`` derived from ``data`` where
-        they are None."""
+        """These settings with ``max_size``, ``window`` and ``stride`` derived from
+        ``data`` where they are None."""
+        from ._preprocess import pruning_stride
+
         max_size = self.max_size if self.max_size is not None else default_max_size(data)
         window = int(self.window) if self.window is not None else window_for(data, max_size)
         if window > 2 * data.pad:
             raise ValueError(f"window: got {window}, expected at most {2 * data.pad} pixels (twice the padding)")
-        return dataclasses.replace(self, max_size=max_size, window=window)
+        stride = self.stride
+        if stride is None:  # thin members: a lattice that sees them
+            enc = data.encoding
+            stride = pruning_stride(data.figure_mask, enc.part_bits / enc.saved_per_pixel)
+        return dataclasses.replace(self, max_size=max_size, window=window, stride=stride)
 
     @property
     def side(self) -> int:
@@ -145,6 +155,13 @@ class SearchSettings:
         if self.window is None:
             raise ValueError("window: got None, expected settings resolved on the data (SearchSettings.resolve)")
         return int(self.window)
+
+    @property
+    def lattice(self) -> int:
+        """The pruning stride, of settings resolved on the data."""
+        if self.stride is None:
+            raise ValueError("stride: got None, expected settings resolved on the data (SearchSettings.resolve)")
+        return int(self.stride)
 
     def to_json(self) -> dict:
         """The settings as JSON (the grid by its fields)."""
@@ -220,7 +237,8 @@ def prepare(depth, camera: Camera, *, figure=None, encoding: Encoding | None = N
     ``figure`` (bool, same shape) marks the figure of interest; default: every pixel with
     a return. Figure pixels without a return (holes in a sensor's data) are *unknown*: a
     part drawn there is neither an explained pixel nor an error of commission.
-    ``encoding`` defaults to :func:`~sqparts.encoding_for` of the figure.
+    ``encoding`` defaults to :func:`~sqparts.encoding_for` of the figure, σ at least
+    half a pixel footprint at the figure's depth (:func:`figure_footprint`).
     """
     d = check_range_image(depth, camera).astype(np.float32)
     fig = np.isfinite(d) if figure is None else np.asarray(figure, bool)
@@ -234,7 +252,7 @@ def prepare(depth, camera: Camera, *, figure=None, encoding: Encoding | None = N
         raise TypeError(
             f"encoding: got {encoding!r:.60} ({type(encoding).__name__}), expected a sqparts.Encoding or None"
         )
-    enc = encoding or encoding_for(d[fig & np.isfinite(d)])
+    enc = encoding or encoding_for(d[fig & np.isfinite(d)], footprint=figure_footprint(d, fig, camera))
     h, w = d.shape
     grow = ((pad, pad + _bucket(h) - h), (pad, pad + _bucket(w) - w))
     # device_put, not jnp.asarray: a transfer, not a compiled program per shape.
@@ -245,6 +263,13 @@ def prepare(depth, camera: Camera, *, figure=None, encoding: Encoding | None = N
         camera,
         enc,
     )
+
+
+def figure_footprint(depth, figure, camera: Camera) -> float:
+    """Metric width of one pixel at the median depth of the figure's returns (NaN if it
+    has none): the least σ of :func:`~sqparts.encoding_for` is half of it."""
+    d = np.asarray(depth)[np.asarray(figure, bool) & np.isfinite(depth)]
+    return float(np.asarray(camera.pixel_size_at(np.float32(np.median(d))))) if d.size else math.nan
 
 
 def _bucket(n: int) -> int:
@@ -420,7 +445,9 @@ def _score_hypotheses(
     measured, figure, origins, directions, c_o, c_d, surface_t = _region_inputs(
         depth, fig, camera, pad, corner, centre, window
     )
-    s = slice(stride // 2, None, stride)
+    # The lattice passes through the region's centre (window // 2): a member one stride
+    # thin that the region sits on is always sampled.
+    s = slice((window // 2) % stride, None, stride)
     measured, figure = measured[s, s], figure[s, s]
     origins, directions = origins[s, s], directions[s, s]
     weight = jnp.float32(stride * stride)
@@ -479,9 +506,9 @@ def score_region(data: RangeData, settings: SearchSettings, centre, *, hypothese
     hyp = hypotheses or _grid_arrays(settings.grid)
     corner, centre = _corner(settings, centre)
     n = len(hyp["orientation"])
-    stride = stride or settings.stride
+    stride = stride or settings.lattice
     # Chunks of about 2^16 rays keep temporaries in cache (one huge vmap is slower).
-    pixels = len(range(stride // 2, settings.side, stride)) ** 2
+    pixels = len(range((settings.side // 2) % stride, settings.side, stride)) ** 2
     devices = len(jax.devices())
     cap = int(max(1, min(settings.batch_size, CHUNK_RAYS // pixels)))
     batch_size = -(-n // (-(-n // (cap * devices)) * devices))  # as few chunks as the cap allows, least padding
@@ -739,7 +766,7 @@ def fit_region(data: RangeData, settings: SearchSettings, centre) -> RegionFit:
     hyp = _grid_arrays(settings.grid)
     corner, centre_j = _corner(settings, centre)
     n = len(hyp["orientation"])
-    if settings.prune and settings.stride > 1 and settings.survivors < n:
+    if settings.prune and settings.lattice > 1 and settings.survivors < n:
         gam = np.empty(n, np.float32)
         for side, sel in _by_window(settings.grid, settings.window):
             g, _ = score_region(

@@ -174,6 +174,7 @@ def _recover_options(args) -> dict:
         min_figure_pixels=args.min_figure_pixels,
         max_figures=args.max_figures,
         max_border_fraction=args.max_border_fraction,
+        holes=args.holes,
         prettify=args.prettify,
         up=None if up is None else (up[0], up[1], up[2]),
         max_angle=args.max_angle,
@@ -587,6 +588,13 @@ def build_parser() -> argparse.ArgumentParser:
         help="a piece with more of its pixels on the edge of the measured area is background (1 = keep)",
     )
     g.add_argument("--depth-range", default=None, help="NEAR,FAR: drop returns outside (scene units)")
+    g.add_argument(
+        "--holes",
+        default="auto",
+        choices=["auto", "free", "missing"],
+        help="pixels with no return: free space (a part there pays commission) or missing data; "
+        "auto: small interior holes are missing, wide ones and see-through ones free (default auto)",
+    )
     g.add_argument(
         "--prettify", action="store_true", help="snap nearly vertical/horizontal parts to gravity (section 4.3)"
     )

@@ -183,7 +183,17 @@ def test_figure_ground_without_ground_keeps_everything(table_scene):
     fg = sqparts.figure_ground(parts_only, CAM)
     assert fg.ground is None and fg.planes == []
     assert len(fg.figures) == 2
-    assert sum(int(m.sum()) for m in fg.figures) == int((truth[0] | truth[1]).sum())
+    returns = np.isfinite(parts_only)
+    assert sum(int((m & returns).sum()) for m in fg.figures) == int((truth[0] | truth[1]).sum())
+    # Beyond its returns a figure holds only pixels without one on its one-pixel rim
+    # (mixed pixels, missing data under the default hole policy).
+    for m in fg.figures:
+        grown = np.zeros_like(m)
+        core = np.pad(m & returns, 1)
+        for dy in (-1, 0, 1):
+            for dx in (-1, 0, 1):
+                grown |= core[1 + dy : core.shape[0] - 1 + dy, 1 + dx : core.shape[1] - 1 + dx]
+        assert not (m & ~returns & ~grown).any()
 
 
 def test_rubber_sheet_tears_only_at_jumps():

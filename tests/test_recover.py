@@ -100,7 +100,9 @@ def test_refinement_splits_a_part_that_spans_two():
         ]
     )
     depth, truth = (np.asarray(a) for a in sqparts.render_range_image(scene, cam, return_labels=True))
-    data = sqparts.prepare(depth, cam)
+    # σ of 6-bit data (an eighth of a footprint here), not prepare's floor of half a
+    # footprint: the wider window lets the compromise part explain more of both blocks.
+    data = sqparts.prepare(depth, cam, encoding=sqparts.encoding_for(depth[np.isfinite(depth)]))
     costs = sqparts.Costs.from_encoding(data.encoding, int(data.figure_mask.sum()))
     one = sqparts.stack_parts(
         [sqparts.Part(size=[0.06, 0.04, 0.18], squareness=[0.3, 0.3], position=[0.0, -0.06, 2.0], orientation=turn)]

@@ -78,7 +78,8 @@ def test_resolve_fills_scale_and_window_from_the_data(depth):
 
 def test_a_result_records_the_objects_it_ran_with(depth, tmp_path):
     rec = sqparts.recover(depth, CAM, select=sqparts.SelectSettings(method="best-first"), **FAST)
-    assert rec.search == FAST["search"] and rec.refine == FAST["refine"]
+    # Resolved: the stride of a compact figure (no member thinner than 4 pixels) is 4.
+    assert rec.search == dataclasses.replace(FAST["search"], stride=4) and rec.refine == FAST["refine"]
     assert rec.select.method == "best-first" and rec.selection_method == "best-first"
     with pytest.raises(dataclasses.FrozenInstanceError):
         rec.parts = rec.initial_parts  # type: ignore[misc]
