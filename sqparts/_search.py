@@ -445,9 +445,7 @@ def _score_hypotheses(
     measured, figure, origins, directions, c_o, c_d, surface_t = _region_inputs(
         depth, fig, camera, pad, corner, centre, window
     )
-    # The lattice passes through the region's centre (window // 2): a member one stride
-    # thin that the region sits on is always sampled.
-    s = slice((window // 2) % stride, None, stride)
+    s = slice(stride // 2, None, stride)
     measured, figure = measured[s, s], figure[s, s]
     origins, directions = origins[s, s], directions[s, s]
     weight = jnp.float32(stride * stride)
@@ -508,7 +506,7 @@ def score_region(data: RangeData, settings: SearchSettings, centre, *, hypothese
     n = len(hyp["orientation"])
     stride = stride or settings.lattice
     # Chunks of about 2^16 rays keep temporaries in cache (one huge vmap is slower).
-    pixels = len(range((settings.side // 2) % stride, settings.side, stride)) ** 2
+    pixels = len(range(stride // 2, settings.side, stride)) ** 2
     devices = len(jax.devices())
     cap = int(max(1, min(settings.batch_size, CHUNK_RAYS // pixels)))
     batch_size = -(-n // (-(-n // (cap * devices)) * devices))  # as few chunks as the cap allows, least padding
