@@ -188,7 +188,7 @@ class Description:
         Part-to-frame rotations, columns in the order of the sorted axes (for pose only).
     names : tuple of str
         Optional part names ("" where none).
-    shape : (SHAPE_BINS,) array or None
+    shape_distribution : (SHAPE_BINS,) array or None
         The whole object's :func:`shape_distribution` (None: not known, e.g. a description
         read from a file written before it existed; matching then uses the parts alone).
     """
@@ -199,7 +199,7 @@ class Description:
     positions: np.ndarray
     rotations: np.ndarray
     names: tuple = ()
-    shape: np.ndarray | None = None
+    shape_distribution: np.ndarray | None = None
 
     def __len__(self) -> int:
         return len(self.attributes)
@@ -242,8 +242,8 @@ class Description:
         for e in edges:
             e["touch"] = bool(e["touch"])
         out = {"scale": float(self.scale), "nodes": nodes, "edges": edges}
-        if self.shape is not None:
-            out["shape_distribution"] = [float(v) for v in self.shape]
+        if self.shape_distribution is not None:
+            out["shape_distribution"] = [float(v) for v in self.shape_distribution]
         return out
 
     @classmethod
@@ -312,7 +312,10 @@ class Description:
                 self.to_json(),
                 directed=True,
                 multigraph=False,
-                graph={"scale": self.scale, "shape_distribution": None if self.shape is None else self.shape.tolist()},
+                graph={
+                    "scale": self.scale,
+                    "shape_distribution": None if self.shape_distribution is None else self.shape_distribution.tolist(),
+                },
             ),
             edges="edges",
         )

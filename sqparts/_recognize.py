@@ -251,10 +251,10 @@ def shape_similarity(query: Description, model: Description, tolerance: float | 
     """max(0, 1 - W / tolerance), W the 1-D earth mover's distance between the two shape
     distributions (the L1 distance of their cumulative sums times the bin width, in object
     scales); 1 when either description has none or ``tolerance`` is None."""
-    if tolerance is None or query.shape is None or model.shape is None:
+    if tolerance is None or query.shape_distribution is None or model.shape_distribution is None:
         return 1.0
     width = SHAPE_RANGE / SHAPE_BINS
-    w = float(np.abs(np.cumsum(query.shape) - np.cumsum(model.shape)).sum() * width)
+    w = float(np.abs(np.cumsum(query.shape_distribution) - np.cumsum(model.shape_distribution)).sum() * width)
     return max(0.0, 1.0 - w / tolerance)
 
 

@@ -393,7 +393,7 @@ def test_shape_distribution_is_invariant_to_a_rigid_motion_and_units(scene):
     a, b, c = (shape_distribution(p) for p in (parts, moved_parts, big))
     np.testing.assert_allclose(b, a, atol=2e-4)
     np.testing.assert_allclose(c, a, atol=2e-4)
-    np.testing.assert_array_equal(describe(parts).shape, a)
+    np.testing.assert_array_equal(describe(parts).shape_distribution, a)
     settings = sqparts.MatchSettings(shape_tolerance=0.5)
     assert sqparts.match_descriptions(describe(moved_parts), describe(parts), settings).score == pytest.approx(
         1.0, abs=1e-3
@@ -427,7 +427,7 @@ def test_descriptions_without_a_shape_distribution_still_read_and_match():
     assert len(data["shape_distribution"]) == SHAPE_BINS
     del data["shape_distribution"]
     old = Description.from_json(data)
-    assert old.shape is None and shape_similarity(old, d, 0.5) == 1.0
+    assert old.shape_distribution is None and shape_similarity(old, d, 0.5) == 1.0
     with pytest.raises(ValueError, match=r"description.shape_distribution: got values summing to 2"):
         Description.from_json({**d.to_json(), "shape_distribution": [2.0] + [0.0] * (SHAPE_BINS - 1)})
     with pytest.raises(ValueError, match=r"shape_tolerance: got -1, expected a number > 0 or None"):
