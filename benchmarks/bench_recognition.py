@@ -25,6 +25,7 @@ the person in every pose (configuration).
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import json
 import sys
 import time
@@ -42,7 +43,7 @@ from sqparts._describe import describe
 from sqparts._io import scene_from_dict, scene_to_dict
 from sqparts._mesh import render_mesh
 from sqparts._part import Part, matrix_to_rotation_vector, stack_parts
-from sqparts._recognize import match_descriptions
+from sqparts._recognize import MatchSettings, match_descriptions
 
 ROOT = Path(__file__).resolve().parents[1]
 DATA = ROOT.parent / "shared" / "data"
@@ -240,7 +241,15 @@ def recover_all(views, meshes, cache: dict) -> dict:
 def main():
     ap = argparse.ArgumentParser()
     ap.add_argument("--from-cache", action="store_true", help="reuse results/recognition_cache.json's recoveries")
+    ap.add_argument(
+        "--whole-object",
+        action="store_true",
+        help="also weigh each match by the whole objects' shape distributions (MatchSettings(shape_tolerance=0.5)); "
+        "results saved as recognition_shape*",
+    )
     args = ap.parse_args()
+    settings = MatchSettings(shape_tolerance=0.5) if args.whole_object else MatchSettings()
+    tag = "recognition_shape" if args.whole_object else "recognition"
     import sqparts._compile
 
     sqparts._compile.enable_caches()
@@ -276,7 +285,7 @@ def main():
             )
             db.add_view(name, view, calibrate=False)
     t0 = time.perf_counter()
-    threshold = db.calibrate()
+    threshold = db.calibrate(settings=settings)
     calibrate_s = time.perf_counter() - t0
     print(
         f"threshold {threshold:.3f} from {len(db.calibration['genuine'])} genuine and "
@@ -291,9 +300,9 @@ def main():
         e = cache[key]
         figures = [_parts(f) for f in e["figures"]]
         t0 = time.perf_counter()
-        best, matches = match_figures(figures, database=db)
+        best, matches = match_figures(figures, database=db, settings=settings)
         match_s = time.perf_counter() - t0
-        unknown_best, unknown_matches = match_figures(figures, database=db.without(name))
+        unknown_best, unknown_matches = match_figures(figures, database=db.without(name), settings=settings)
         names = [m.name for m in matches]
         row = {
             "view": key,
@@ -330,7 +339,7 @@ def main():
             keys = [k for k in keys if cache[k]["figures"]]
             descs = [describe(stack_parts([p for f in cache[k]["figures"] for p in _parts(f)])) for k in keys]
             counts = [len(d) for d in descs]
-            dist = [1.0 - match_descriptions(d, descs[0]).score for d in descs[1:]]
+            dist = [1.0 - match_descriptions(d, descs[0], settings).score for d in descs[1:]]
             stability.append(
                 {
                     "kind": kind,
@@ -366,14 +375,15 @@ def main():
             f"max {s['description_distance_max']:.3f}"
         )
     save(
-        "recognition",
+        tag,
         {
             "settings": {
                 "resolution": RESOLUTION,
                 "object_size_m": OBJECT_SIZE,
                 "distance_m": DISTANCE,
                 "noise_m": NOISE,
-                "recover": RECOVER,
+                "recover": {k: dataclasses.asdict(v) for k, v in RECOVER.items()},
+                "match": dataclasses.asdict(settings),
                 "learn_views": LEARN_VIEWS,
                 "human_learn": HUMAN_LEARN,
                 "human_test": HUMAN_TEST,
@@ -386,7 +396,7 @@ def main():
             "confusion": {"rows": objects, "columns": objects + ["(rejected)"], "counts": confusion.tolist()},
         },
     )
-    plot_confusion(confusion, objects, result_path("recognition_confusion", "png"))
+    plot_confusion(confusion, objects, result_path(f"{tag}_confusion", "png"))
 
 
 def plot_confusion(confusion, objects, path):

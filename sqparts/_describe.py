@@ -10,6 +10,10 @@ change under a rigid motion of the camera or a change of units; the camera-frame
 positions and rotations are kept beside them (``positions``, ``rotations``) only to
 estimate the pose once parts are matched.
 
+Beside the parts, a whole-object term derived from them: the D2 shape distribution of
+points on the parts' surfaces (:func:`shape_distribution`), which one part recovered as
+two, or two as one, barely moves.
+
 The graph form (:meth:`Description.graph`) is a ``networkx.DiGraph``: nodes are parts,
 edges ordered pairs; :meth:`Description.to_json` is its node-link JSON.
 
@@ -22,6 +26,7 @@ import dataclasses
 
 import numpy as np
 from scipy.spatial import KDTree
+from scipy.spatial.distance import pdist
 from scipy.special import beta
 
 from ._part import Part, matrix_to_rotation_vector, stack_parts
@@ -39,6 +44,13 @@ between their longest axes (radians), and log(volume_j / volume_i)."""
 
 TOUCH_GAP = 0.08
 """Parts whose surfaces come closer than this (a fraction of the object's scale) touch."""
+
+SHAPE_BINS = 24
+SHAPE_RANGE = 4.0
+"""The whole-object shape distribution (:func:`shape_distribution`): ``SHAPE_BINS`` bins of
+the distance between two surface points over [0, ``SHAPE_RANGE``] object scales (a solid
+of scale s fits well inside 4 s unless it is a thin rod more than 4 s long; longer distances
+fall in the last bin)."""
 
 
 def part_volume(size, squareness) -> np.ndarray:
@@ -88,6 +100,76 @@ def surface_samples(size, squareness, bend, taper, rotation, position, *, count:
     return q @ np.asarray(rotation).T + np.asarray(position)
 
 
+def _radial_surface(theta, phi, size, squareness, bend, taper):
+    """Part-frame points of a deformed superquadric in the directions (θ latitude, φ
+    longitude): the direction d projected radially, r = F(d)^(-ε1/2) for the
+    inside-outside function F of Eq. 1, then tapered and bent as :func:`surface_samples`."""
+    d = np.stack([np.cos(theta) * np.cos(phi), np.cos(theta) * np.sin(phi), np.sin(theta)], -1)
+    e1, e2 = squareness
+    a1, _, a3 = size
+    ad = np.abs(d) / np.asarray(size)
+    with np.errstate(divide="ignore"):
+        f = (ad[..., 0] ** (2 / e2) + ad[..., 1] ** (2 / e2)) ** (e2 / e1) + ad[..., 2] ** (2 / e1)
+    q = d * (f ** (-e1 / 2))[..., None]
+    x, y, z = q[..., 0], q[..., 1], q[..., 2]
+    scale = 1.0 + taper * z / a3
+    x, y = x * scale, y * scale
+    x = x + bend[0] * z * z / a3
+    z = z + bend[1] * x * x / a1
+    return np.stack([x, y, z], -1)
+
+
+def area_samples(size, squareness, bend, taper, rotation, position, *, count: int = 12):
+    """Points on one deformed part and the surface area each stands for.
+
+    The directions of a (latitude, longitude) grid of ``count`` x 2 ``count`` cells are
+    projected radially onto the part (:func:`_radial_surface`), which spreads points over
+    the flat faces of a boxy part where Eq. 1's own (η, ω) grid crowds them onto its
+    edges. Each cell's centre stands for the cell's area, half the cross product of its
+    diagonals (exact for a planar cell). Returns ((2 count², 3) points, (2 count²,) areas)
+    in the frame given by ``rotation`` and ``position``.
+    """
+    edges_t = np.linspace(-np.pi / 2, np.pi / 2, count + 1)
+    edges_p = np.linspace(-np.pi, np.pi, 2 * count + 1)
+    centres = _radial_surface(
+        *np.meshgrid((edges_t[1:] + edges_t[:-1]) / 2, (edges_p[1:] + edges_p[:-1]) / 2, indexing="ij"),
+        size,
+        squareness,
+        bend,
+        taper,
+    )
+    c = _radial_surface(*np.meshgrid(edges_t, edges_p, indexing="ij"), size, squareness, bend, taper)
+    area = 0.5 * np.linalg.norm(np.cross(c[1:, 1:] - c[:-1, :-1], c[1:, :-1] - c[:-1, 1:]), axis=-1)
+    p = centres.reshape(-1, 3) @ np.asarray(rotation).T + np.asarray(position)
+    return p, area.ravel()
+
+
+def shape_distribution(parts: Part, *, count: int = 12) -> np.ndarray:
+    """The whole object's D2 shape distribution (Osada et al. 2002) computed from its parts:
+    the area-weighted histogram of the distance between two points of the parts' surfaces,
+    in units of the object's scale (cube root of the parts' total volume), ``SHAPE_BINS``
+    bins over [0, ``SHAPE_RANGE``], summing to 1 (distances beyond the range in the last bin).
+
+    A description of the solid as a whole that does not depend on how it was cut into
+    parts: one part recovered as two, or two as one, moves it little, where the part graph
+    changes. Unchanged by a rigid motion of all the parts and by a change of units.
+    """
+    size, sq, bend, taper, position, orientation = _as_arrays(parts)
+    rot = _rotation_matrices(orientation)
+    samples = [
+        area_samples(size[i], sq[i], bend[i], taper[i], rot[i], position[i], count=count) for i in range(len(size))
+    ]
+    pts = np.concatenate([p for p, _ in samples])
+    area = np.concatenate([a for _, a in samples])
+    scale = float(np.cbrt(part_volume(size, sq).sum()))
+    i, j = np.triu_indices(len(pts), 1)
+    d = pdist(pts) / scale
+    h, _ = np.histogram(
+        np.minimum(d, SHAPE_RANGE * (1 - 1e-9)), bins=SHAPE_BINS, range=(0, SHAPE_RANGE), weights=area[i] * area[j]
+    )
+    return h / h.sum()
+
+
 @dataclasses.dataclass(frozen=True, eq=False)
 class Description:
     """The part structure of one figure (section 1: a stable description to match).
@@ -106,6 +188,9 @@ class Description:
         Part-to-frame rotations, columns in the order of the sorted axes (for pose only).
     names : tuple of str
         Optional part names ("" where none).
+    shape_distribution : (SHAPE_BINS,) array or None
+        The whole object's :func:`shape_distribution` (None: not known, e.g. a description
+        read from a file written before it existed; matching then uses the parts alone).
     """
 
     scale: float
@@ -114,6 +199,7 @@ class Description:
     positions: np.ndarray
     rotations: np.ndarray
     names: tuple = ()
+    shape_distribution: np.ndarray | None = None
 
     def __len__(self) -> int:
         return len(self.attributes)
@@ -155,7 +241,10 @@ class Description:
         ]
         for e in edges:
             e["touch"] = bool(e["touch"])
-        return {"scale": float(self.scale), "nodes": nodes, "edges": edges}
+        out = {"scale": float(self.scale), "nodes": nodes, "edges": edges}
+        if self.shape_distribution is not None:
+            out["shape_distribution"] = [float(v) for v in self.shape_distribution]
+        return out
 
     @classmethod
     def from_json(cls, data, *, where: str = "description") -> "Description":
@@ -204,14 +293,31 @@ class Description:
                 )
             for c, key in enumerate(RELATIONS):
                 relations[i, j, c] = number(edge.get(key), f"edges[{k}].{key}")
-        return cls(scale, attributes, relations, positions, rotations, tuple(names) if any(names) else ())
+        shape = None
+        if "shape_distribution" in data:
+            shape = number(data["shape_distribution"], "shape_distribution", (SHAPE_BINS,))
+            if np.any(shape < 0) or not np.isclose(shape.sum(), 1.0, atol=1e-4):
+                raise ValueError(
+                    f"{where}.shape_distribution: got values summing to {shape.sum():.4g}, expected {SHAPE_BINS} numbers >= 0 summing to 1"
+                )
+            shape = shape / shape.sum()
+        return cls(scale, attributes, relations, positions, rotations, tuple(names) if any(names) else (), shape)
 
     def graph(self):
         """The description as a ``networkx.DiGraph`` (node and edge attributes as in :meth:`to_json`)."""
         import networkx as nx
 
         return nx.node_link_graph(
-            dict(self.to_json(), directed=True, multigraph=False, graph={"scale": self.scale}), edges="edges"
+            dict(
+                self.to_json(),
+                directed=True,
+                multigraph=False,
+                graph={
+                    "scale": self.scale,
+                    "shape_distribution": None if self.shape_distribution is None else self.shape_distribution.tolist(),
+                },
+            ),
+            edges="edges",
         )
 
 
@@ -287,7 +393,13 @@ def describe(parts: Part, *, names=None, touch_gap: float = TOUCH_GAP) -> Descri
                 np.log(volume[j] / volume[i]),
             ]
     return Description(
-        scale, attributes, relations, position.copy(), sorted_rot, tuple(names) if names is not None else ()
+        scale,
+        attributes,
+        relations,
+        position.copy(),
+        sorted_rot,
+        tuple(names) if names is not None else (),
+        shape_distribution(parts),
     )
 
 

@@ -6,7 +6,10 @@ stored one by an assignment of query parts to model parts that maximises a score
 its unary similarity (sizes, squareness, taper, bend) times the mean similarity of its
 relations to the other matched pairs (gap, distance, offsets, axis angle). Unmatched
 parts on either side contribute nothing, so a model with a part hidden (occlusion) or a
-query with an extra part still matches, with a somewhat lower score.
+query with an extra part still matches, with a somewhat lower score. Optionally
+(``MatchSettings.shape_tolerance``) the part match's score is then multiplied by the similarity of the two whole objects' shape distributions
+(:func:`shape_similarity`), a term derived from the parts that does not depend on how
+the solid was cut into them.
 
 The assignment is solved by ``scipy.optimize.linear_sum_assignment``: first on the
 unary similarities, then a few times on the unary similarities weighted by the pairwise
@@ -28,7 +31,7 @@ import numpy as np
 from scipy.optimize import linear_sum_assignment
 from scipy.spatial.transform import Rotation
 
-from ._describe import ATTRIBUTES, RELATIONS, Description
+from ._describe import ATTRIBUTES, RELATIONS, SHAPE_BINS, SHAPE_RANGE, Description
 
 
 @dataclasses.dataclass(frozen=True)
@@ -45,6 +48,12 @@ class MatchSettings:
     angle_tolerance : sigma of the angle between longest axes (radians).
     min_similarity : a pair less similar than this is left unmatched.
     iterations : IPFP re-assignments after the first.
+    shape_tolerance : the whole-object term: the part match's score is multiplied by
+        max(0, 1 - W / shape_tolerance), W the earth mover's distance between the two
+        descriptions' shape distributions (in object scales: 0.5 = the typical distance
+        between surface points moved by half the object's scale); None (the default): the
+        parts alone. Off by default: a whole-object term punishes a query with parts hidden
+        (occlusion), which the part match by itself tolerates.
     weighting : a matched pair's weight: ``"fraction"``, sqrt(v_query v_model) of the two
         parts' volume fractions; ``"volume"``, min(V_query, V_model) / max(ΣV_query,
         ΣV_model) of their volumes in scene units, so that a query explaining only a small
@@ -59,10 +68,14 @@ class MatchSettings:
     min_similarity: float = 0.05
     iterations: int = 4
     weighting: str = "volume"
+    shape_tolerance: float | None = None
 
     def __post_init__(self):
         if self.weighting not in ("fraction", "volume"):
             raise ValueError(f"weighting: got {self.weighting!r}, expected 'fraction' or 'volume'")
+        t = self.shape_tolerance
+        if t is not None and not (isinstance(t, (int, float)) and np.isfinite(t) and t > 0):
+            raise ValueError(f"shape_tolerance: got {t!r}, expected a number > 0 or None")
 
 
 @dataclasses.dataclass(frozen=True)
@@ -230,7 +243,19 @@ def match_descriptions(query: Description, model: Description, settings: MatchSe
             break
         best_pairs, best_score = np.delete(best_pairs, k, 0), scores[k]
     w = weight[best_pairs[:, 0], best_pairs[:, 1]] if len(best_pairs) else None
-    return Match(best_score, best_pairs, estimate_pose(query, model, best_pairs, w))
+    score = best_score * shape_similarity(query, model, settings.shape_tolerance)
+    return Match(score, best_pairs, estimate_pose(query, model, best_pairs, w))
+
+
+def shape_similarity(query: Description, model: Description, tolerance: float | None = 0.5) -> float:
+    """max(0, 1 - W / tolerance), W the 1-D earth mover's distance between the two shape
+    distributions (the L1 distance of their cumulative sums times the bin width, in object
+    scales); 1 when either description has none or ``tolerance`` is None."""
+    if tolerance is None or query.shape_distribution is None or model.shape_distribution is None:
+        return 1.0
+    width = SHAPE_RANGE / SHAPE_BINS
+    w = float(np.abs(np.cumsum(query.shape_distribution) - np.cumsum(model.shape_distribution)).sum() * width)
+    return max(0.0, 1.0 - w / tolerance)
 
 
 def calibrate_threshold(genuine, impostor, *, default: float = 0.45) -> float:

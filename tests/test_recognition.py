@@ -4,6 +4,7 @@ Most tests build descriptions straight from known parts (the built-in scenes), s
 test the description and the matching rather than recovery; one CLI test recovers tiny
 renders end to end."""
 
+import dataclasses
 import json
 
 import numpy as np
@@ -12,8 +13,9 @@ from scipy.spatial.transform import Rotation
 
 import sqparts
 from sqparts._database import ModelDatabase, match_figures, transform_parts, view_from_parts
-from sqparts._describe import Description, describe
+from sqparts._describe import SHAPE_BINS, SHAPE_RANGE, Description, describe, shape_distribution
 from sqparts._part import stack_parts
+from sqparts._recognize import shape_similarity
 from sqparts.cli import main
 
 
@@ -333,3 +335,100 @@ def test_a_database_path_that_is_a_file_is_refused(tmp_path):
 def test_bad_match_settings_are_refused():
     with pytest.raises(ValueError, match=r"weighting: got 'x', expected 'fraction' or 'volume'"):
         sqparts.MatchSettings(weighting="x")
+
+
+# --- the whole-object term: the D2 shape distribution of the parts' surfaces -----------
+
+
+def _bin_masses(cdf):
+    edges = np.linspace(0, SHAPE_RANGE, SHAPE_BINS + 1)
+    return np.diff(cdf(edges))
+
+
+def test_shape_distribution_of_a_sphere_is_the_closed_form():
+    """Two uniform points on a sphere of radius R are d apart with P(D <= d) = d² / 4R²."""
+    r = 0.3
+    sphere = sqparts.Part(size=[r, r, r], squareness=[1.0, 1.0], position=[0.1, -0.2, 2.0])
+    h = shape_distribution(sphere)
+    scale = np.cbrt(4 / 3 * np.pi * r**3)
+    expected = _bin_masses(lambda d: np.clip((d * scale) ** 2 / (4 * r * r), 0, 1))
+    np.testing.assert_allclose(h.sum(), 1.0, atol=1e-9)
+    assert np.abs(np.cumsum(h) - np.cumsum(expected)).max() < 0.03
+
+
+def test_shape_distribution_of_two_boxes_matches_a_trimesh_reference():
+    """Two touching boxy parts (ε = 0.1) against the same solid as a trimesh mesh, its
+    surface sampled uniformly at random (an independent estimate of D2)."""
+    import trimesh
+
+    parts = stack_parts(
+        [
+            sqparts.Part(size=[0.3, 0.1, 0.1], squareness=[0.1, 0.1], position=[0.0, 0.0, 2.0]),
+            sqparts.Part(size=[0.1, 0.2, 0.1], squareness=[0.1, 0.1], position=[0.4, 0.1, 2.0]),
+        ]
+    )
+    h = shape_distribution(parts)
+    mesh = trimesh.util.concatenate(
+        [
+            trimesh.creation.box(extents=[0.6, 0.2, 0.2]).apply_translation([0.0, 0.0, 2.0]),
+            trimesh.creation.box(extents=[0.2, 0.4, 0.2]).apply_translation([0.4, 0.1, 2.0]),
+        ]
+    )
+    rng = np.random.default_rng(0)
+    a = trimesh.sample.sample_surface(mesh, 200_000, seed=1)[0]
+    b = trimesh.sample.sample_surface(mesh, 200_000, seed=2)[0]
+    scale = np.cbrt(0.6 * 0.2 * 0.2 + 0.2 * 0.4 * 0.2)  # boxes of ε 0.1 are within 2% of their volume
+    d = np.linalg.norm(a - b[rng.permutation(len(b))], axis=1) / scale
+    ref, _ = np.histogram(np.minimum(d, SHAPE_RANGE - 1e-9), bins=SHAPE_BINS, range=(0, SHAPE_RANGE))
+    ref = ref / ref.sum()
+    emd = np.abs(np.cumsum(h) - np.cumsum(ref)).sum() * SHAPE_RANGE / SHAPE_BINS
+    assert emd < 0.06  # 12 x 24 cells a part, each standing for its area at its centre: 0.04 here
+
+
+@pytest.mark.parametrize("scene", ["human", "chair"])
+def test_shape_distribution_is_invariant_to_a_rigid_motion_and_units(scene):
+    parts = sqparts.builtin_scene(scene).parts
+    moved_parts, _ = moved(parts)
+    big = dataclasses.replace(parts, size=np.asarray(parts.size) * 2.5, position=np.asarray(parts.position) * 2.5)
+    a, b, c = (shape_distribution(p) for p in (parts, moved_parts, big))
+    np.testing.assert_allclose(b, a, atol=2e-4)
+    np.testing.assert_allclose(c, a, atol=2e-4)
+    np.testing.assert_array_equal(describe(parts).shape_distribution, a)
+    settings = sqparts.MatchSettings(shape_tolerance=0.5)
+    assert sqparts.match_descriptions(describe(moved_parts), describe(parts), settings).score == pytest.approx(
+        1.0, abs=1e-3
+    )
+
+
+def test_a_part_split_in_two_keeps_the_whole_object_term():
+    """A bar recovered as two unequal pieces (a 40/60 cut) instead of one: the part graph
+    changes, the whole object's shape distribution barely; a different object's does."""
+    bar = sqparts.Part(size=[0.05, 0.05, 0.4], squareness=[0.3, 1.0], position=[0.0, 0.0, 2.0])
+    head = sqparts.Part(size=[0.15, 0.12, 0.1], squareness=[0.5, 0.5], position=[0.0, 0.0, 2.5])
+    model = describe(stack_parts([bar, head]))
+    pieces = [
+        sqparts.Part(size=[0.05, 0.05, 0.16], squareness=[0.3, 1.0], position=[0.0, 0.0, 1.76]),
+        sqparts.Part(size=[0.05, 0.05, 0.24], squareness=[0.3, 1.0], position=[0.0, 0.0, 2.16]),
+    ]
+    split = describe(moved(stack_parts([*pieces, head]))[0])
+    other = describe(stack_parts([head, dataclasses.replace(head, position=np.array([0.0, 0.3, 2.5]))]))
+    assert shape_similarity(split, model) > 0.75  # the cut adds two end faces inside the bar
+    assert shape_similarity(other, model) < 0.5
+    settings = sqparts.MatchSettings(shape_tolerance=0.5)
+    assert (
+        sqparts.match_descriptions(split, model, settings).score
+        > sqparts.match_descriptions(other, model, settings).score
+    )
+
+
+def test_descriptions_without_a_shape_distribution_still_read_and_match():
+    d = describe(sqparts.builtin_scene("chair").parts)
+    data = d.to_json()
+    assert len(data["shape_distribution"]) == SHAPE_BINS
+    del data["shape_distribution"]
+    old = Description.from_json(data)
+    assert old.shape_distribution is None and shape_similarity(old, d, 0.5) == 1.0
+    with pytest.raises(ValueError, match=r"description.shape_distribution: got values summing to 2"):
+        Description.from_json({**d.to_json(), "shape_distribution": [2.0] + [0.0] * (SHAPE_BINS - 1)})
+    with pytest.raises(ValueError, match=r"shape_tolerance: got -1, expected a number > 0 or None"):
+        sqparts.MatchSettings(shape_tolerance=-1)
