@@ -198,7 +198,7 @@ def fit_fractal(residual, *, lags=(1, 2, 3, 4, 6, 8)) -> FractalSurface:
     return FractalSurface(hurst, float(math.exp(icpt / 2.0)), tuple(lag.tolist()), tuple(v.tolist()))
 
 
-@dataclasses.dataclass
+@dataclasses.dataclass(frozen=True)
 class ResidualModel:
     """The data's deviation from the parts and its fractal description.
 

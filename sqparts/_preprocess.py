@@ -179,7 +179,7 @@ def estimate_noise(depth) -> float:
     return float(1.4826 * np.median(np.abs(second - np.median(second))) / math.sqrt(1.5))
 
 
-@dataclasses.dataclass
+@dataclasses.dataclass(frozen=True)
 class CleanedRange:
     """What :func:`clean_range_image` did.
 
@@ -449,7 +449,7 @@ def _outer_frame(valid: np.ndarray, width: int = 3) -> np.ndarray:
     return out & valid
 
 
-@dataclasses.dataclass
+@dataclasses.dataclass(frozen=True)
 class FigureGround:
     """What :func:`figure_ground` found.
 
