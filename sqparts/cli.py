@@ -233,30 +233,6 @@ def _cluster(args):
     return _dask.local_cluster(args.jobs) if args.jobs is not None else _dask.connect(str(args.scheduler))
 
 
-_preloading: list[threading.Thread] = []
-
-
-def _preload_edge() -> None:
-    """Import the edge's heavy libraries (trimesh for model.ply, matplotlib for
-    report.png) in a background thread once the inputs are checked: they load while XLA
-    runs the recovery, which releases the GIL, instead of before it. A signal is only ever
-    raised in the main thread, so no import is interrupted half-way."""
-
-    def load():
-        try:
-            from . import _mesh  # noqa: F401
-            from ._plot import _pyplot
-
-            _pyplot()
-        except Exception:  # noqa: BLE001  (the main thread's own import reports any failure)
-            pass
-
-    if not _preloading:
-        thread = threading.Thread(target=load, name="sqparts-preload", daemon=True)
-        _preloading.append(thread)
-        thread.start()
-
-
 def cmd_recover(args) -> int:
     from ._batch import plan_batch, recover_file, remove_staging, run_batch
     from ._io import check_new_output, load_camera
@@ -266,7 +242,6 @@ def cmd_recover(args) -> int:
         out = check_new_output(args.out, overwrite=args.overwrite)  # before any work
         camera = load_camera(args.camera) if args.camera else None
         opts = _recover_options(args)
-        _preload_edge()
         recovery = recover_file(
             path,
             out,
@@ -295,7 +270,6 @@ def cmd_recover(args) -> int:
         **opts,
     )
     cluster = _cluster(args)
-    _preload_edge()
     since, failed, done = time.time(), [], 0
     try:
         with cluster as client:
@@ -377,7 +351,6 @@ def cmd_demo(args) -> int:
     from ._scenes import builtin_scene
 
     out = check_new_output(args.out, overwrite=args.overwrite)
-    _preload_edge()
     t0 = time.perf_counter()
     scene = builtin_scene("human", resolution=args.resolution)
     depth = render_range_image(scene.parts, scene.camera)
@@ -458,7 +431,6 @@ def cmd_recognize(args) -> int:
         check_new_output(target, overwrite=args.overwrite)
     loaded = _read_inputs(args, inputs)
     progress = _progress(args, "regions", "region")
-    _preload_edge()
     for (path, depth, camera), target in zip(loaded, targets):
         result = recognize(depth, camera, database=db, progress=progress, **_recognition_options(args))
         with staged_folder(target, overwrite=args.overwrite) as folder:
@@ -768,7 +740,7 @@ def main(argv=None) -> int:
     with _signals_stop_the_run():
         try:
             with _signals_deferred():
-                from . import _compile, _io, _recover  # noqa: F401  (JAX)
+                from . import _compile, _io, _mesh, _plot, _recover  # noqa: F401  (JAX, trimesh, matplotlib)
 
                 args = build_parser().parse_args(argv)
                 _compile.enable_caches()
@@ -795,6 +767,3 @@ def main(argv=None) -> int:
             signum = getattr(e, "signum", signal.SIGINT)
             print(f"sqparts: interrupted by {signal.Signals(signum).name}; no partial output left", file=sys.stderr)
             return 128 + int(signum)
-        finally:
-            for thread in _preloading:  # never leave an import running into interpreter shutdown
-                thread.join(timeout=30)
