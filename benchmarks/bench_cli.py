@@ -114,8 +114,9 @@ def main():
         "--out",
         str(out),
         "--quiet",
+        "--overwrite",  # the same output folder every run
     ]
-    demo = lambda out: ["demo", "--out", str(out), "--quiet"]  # noqa: E731
+    demo = lambda out: ["demo", "--out", str(out), "--quiet", "--overwrite"]  # noqa: E731
     times = {v: {"recover_cold": [], "recover_warm": [], "demo_cold": [], "demo_warm": []} for v in variants}
     counts = {}
     for command, make, repeats in (("recover", recover, args.repeats), ("demo", demo, args.demo_repeats)):
