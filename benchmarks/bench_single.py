@@ -73,9 +73,7 @@ def main() -> None:
     ap.add_argument("--grid", default=None, help="passed to recover (default: recover's own)")
     args = ap.parse_args()
     kwargs = {} if args.grid is None else {"grid": args.grid}
-    rows = [
-        run_case(k, make_case(k, VARIANTS, seed=SEED, pixels=args.pixels), kwargs) for k in range(args.cases)
-    ]
+    rows = [run_case(k, make_case(k, VARIANTS, seed=SEED, pixels=args.pixels), kwargs) for k in range(args.cases)]
     success = float(np.mean([r["success"] for r in rows]))
     one = float(np.mean([r["one_part"] for r in rows]))
     both = float(np.mean([r["success"] and r["one_part"] for r in rows]))
