@@ -756,7 +756,7 @@ def _merge_candidates(a: np.ndarray, b: np.ndarray) -> np.ndarray:
 
 
 def _moment_candidates(points: np.ndarray, sigma: float) -> np.ndarray:
-    """(9, 14) vectors of single parts summarising the 3-D surface ``points`` (n, 3) from
+    """(12, 14) vectors of single parts summarising the 3-D surface ``points`` (n, 3) from
     their moments: centred on them, axes along their principal directions (longest = z,
     least = y, nearly the viewing direction of a visible surface), semi-axes from their
     1-99% extents. The depth (y) semi-axis is either thin (a plate: a laptop lid, a
@@ -803,14 +803,45 @@ def _moment_candidates(points: np.ndarray, sigma: float) -> np.ndarray:
         out.append([*centre, *rv, a1, depth, a3, e1, e2, 0.0, 0.0, 0.0])
     # The deformed solids: local x along the centre line's bend, which may lie in the
     # image (x) or along the view (y); the symmetric cross-section, as deep as wide.
-    offset, bend, taper = _deformation_moments((p - mid) @ np.stack([z, x, y], 1), half[0])
+    local = (p - mid) @ np.stack([z, x, y], 1)
+    offset, bend, taper = _deformation_moments(local, half[0])
     phi = math.atan2(bend[1], bend[0])
     bx = math.cos(phi) * x + math.sin(phi) * y
     rv = rotvec(bx, np.cross(z, bx), z)
     centre = mid + x * offset[0] + y * (deep - half[2])
     for e1, e2 in ((1.0, 1.0), (0.1, 1.0), (0.4, 0.4)):
         out.append([*centre, *rv, half[1], deep, half[0], e1, e2, float(np.hypot(*bend)), 0.0, taper])
+    # The same solids as deep as their rim says (:func:`_rim_depth`): a symmetric solid's
+    # rim, where its surface turns away from the view, lies on its mid-plane.
+    rim = _rim_depth(local, sigma)
+    front = mid - y * half[2]
+    for e1, e2 in ((1.0, 1.0), (0.1, 1.0)):
+        out.append([*(front + y * rim), *along, half[1], rim, half[0], e1, e2, 0.0, 0.0, 0.0])
+    out.append(
+        [*(front + x * offset[0] + y * rim), *rv, half[1], rim, half[0], 1.0, 1.0, float(np.hypot(*bend)), 0.0, taper]
+    )
     return np.asarray(out, np.float32)
+
+
+def _rim_depth(local: np.ndarray, sigma: float, *, slices: int = 8) -> float:
+    """How far behind its nearest point a solid's mid-plane lies, from its visible
+    surface points ``local`` (n, 3) in the moment frame (columns: along the longest axis,
+    across it in the image, along the view). The rim, where the surface turns away from
+    the view, is the outermost tenth of the points across the axis in each of ``slices``
+    slices along it; a solid symmetric about its mid-plane has its rim there, so the
+    rim's depth behind the slice's nearest points is its half-depth along the view
+    (exact for a cylinder or a box seen broadside). The median over slices, at least σ/2."""
+    edges = np.quantile(local[:, 0], np.linspace(0.0, 1.0, slices + 1)[1:-1])
+    which = np.digitize(local[:, 0], edges)
+    depths = []
+    for k in range(slices):
+        s = local[which == k]
+        if len(s) < 8:
+            continue
+        across = np.abs(s[:, 1] - np.median(s[:, 1]))
+        rim = s[across >= np.quantile(across, 0.9), 2]
+        depths.append(np.median(rim) - np.quantile(s[:, 2], 0.02))
+    return float(max(np.median(depths), sigma / 2)) if depths else sigma / 2
 
 
 def _deformation_moments(local: np.ndarray, length: float) -> tuple[np.ndarray, np.ndarray, float]:
@@ -867,9 +898,11 @@ def merge_adjacent(
     every group of adjacent parts (:func:`_part_groups`: a part with its neighbours, a
     connected set) gets starts from the moments of its pixels (:func:`_moment_candidates`:
     a laptop seen as five rounded patches is one flat box; a bent, tapered limb seen as
-    two or three pieces is one bent, tapered part). Every single part gets the same
-    starts from its own pixels: one part's description replaced by a shorter one (a
-    polish that settled on the wrong squareness, a straight fit of a bent part). All are
+    two or three pieces is one bent, tapered part). On the first pass the ``tries`` single
+    parts with the most bits to win back (unexplained and commission pixels they answer
+    for) get the same starts from their own pixels: one part's description replaced by
+    a shorter one (a polish that settled on the wrong squareness or depth, a straight fit
+    of a bent part). All are
     fitted by batched LM calls to their parts' explained pixels (the moment starts,
     farther from their answer, for ``2 steps``); the ``tries`` best pair fits (by the
     share of the pair's points within σ/2 of their surface) and every group start, as it
@@ -882,7 +915,7 @@ def merge_adjacent(
     pts, idx = _figure_points(data)
     rays, ray_index = _background_rays(data)
     at = np.maximum(idx, 0)
-    merged = True
+    merged, first = True, True
     while merged and len(parts) >= 1:
         merged = False
         n = len(parts)
@@ -918,7 +951,19 @@ def merge_adjacent(
         for i, j in zip(*np.nonzero(np.triu(adjacent))):
             add((i, j), lambda w: _merge_candidates(vec[i], vec[j]))
         n_pairs = len(inits)
-        for group in _part_groups(adjacent) + [(i,) for i in range(n)]:
+        # Single parts, on the first pass: the ``tries`` that could gain most, i.e. with
+        # the most bits to win back from the pixels they answer for (unexplained: κ3 - κ1
+        # each; commission: κ2 each).
+        gain = np.array(
+            [
+                np.isin(owner, [i]).sum() * (costs.omission - costs.explained)
+                + (cost.commission_mask & (cost.labels == i)).sum() * costs.commission
+                for i in range(n)
+            ]
+        )
+        singles = [(int(i),) for i in np.argsort(-gain, kind="stable")[:tries] if first and gain[i] > 0]
+        first = False
+        for group in _part_groups(adjacent) + singles:
             add(group, lambda w: _moment_candidates(pts[w > 0], data.encoding.sigma), whole=True)
         if not inits:
             break
@@ -945,6 +990,10 @@ def merge_adjacent(
             if c.total < cost.total - 1e-9:
                 parts, cost, merged = _host_parts(np.concatenate([vec[keep], vector[None]])), c, True
     return parts, cost
+
+
+MERGE_POLISH_ROUNDS = 4
+"""Most rounds of region growing after a merge (each kept only if E falls)."""
 
 
 def refine_parts(
@@ -987,8 +1036,13 @@ def refine_parts(
             parts, cost = merge_adjacent(parts, data, costs, steps=steps, cost=cost)
             stages.append(("merge", cost.total))
             if cost.total < before:
-                # The merged part grows onto its neighbourhood as the others did.
-                parts, cost = polish_jointly(parts, data, costs, steps=steps, cost=cost)
+                # The merged part grows onto its neighbourhood as the others did,
+                # while that lowers E (at most ``MERGE_POLISH_ROUNDS`` rounds).
+                for _ in range(MERGE_POLISH_ROUNDS):
+                    e = cost.total
+                    parts, cost = polish_jointly(parts, data, costs, steps=steps, cost=cost)
+                    if cost.total >= e:
+                        break
                 parts, cost = drop_unprofitable(parts, data, costs, cost=cost)
                 stages.append(("drop after merge", cost.total))
         return parts, cost, stages
