@@ -826,11 +826,13 @@ def _moment_candidates(points: np.ndarray, sigma: float) -> np.ndarray:
 def _rim_depth(local: np.ndarray, sigma: float, *, slices: int = 8) -> float:
     """How far behind its nearest point a solid's mid-plane lies, from its visible
     surface points ``local`` (n, 3) in the moment frame (columns: along the longest axis,
-    across it in the image, along the view). The rim, where the surface turns away from
-    the view, is the outermost tenth of the points across the axis in each of ``slices``
-    slices along it; a solid symmetric about its mid-plane has its rim there, so the
-    rim's depth behind the slice's nearest points is its half-depth along the view
-    (exact for a cylinder or a box seen broadside). The median over slices, at least σ/2."""
+    across it in the image, along the view). A solid symmetric about its mid-plane has
+    its rim there, where the surface turns away from the view and its cross-section is
+    widest; in each of ``slices`` slices along the axis the squared width x² is fitted as
+    a parabola in the depth y (exact for an elliptical cross-section, x² = rx² (1 - (y -
+    yc)² / ry²)): the rim lies at its vertex yc and the half-depth is ry, its distance
+    from the front root. A slice whose width does not fall off with depth (a flat face)
+    says nothing. The median over the slices that say something, at least σ/2."""
     edges = np.quantile(local[:, 0], np.linspace(0.0, 1.0, slices + 1)[1:-1])
     which = np.digitize(local[:, 0], edges)
     depths = []
@@ -838,9 +840,13 @@ def _rim_depth(local: np.ndarray, sigma: float, *, slices: int = 8) -> float:
         s = local[which == k]
         if len(s) < 8:
             continue
-        across = np.abs(s[:, 1] - np.median(s[:, 1]))
-        rim = s[across >= np.quantile(across, 0.9), 2]
-        depths.append(np.median(rim) - np.quantile(s[:, 2], 0.02))
+        # The slice's own centre line (its points' across-axis midpoint), then the fit.
+        x = s[:, 1] - np.polyval(np.polyfit(s[:, 0], s[:, 1], 1), s[:, 0])
+        y = s[:, 2] - np.median(s[:, 2])
+        c2, c1, c0 = np.polyfit(y, x * x, 2)
+        disc = c1 * c1 - 4 * c2 * c0
+        if c2 < 0 and disc > 0:
+            depths.append(np.sqrt(disc) / (2 * -c2))
     return float(max(np.median(depths), sigma / 2)) if depths else sigma / 2
 
 

@@ -441,3 +441,25 @@ def test_recover_finds_a_bent_cylinder_as_one_bent_part():
     assert np.linalg.norm(bend_vector - true_vector) < 0.08
     np.testing.assert_allclose(np.sort(np.asarray(part.size)), [0.04, 0.04, 0.16], rtol=0.15)
     assert rec.fraction_explained >= 0.95
+
+
+def test_moments_give_a_visible_surfaces_bend_taper_and_rim_depth():
+    # The front half of a bent, tapered cylinder (radius r (1 + t z/a3), centre line
+    # x = b z²/a3, seen along +y) in the moment frame's columns (along, across, view):
+    # closed forms for the bend, the taper and the half-depth behind the rim (r at z = 0).
+    from sqparts._refine import _deformation_moments, _rim_depth
+
+    rng = np.random.default_rng(0)
+    a3, r, b, t = 0.2, 0.04, 0.25, 0.3
+    z = rng.uniform(-a3, a3, 4000)
+    theta = rng.uniform(-np.pi / 2, np.pi / 2, 4000)
+    radius = r * (1 + t * z / a3)
+    local = np.stack([z, b * z**2 / a3 + radius * np.sin(theta), -radius * np.cos(theta)], 1)
+    offset, bend, taper = _deformation_moments(local, a3)
+    np.testing.assert_allclose(bend, [b, 0.0], atol=0.01)
+    assert abs(taper - t) < 0.03
+    assert abs(offset[0]) < 0.002
+    assert abs(_rim_depth(local, 0.001) - r) < 0.05 * r
+    # An elliptical cross-section 1.5 times as deep as wide: the half-depth, not the width.
+    oval = np.stack([z, 0.04 * np.sin(theta), -0.06 * np.cos(theta)], 1)
+    assert abs(_rim_depth(oval, 0.001) - 0.06) < 0.003
