@@ -934,8 +934,8 @@ def merge_adjacent(
         # nearest: the pixels a part (or a group) summarising its parts answers for.
         shown = cost.labels >= 0
         if shown.any():
-            _, (rows, cols) = distance_transform_edt(~shown, return_indices=True)
-            owner = np.where(data.figure_mask & ~cost.explained_mask, cost.labels[rows, cols], -1)
+            near = np.asarray(distance_transform_edt(~shown, return_distances=False, return_indices=True))
+            owner = np.where(data.figure_mask & ~cost.explained_mask, cost.labels[near[0], near[1]], -1)
         else:
             owner = np.full(cost.labels.shape, -1)
 
