@@ -463,3 +463,37 @@ def test_moments_give_a_visible_surfaces_bend_taper_and_rim_depth():
     # An elliptical cross-section 1.5 times as deep as wide: the half-depth, not the width.
     oval = np.stack([z, 0.04 * np.sin(theta), -0.06 * np.cos(theta)], 1)
     assert abs(_rim_depth(oval, 0.001) - 0.06) < 0.003
+
+
+def test_refinement_redescribes_a_straight_fit_of_a_bent_tapered_part():
+    # A bent, tapered limb (bend 0.4, taper 0.3) started as one straight, untapered,
+    # box-like part over its pixels: the merge stage's re-description of a single part
+    # (moment starts bent and tapered as the pixels' centre line and width say) replaces
+    # it by one part whose bend vector and taper match the truth's, at a lower E.
+    from scipy.spatial.transform import Rotation
+
+    from sqparts._part import rotation_vector
+
+    cam = sqparts.PinholeCamera(64, 64, 280.0, 280.0, 31.5, 31.5)
+    rot = np.array([[0.0, 0.0, 1.0], [1.0, 0.0, 0.0], [0.0, 1.0, 0.0]])  # local z -> image x, local x -> image y
+    truth_part = sqparts.Part(
+        size=[0.035, 0.035, 0.15],
+        position=[0.0, -0.03, 2.0],
+        orientation=rotation_vector(rot),
+        bend=[0.4, 0.0],
+        taper=0.3,
+    )
+    _, data, costs = _render_one(truth_part, cam)
+    straight = sqparts.Part(
+        size=[0.05, 0.035, 0.15], squareness=[0.3, 0.3], position=[0.0, 0.0, 2.0], orientation=rotation_vector(rot)
+    )
+    kw = dict(rounds=1, split=False)
+    kept, kept_cost, _ = sqparts.refine_parts(straight, data, costs, merge=False, **kw)
+    new, new_cost, _ = sqparts.refine_parts(straight, data, costs, merge=True, **kw)
+    assert len(new) == 1 and new_cost.total < kept_cost.total
+    m = np.asarray(rot)
+    r = Rotation.from_rotvec(np.asarray(new.orientation[0])).as_matrix()
+    assert np.degrees(np.arccos(min(1.0, abs(r[:, 2] @ m[:, 2])))) < 8.0
+    assert np.linalg.norm(float(new.bend[0, 0]) * r[:, 0] - 0.4 * m[:, 0]) < 0.1
+    # The taper is odd along the axis: its sign follows the axis' direction.
+    assert abs(float(new.taper[0]) * np.sign(r[:, 2] @ m[:, 2]) - 0.3) < 0.1
