@@ -910,7 +910,7 @@ def merge_adjacent(
     a shorter one (a polish that settled on the wrong squareness or depth, a straight fit
     of a bent part). All are
     fitted by batched LM calls to their parts' explained pixels (the moment starts,
-    farther from their answer, for ``2 steps``); the ``tries`` best pair fits (by the
+    farther from their answer, twice over); the ``tries`` best pair fits (by the
     share of the pair's points within σ/2 of their surface) and every group start, as it
     is and fitted, are tried in the joint rendering (the radial distances that the fits
     minimise thicken a thin plate, and rank it poorly), and the lowest E is kept if it is
@@ -975,12 +975,14 @@ def merge_adjacent(
             break
         w_all, wr_all, start = np.stack(weights), np.stack(ray_weights), np.stack(inits)
 
-        def fit(rows, steps):
-            if rows.stop - (rows.start or 0) <= 0:
-                return np.zeros((0, 14), np.float32)
-            return _vectors(_polish_all(_host_parts(start[rows]), pts, w_all[rows], steps, rays, wr_all[rows]))
+        def fit(rows, calls):
+            # ``calls`` solves of ``steps`` each, not one longer one: the same compiled program.
+            out = start[rows]
+            for _ in range(calls if len(out) else 0):
+                out = _vectors(_polish_all(_host_parts(out), pts, w_all[rows], steps, rays, wr_all[rows]))
+            return out
 
-        fitted_vec = np.concatenate([fit(slice(0, n_pairs), steps), fit(slice(n_pairs, len(inits)), 2 * steps)])
+        fitted_vec = np.concatenate([fit(slice(0, n_pairs), 1), fit(slice(n_pairs, len(inits)), 2)])
         # Share of each pair's points within σ/2 of the fitted surface (no rendering).
         dist = _distances(_host_parts(fitted_vec[:n_pairs]), pts) if n_pairs else np.zeros((0, len(pts)))
         share = ((np.abs(dist) <= data.encoding.sigma / 2) * w_all[:n_pairs]).sum(1) / np.maximum(
