@@ -28,8 +28,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parent))
 
 import jax
 import numpy as np
-from _common import result_path, save
-from scipy.ndimage import distance_transform_edt
+from _common import chamfer, make_case, result_path, save
 
 import sqparts
 
@@ -39,75 +38,6 @@ CUSTOM = {
     "orient-30": sqparts.Grid(axis_step=30.0, roll_step=30.0, bends=(0.0,)),
     "sizes-5": sqparts.Grid(lengths=(0.2, 0.3, 0.45, 0.7, 1.0), axis_step=45.0, roll_step=45.0, bends=(0.0,)),
 }
-
-
-def make_case(i: int):
-    rng = np.random.default_rng(1000 + i)
-    pinhole = i % 2 == 0
-    variant = VARIANTS[(i // 2) % len(VARIANTS)]
-    deformed = (i // 8) % 2 == 1
-    a = np.sort(rng.uniform(0.08, 0.25, 3))[[1, 0, 2]]
-    kw = dict(
-        size=a,
-        squareness=rng.uniform(0.2, 1.8, 2),
-        position=np.r_[rng.uniform(-0.03, 0.03, 2), 2.0],
-        orientation=rng.normal(size=3),
-    )
-    if deformed:
-        kw["bend"] = [rng.uniform(-0.3, 0.3), 0.0]
-        kw["taper"] = rng.uniform(-0.3, 0.3)
-    truth = sqparts.Part(**{k: np.asarray(v, np.float32) for k, v in kw.items()})
-    cam = (
-        sqparts.PinholeCamera(64, 64, 190.0, 190.0, 31.5, 31.5)
-        if pinhole
-        else sqparts.OrthographicCamera(64, 64, 0.0105, 31.5, 31.5)
-    )
-    scene = truth
-    if variant == "occluded":
-        box = sqparts.Part(
-            size=np.array([0.4, 0.4, 0.02], np.float32),
-            squareness=np.array([0.2, 0.2], np.float32),
-            position=np.array([0.4 if rng.random() < 0.5 else -0.4, 0.0, 1.6], np.float32),
-        )
-        scene = sqparts.stack_parts([truth, box])
-    depth, labels = (np.asarray(x) for x in sqparts.render_range_image(scene, cam, return_labels=True))
-    if variant == "noise":
-        depth = depth + rng.normal(0, 0.002, depth.shape).astype(np.float32)
-    if variant == "6-bit":
-        lo, hi = np.nanmin(depth), np.nanmax(depth)
-        depth = (lo + np.round((depth - lo) / (hi - lo) * 63) / 63 * (hi - lo)).astype(np.float32)
-    visible = labels == 0
-    # The region's centre: the visible pixel deepest inside the part's visible outline
-    # (the maximum of its distance transform, i.e. on its skeleton, as region_centers picks).
-    inside = distance_transform_edt(visible)
-    centre = np.array(np.unravel_index(np.argmax(inside), inside.shape))
-    # The figure: the piece of the rubber sheet (torn at depth jumps) holding the centre.
-    pieces = sqparts.torn_components(depth, cam)
-    figure = pieces == pieces[tuple(centre)]
-    return dict(
-        truth=truth,
-        camera=cam,
-        depth=depth,
-        figure=figure,
-        centre=centre,
-        variant=variant,
-        pinhole=pinhole,
-        deformed=deformed,
-        visible=int(visible.sum()),
-        occluded_fraction=None,
-    )
-
-
-def chamfer(a: sqparts.Part, b: sqparts.Part, n: int = 2000, dense: int = 40000) -> float:
-    """Symmetric mean surface distance: n samples of each surface against a dense
-    (40 000-point) sampling of the other, so the sampling floor is ~0.2% of the size."""
-    import trimesh
-    from scipy.spatial import cKDTree
-
-    ma, mb = sqparts.part_mesh(a, resolution=24), sqparts.part_mesh(b, resolution=24)
-    pa, da = trimesh.sample.sample_surface(ma, n, seed=0)[0], trimesh.sample.sample_surface(ma, dense, seed=2)[0]
-    pb, db = trimesh.sample.sample_surface(mb, n, seed=1)[0], trimesh.sample.sample_surface(mb, dense, seed=3)[0]
-    return 0.5 * (cKDTree(db).query(pa)[0].mean() + cKDTree(da).query(pb)[0].mean())
 
 
 def run_grid(name, grid, cases):
@@ -229,7 +159,7 @@ def main() -> None:
     ap.add_argument("--grids", nargs="*", default=["coarse", "default", "orient-45", "orient-30", "sizes-5"])
     ap.add_argument("--no-throughput", action="store_true")
     args = ap.parse_args()
-    cases = [make_case(i) for i in range(args.cases)]
+    cases = [make_case(i, VARIANTS) for i in range(args.cases)]
     results = []
     for name in args.grids:
         grid = CUSTOM[name] if name in CUSTOM else sqparts.grid_preset(name)

@@ -756,12 +756,16 @@ def _merge_candidates(a: np.ndarray, b: np.ndarray) -> np.ndarray:
 
 
 def _moment_candidates(points: np.ndarray, sigma: float) -> np.ndarray:
-    """(6, 14) vectors of single parts summarising the 3-D surface ``points`` (n, 3) from
+    """(12, 14) vectors of single parts summarising the 3-D surface ``points`` (n, 3) from
     their moments: centred on them, axes along their principal directions (longest = z,
     least = y, nearly the viewing direction of a visible surface), semi-axes from their
     1-99% extents. The depth (y) semi-axis is either thin (a plate: a laptop lid, a
-    table top) or as deep as the part is wide (a solid seen from one side), its centre
-    then pushed back from the camera; box-like, round or a cylinder, not deformed."""
+    table top) or as deep as the part is wide (a solid seen from one side, the
+    symmetric interpretation of its hidden side), its centre then pushed back from the
+    camera; box-like, round or a cylinder. Three of the solids are bent and tapered as
+    the points' centre line and width say (:func:`_deformation_moments`: footnote 11's
+    bending of the longest axis and tapering along it), so one limb that the search
+    cut in two, or a bent part it fitted with a straight one, is summarised as one."""
     from scipy.spatial.transform import Rotation
 
     p = np.asarray(points, np.float64)
@@ -797,7 +801,72 @@ def _moment_candidates(points: np.ndarray, sigma: float) -> np.ndarray:
     ):
         centre = mid + y * (depth - front)
         out.append([*centre, *rv, a1, depth, a3, e1, e2, 0.0, 0.0, 0.0])
+    # The deformed solids: local x along the centre line's bend, which may lie in the
+    # image (x) or along the view (y); the symmetric cross-section, as deep as wide.
+    local = (p - mid) @ np.stack([z, x, y], 1)
+    offset, bend, taper = _deformation_moments(local, half[0])
+    phi = math.atan2(bend[1], bend[0])
+    bx = math.cos(phi) * x + math.sin(phi) * y
+    rv = rotvec(bx, np.cross(z, bx), z)
+    centre = mid + x * offset[0] + y * (deep - half[2])
+    for e1, e2 in ((1.0, 1.0), (0.1, 1.0), (0.4, 0.4)):
+        out.append([*centre, *rv, half[1], deep, half[0], e1, e2, float(np.hypot(*bend)), 0.0, taper])
+    # The same solids as deep as their rim says (:func:`_rim_depth`): a symmetric solid's
+    # rim, where its surface turns away from the view, lies on its mid-plane.
+    rim = _rim_depth(local, sigma)
+    front = mid - y * half[2]
+    for e1, e2 in ((1.0, 1.0), (0.1, 1.0)):
+        out.append([*(front + y * rim), *along, half[1], rim, half[0], e1, e2, 0.0, 0.0, 0.0])
+    out.append(
+        [*(front + x * offset[0] + y * rim), *rv, half[1], rim, half[0], 1.0, 1.0, float(np.hypot(*bend)), 0.0, taper]
+    )
     return np.asarray(out, np.float32)
+
+
+def _rim_depth(local: np.ndarray, sigma: float, *, slices: int = 8) -> float:
+    """How far behind its nearest point a solid's mid-plane lies, from its visible
+    surface points ``local`` (n, 3) in the moment frame (columns: along the longest axis,
+    across it in the image, along the view). A solid symmetric about its mid-plane has
+    its rim there, where the surface turns away from the view and its cross-section is
+    widest; in each of ``slices`` slices along the axis the squared width x² is fitted as
+    a parabola in the depth y (exact for an elliptical cross-section, x² = rx² (1 - (y -
+    yc)² / ry²)): the rim lies at its vertex yc and the half-depth is ry, its distance
+    from the front root. A slice whose width does not fall off with depth (a flat face)
+    says nothing. The median over the slices that say something, at least σ/2."""
+    edges = np.quantile(local[:, 0], np.linspace(0.0, 1.0, slices + 1)[1:-1])
+    which = np.digitize(local[:, 0], edges)
+    depths = []
+    for k in range(slices):
+        s = local[which == k]
+        if len(s) < 8:
+            continue
+        # The slice's own centre line (its points' across-axis midpoint), then the fit.
+        x = s[:, 1] - np.polyval(np.polyfit(s[:, 0], s[:, 1], 1), s[:, 0])
+        y = s[:, 2] - np.median(s[:, 2])
+        c2, c1, c0 = np.polyfit(y, x * x, 2)
+        disc = c1 * c1 - 4 * c2 * c0
+        if c2 < 0 and disc > 0:
+            depths.append(np.sqrt(disc) / (2 * -c2))
+    return float(max(np.median(depths), sigma / 2)) if depths else sigma / 2
+
+
+def _deformation_moments(local: np.ndarray, length: float) -> tuple[np.ndarray, np.ndarray, float]:
+    """Bend and taper of a part from its surface points ``local`` (n, 3) in the moment
+    frame (columns: along the longest axis z, the middle axis x, the least axis y),
+    ``length`` its half-length a3. The centre line's offsets x(z), y(z) are fitted by
+    least-squares parabolas c0 + c1 z + c2 z²: Part's bend moves x by bend·z²/a3, so the
+    bend is c2·a3 in each direction; the taper scales the cross-section by 1 + t z/a3, so
+    the points' mean distance from the line across x, fitted as r0 + r1 z, gives
+    t = a3 r1 / r0. Returns (the line's offsets c0 in x and y, the bend in x and y, the
+    taper), bend and taper clipped into Part's ranges."""
+    z = local[:, 0] / max(length, 1e-9)
+    basis = np.stack([np.ones_like(z), z, z * z], 1)
+    coef = np.linalg.lstsq(basis, local[:, 1:3], rcond=None)[0]  # (3, 2): x and y parabolas
+    r = np.abs(local[:, 1] - basis @ coef[:, 0])
+    r0, r1 = np.linalg.lstsq(basis[:, :2], r, rcond=None)[0]
+    bend = np.clip(coef[2] / max(length, 1e-9), -0.9, 0.9) if length > 0 else np.zeros(2)
+    taper = float(np.clip(r1 / r0, -0.9, 0.9)) if r0 > 1e-9 else 0.0
+    return coef[0], bend, taper
 
 
 def _part_groups(adjacent: np.ndarray) -> list[tuple]:
@@ -834,20 +903,26 @@ def merge_adjacent(
     Every adjacent pair gets bent single-part starts (:func:`_merge_candidates`), and
     every group of adjacent parts (:func:`_part_groups`: a part with its neighbours, a
     connected set) gets starts from the moments of its pixels (:func:`_moment_candidates`:
-    a laptop seen as five rounded patches is one flat box). All are fitted by batched LM
-    calls to their parts' explained pixels; the ``tries`` best pair fits (by the share of
-    the pair's points within σ/2 of their surface) and every group start, as it is and
-    fitted, are tried in the joint rendering (the radial distances that the fits minimise
-    thicken a thin plate, and rank it poorly), and the lowest E is kept if it is below
-    the current one."""
-    from scipy.ndimage import binary_dilation
+    a laptop seen as five rounded patches is one flat box; a bent, tapered limb seen as
+    two or three pieces is one bent, tapered part). On the first pass the ``tries`` single
+    parts with the most bits to win back (unexplained and commission pixels they answer
+    for) get the same starts from their own pixels: one part's description replaced by
+    a shorter one (a polish that settled on the wrong squareness or depth, a straight fit
+    of a bent part). All are
+    fitted by batched LM calls to their parts' explained pixels (the moment starts,
+    farther from their answer, twice over); the ``tries`` best pair fits (by the
+    share of the pair's points within σ/2 of their surface) and every group start, as it
+    is and fitted, are tried in the joint rendering (the radial distances that the fits
+    minimise thicken a thin plate, and rank it poorly), and the lowest E is kept if it is
+    below the current one."""
+    from scipy.ndimage import binary_dilation, distance_transform_edt
 
     cost = encoding_cost(parts, data, costs) if cost is None else cost
     pts, idx = _figure_points(data)
     rays, ray_index = _background_rays(data)
     at = np.maximum(idx, 0)
-    merged = True
-    while merged and len(parts) > 1:
+    merged, first = True, True
+    while merged and len(parts) >= 1:
         merged = False
         n = len(parts)
         grown = [binary_dilation(cost.labels == i, iterations=2) for i in range(n)]
@@ -855,10 +930,20 @@ def merge_adjacent(
         adjacent |= adjacent.T
         vec = _vectors(parts)
         inits, weights, ray_weights, members = [], [], [], []
+        # Each figure pixel no part explains goes to the part whose visible pixels are
+        # nearest: the pixels a part (or a group) summarising its parts answers for.
+        shown = cost.labels >= 0
+        if shown.any():
+            near = np.asarray(distance_transform_edt(~shown, return_distances=False, return_indices=True))
+            owner = np.where(data.figure_mask & ~cost.explained_mask, cost.labels[near[0], near[1]], -1)
+        else:
+            owner = np.full(cost.labels.shape, -1)
 
-        def add(group, starts):
+        def add(group, starts, *, whole=False):
             assert cost is not None  # set above; pyright does not narrow it in this closure
             union = np.isin(cost.labels, group) & cost.explained_mask
+            if whole:
+                union = union | np.isin(owner, group)
             w = np.where(idx >= 0, union.reshape(-1)[at], False).astype(np.float32)
             if w.sum() < 8:
                 return
@@ -872,13 +957,32 @@ def merge_adjacent(
         for i, j in zip(*np.nonzero(np.triu(adjacent))):
             add((i, j), lambda w: _merge_candidates(vec[i], vec[j]))
         n_pairs = len(inits)
-        for group in _part_groups(adjacent):
-            add(group, lambda w: _moment_candidates(pts[w > 0], data.encoding.sigma))
+        # Single parts, on the first pass: the ``tries`` that could gain most, i.e. with
+        # the most bits to win back from the pixels they answer for (unexplained: κ3 - κ1
+        # each; commission: κ2 each).
+        gain = np.array(
+            [
+                np.isin(owner, [i]).sum() * (costs.omission - costs.explained)
+                + (cost.commission_mask & (cost.labels == i)).sum() * costs.commission
+                for i in range(n)
+            ]
+        )
+        singles = [(int(i),) for i in np.argsort(-gain, kind="stable")[:tries] if first and gain[i] > 0]
+        first = False
+        for group in _part_groups(adjacent) + singles:
+            add(group, lambda w: _moment_candidates(pts[w > 0], data.encoding.sigma), whole=True)
         if not inits:
             break
-        w_all = np.stack(weights)
-        fitted = _polish_all(_host_parts(np.stack(inits)), pts, w_all, steps, rays, np.stack(ray_weights))
-        fitted_vec = _vectors(fitted)
+        w_all, wr_all, start = np.stack(weights), np.stack(ray_weights), np.stack(inits)
+
+        def fit(rows, calls):
+            # ``calls`` solves of ``steps`` each, not one longer one: the same compiled program.
+            out = start[rows]
+            for _ in range(calls if len(out) else 0):
+                out = _vectors(_polish_all(_host_parts(out), pts, w_all[rows], steps, rays, wr_all[rows]))
+            return out
+
+        fitted_vec = np.concatenate([fit(slice(0, n_pairs), 1), fit(slice(n_pairs, len(inits)), 2)])
         # Share of each pair's points within σ/2 of the fitted surface (no rendering).
         dist = _distances(_host_parts(fitted_vec[:n_pairs]), pts) if n_pairs else np.zeros((0, len(pts)))
         share = ((np.abs(dist) <= data.encoding.sigma / 2) * w_all[:n_pairs]).sum(1) / np.maximum(
@@ -894,6 +998,10 @@ def merge_adjacent(
             if c.total < cost.total - 1e-9:
                 parts, cost, merged = _host_parts(np.concatenate([vec[keep], vector[None]])), c, True
     return parts, cost
+
+
+MERGE_POLISH_ROUNDS = 4
+"""Most rounds of region growing after a merge (each kept only if E falls)."""
 
 
 def refine_parts(
@@ -936,6 +1044,13 @@ def refine_parts(
             parts, cost = merge_adjacent(parts, data, costs, steps=steps, cost=cost)
             stages.append(("merge", cost.total))
             if cost.total < before:
+                # The merged part grows onto its neighbourhood as the others did,
+                # while that lowers E (at most ``MERGE_POLISH_ROUNDS`` rounds).
+                for _ in range(MERGE_POLISH_ROUNDS):
+                    e = cost.total
+                    parts, cost = polish_jointly(parts, data, costs, steps=steps, cost=cost)
+                    if cost.total >= e:
+                        break
                 parts, cost = drop_unprofitable(parts, data, costs, cost=cost)
                 stages.append(("drop after merge", cost.total))
         return parts, cost, stages
