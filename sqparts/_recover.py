@@ -543,9 +543,12 @@ def recover_scene(
     """Recover a real scene: bin, clean, separate figures from ground (``scene``, a
     :class:`SceneSettings` or preset name), recover each figure on its own with
     ``search``, ``select`` and ``refine`` as for :func:`recover` (the searches compiled
-    once, shared by all figures), optionally prettify. Unless ``search`` fixes them, each
-    figure's σ covers the sensor's noise (:func:`~sqparts.estimate_noise`) and its window
-    is snapped to a few sizes so that figures share compiled programs.
+    once, shared by all figures), optionally prettify. Unless ``search`` (and ``encoding``)
+    fix them, each figure's σ covers the sensor's noise (:func:`~sqparts.estimate_noise`)
+    and half a pixel footprint, its pruning stride is the widest lattice (at most 4) that
+    still sees every member able to pay for a part (2 for the built-in gate's two-pixel
+    bars, 1 for a one-pixel one), and its window is snapped to a few sizes so that figures
+    share compiled programs.
     """
     from ._fit import encoding_for
     from ._postprocess import prettify as _prettify
@@ -557,6 +560,7 @@ def recover_scene(
         downsample,
         estimate_noise,
         missing_returns,
+        pruning_stride,
     )
     from ._preprocess import figure_ground as _figure_ground
     from ._search import default_max_size, figure_footprint, prepare, window_for
@@ -609,10 +613,14 @@ def recover_scene(
             base = encoding_for(d[mask & np.isfinite(d)], footprint=figure_footprint(d, mask, camera))
             enc = encoding_for(d[mask & np.isfinite(d)], sigma=max(base.sigma, 4.0 * noise))
         figure_search = search
+        if search.stride is None:  # thin members: a lattice that sees them
+            figure_search = dataclasses.replace(
+                figure_search, stride=pruning_stride(mask & np.isfinite(d), enc.part_bits / enc.saved_per_pixel)
+            )
         if search.window is None:
             data = prepare(d, camera, figure=mask, encoding=enc)
             size = search.max_size or default_max_size(data)
-            figure_search = dataclasses.replace(search, window=_snap_window(window_for(data, size)))
+            figure_search = dataclasses.replace(figure_search, window=_snap_window(window_for(data, size)))
         try:
             rec = recover(
                 d,

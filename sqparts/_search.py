@@ -70,6 +70,10 @@ POLISH_STRIDE = 2
 # --- the image as the search sees it --------------------------------------------------
 
 
+DEFAULT_STRIDE = 4
+"""The pruning lattice of a search whose stride is not given (see :class:`SearchSettings`)."""
+
+
 @dataclasses.dataclass(frozen=True)
 class SearchSettings:
     """How the local search runs (sections 3.3-3.4, 3.6): the settings object of
@@ -81,9 +85,9 @@ class SearchSettings:
     figure's largest extent) and ``window`` the region's side in pixels (None: the
     projected diameter of a ``max_size`` part); :meth:`resolve` fills both from the data.
     ``top_k`` candidates are returned per region; hypotheses are first scored on every
-    ``stride``-th pixel (None: the widest lattice, at most 4, that still sees every member
-    of the figure able to pay for a part, :func:`~sqparts._preprocess.pruning_stride`) and
-    the best ``survivors`` rescored at full resolution (``prune=False``: every hypothesis
+    ``stride``-th pixel (None: 4 here; :func:`~sqparts.recover_scene` gives each figure the
+    widest lattice, at most 4, that still sees every member able to pay for a part,
+    :func:`~sqparts._preprocess.pruning_stride`) and the best ``survivors`` rescored at full resolution (``prune=False``: every hypothesis
     at full resolution); the ``polish_candidates`` best
     distinct survivors are polished (``polish_rounds`` of region growing ×
     ``polish_steps`` Levenberg-Marquardt steps); the best polished part is restarted from
@@ -137,16 +141,11 @@ class SearchSettings:
     def resolve(self, data: RangeData) -> SearchSettings:
         """These settings with ``max_size``, ``window`` and ``stride`` derived from
         ``data`` where they are None."""
-        from ._preprocess import pruning_stride
-
         max_size = self.max_size if self.max_size is not None else default_max_size(data)
         window = int(self.window) if self.window is not None else window_for(data, max_size)
         if window > 2 * data.pad:
             raise ValueError(f"window: got {window}, expected at most {2 * data.pad} pixels (twice the padding)")
-        stride = self.stride
-        if stride is None:  # thin members: a lattice that sees them
-            enc = data.encoding
-            stride = pruning_stride(data.figure_mask, enc.part_bits / enc.saved_per_pixel)
+        stride = DEFAULT_STRIDE if self.stride is None else self.stride
         return dataclasses.replace(self, max_size=max_size, window=window, stride=stride)
 
     @property
