@@ -1,17 +1,17 @@
 import os
+from pathlib import Path
 
 os.environ.setdefault("JAX_PLATFORMS", "cpu")
-
-from pathlib import Path
+# The suite's own compilation cache, for this process, the CLI's main() run in it and the
+# processes it starts: never the user's (a cache file another process is still writing
+# reads as a corrupt executable, which aborts XLA).
+os.environ.setdefault("SQPARTS_CACHE_DIR", str(Path.home() / ".cache" / "sqparts" / "jax-tests"))
 
 import jax
 import numpy as np
 import pytest
 
-jax.config.update(
-    "jax_compilation_cache_dir",
-    os.environ.get("SQPARTS_CACHE_DIR", str(Path.home() / ".cache" / "sqparts" / "jax-tests")),
-)
+jax.config.update("jax_compilation_cache_dir", os.environ["SQPARTS_CACHE_DIR"])
 jax.config.update("jax_persistent_cache_min_compile_time_secs", 1.0)
 
 ROOT = Path(__file__).resolve().parents[1]
