@@ -14,7 +14,9 @@ CAM = sqparts.PinholeCamera(48, 48, 180.0, 180.0, 23.5, 23.5)
 PART = sqparts.Part(
     size=[0.05, 0.07, 0.11], squareness=[0.6, 1.0], position=[0.0, 0.0, 1.2], orientation=[0.3, 0.2, 0.0]
 )
-FAST = dict(search=sqparts.SearchSettings(max_size=0.14, window=48), refine=sqparts.RefineSettings(rounds=1))
+# Not test_compile's settings: a program it loaded from its exported programs is not reused
+# here (in CI rehearsals, recompiling such a program aborted XLA in its cache).
+FAST = dict(search=sqparts.SearchSettings(max_size=0.14, window=40), refine=sqparts.RefineSettings(rounds=1))
 
 
 @pytest.fixture(scope="module")
@@ -85,7 +87,7 @@ def test_a_result_records_the_objects_it_ran_with(depth, tmp_path):
     with pytest.raises(dataclasses.FrozenInstanceError):
         rec.parts = rec.initial_parts  # type: ignore[misc]
     saved = rec.scene_dict()["settings"]
-    assert saved["search"]["max_size"] == 0.14 and saved["search"]["window"] == 48
+    assert saved["search"]["max_size"] == 0.14 and saved["search"]["window"] == 40
     assert saved["search"]["grid"] == dataclasses.asdict(sqparts.grid_preset("coarse"))
     assert saved["refine"] == dataclasses.asdict(FAST["refine"]) and saved["select"]["method"] == "best-first"
     json.dumps(saved)  # JSON as it is
