@@ -257,6 +257,10 @@ def _run_task(task: _Task, *, worker: bool = False) -> dict:
         )
     except Exception as e:  # noqa: BLE001  (any failure of one input is recorded; the batch goes on)
         return task.record("error", seconds=time.perf_counter() - t0, error=error_message(e))
+    finally:
+        from ._compile import release_if_crowded
+
+        release_if_crowded()  # a long batch of varied inputs must not exhaust the process's mappings
     return task.record("ok", seconds=time.perf_counter() - t0, recovery=recovery)
 
 

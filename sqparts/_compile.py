@@ -29,6 +29,7 @@ is not stable across processes.
 
 from __future__ import annotations
 
+import contextlib
 import functools
 import hashlib
 import inspect
@@ -42,7 +43,15 @@ from pathlib import Path
 import jax
 import jax.core
 
-__all__ = ["persistent_jit", "set_export_dir", "export_dir", "forget_loaded", "enable_caches"]
+__all__ = [
+    "persistent_jit",
+    "set_export_dir",
+    "export_dir",
+    "forget_loaded",
+    "enable_caches",
+    "caches_enabled",
+    "release_if_crowded",
+]
 
 _log = logging.getLogger(__name__)
 _MAGIC = b"sqparts-export-1\n"
@@ -63,6 +72,50 @@ def enable_caches() -> None:
         set_export_dir(cache / "exported")
     except OSError:
         pass
+
+
+@contextlib.contextmanager
+def caches_enabled():
+    """:func:`enable_caches` for the duration of a ``with`` block (one command-line run),
+    then the settings as they were: ``main()`` called from Python leaves the caller's
+    process as it found it."""
+    names = ("jax_compilation_cache_dir", "jax_persistent_cache_min_compile_time_secs")
+    before = {name: getattr(jax.config, name) for name in names}
+    export = _state["dir"]
+    enable_caches()
+    try:
+        yield
+    finally:
+        for name, value in before.items():
+            jax.config.update(name, value)
+        _state["dir"] = export
+
+
+def release_if_crowded(fraction: float = 0.5) -> bool:
+    """Drop this process's compiled programs (``jax.clear_caches``) when its memory
+    mappings pass ``fraction`` of the kernel's limit (``vm.max_map_count``, Linux only).
+
+    Every live XLA CPU executable holds a few mappings per kernel (~2 000-4 000 for one
+    recovery's programs); a long-lived process that meets many image sizes or settings
+    would reach the limit, after which the next compilation aborts inside LLVM ("unable
+    to allocate section memory"). Called between the inputs of a batch; the programs
+    dropped are compiled again, or read back from the persistent cache, when next
+    needed. Returns whether it released them."""
+    try:
+        limit = int(Path("/proc/sys/vm/max_map_count").read_text())
+        with open("/proc/self/maps", "rb") as f:
+            count = sum(1 for _ in f)
+    except (OSError, ValueError):
+        return False
+    if count <= fraction * limit:
+        return False
+    import gc
+
+    _log.info("sqparts: %d of %d memory mappings in use; releasing compiled programs", count, limit)
+    forget_loaded()
+    jax.clear_caches()
+    gc.collect()
+    return True
 
 
 def set_export_dir(directory) -> None:

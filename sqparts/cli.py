@@ -737,13 +737,13 @@ def _error(message: str) -> int:
 def main(argv=None) -> int:
     """Run the command line; returns the exit status (0, 2 for a user error, 130/143
     when interrupted by SIGINT/SIGTERM)."""
-    with _signals_stop_the_run():
+    with _signals_stop_the_run(), contextlib.ExitStack() as stack:
         try:
             with _signals_deferred():
                 from . import _compile, _io, _mesh, _plot, _recover  # noqa: F401  (JAX, trimesh, matplotlib)
 
                 args = build_parser().parse_args(argv)
-                _compile.enable_caches()
+                stack.enter_context(_compile.caches_enabled())
             return args.func(args)
         except OSError as e:
             if e.strerror and e.filename:  # raised by the OS, not by us: name the file

@@ -1,4 +1,7 @@
 import os
+import re
+import subprocess
+import sys
 from pathlib import Path
 
 os.environ.setdefault("JAX_PLATFORMS", "cpu")
@@ -16,6 +19,17 @@ jax.config.update("jax_persistent_cache_min_compile_time_secs", 1.0)
 
 ROOT = Path(__file__).resolve().parents[1]
 DATA = ROOT.parent / "shared" / "data"
+
+
+@pytest.fixture(autouse=True)
+def release_crowded_programs():
+    """After each test, the compiled programs are dropped once the process holds a quarter
+    of the kernel's memory-mapping limit: the suite compiles thousands of programs in one
+    process, and at the limit the next compilation aborts inside LLVM."""
+    yield
+    from sqparts._compile import release_if_crowded
+
+    release_if_crowded(fraction=0.25)
 
 
 @pytest.fixture
@@ -41,3 +55,40 @@ def random_part_kwargs(rng, *, deform=True, distance=2.0):
         kw["bend"] = rng.uniform(-0.3, 0.3, 2)
         kw["taper"] = rng.uniform(-0.4, 0.4)
     return kw
+
+
+# --- the command line -----------------------------------------------------------------
+
+ERROR_STYLE = re.compile(r"^sqparts: error: \S.*?: got .+, expected .+$")
+
+
+def cli_error(capsys, argv) -> str:
+    """Run ``sqparts ARGV`` in this process; it must exit 2 with one error line in the
+    project's style (no traceback). Returns the line."""
+    from sqparts.cli import main
+
+    assert main(argv) == 2
+    err = capsys.readouterr().err.strip()
+    assert "\n" not in err and "Traceback" not in err, err
+    assert ERROR_STYLE.match(err), err
+    return err
+
+
+def no_staging_left(folder: Path) -> bool:
+    """No temporary sibling folder of an output is left under ``folder``."""
+    return not list(Path(folder).rglob(".sqparts-*"))
+
+
+def spawn_cli(argv, *, ignore_sigint=False) -> subprocess.Popen:
+    """``python -m sqparts ARGV`` in a new process (text pipes). ``ignore_sigint`` starts it
+    with SIGINT ignored, as a shell starts a background job, so the interpreter installs no
+    handler of its own and the first one is the CLI's (the shell's way: no ``preexec_fn``,
+    since forking a process that runs JAX may deadlock)."""
+    code = (
+        "import runpy, sys\nsys.argv = ['sqparts', *sys.argv[1:]]\nrunpy.run_module('sqparts', run_name='__main__')\n"
+    )
+    command = [sys.executable, "-c", code, *argv]
+    if ignore_sigint:
+        command = ["sh", "-c", 'trap "" INT; exec "$0" "$@"', *command]
+    env = dict(os.environ, JAX_PLATFORMS="cpu")
+    return subprocess.Popen(command, env=env, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)

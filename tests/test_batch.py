@@ -6,13 +6,12 @@ same batch on a two-worker Dask LocalCluster."""
 import json
 import os
 import signal
-import subprocess
-import sys
 import time
 from pathlib import Path
 
 import numpy as np
 import pytest
+from conftest import no_staging_left, spawn_cli
 
 import sqparts
 from sqparts import _batch
@@ -63,10 +62,6 @@ def lines(path: Path) -> list[dict]:
 
 def stamps(folder: Path) -> dict:
     return {p: p.stat().st_mtime_ns for p in folder.rglob("*")}
-
-
-def no_staging_left(folder: Path) -> bool:
-    return not list(folder.rglob(".sqparts-*"))
 
 
 def test_a_failing_input_is_recorded_and_the_batch_goes_on(batch, capsys):
@@ -204,21 +199,13 @@ def test_recover_many_in_python(batch):
     )
 
 
-def _run(argv):
-    env = dict(os.environ, JAX_PLATFORMS="cpu")
-    code = "import sys, runpy; sys.argv = ['sqparts', *sys.argv[1:]]; runpy.run_module('sqparts', run_name='__main__')"
-    return subprocess.Popen(
-        [sys.executable, "-c", code, *argv], env=env, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True
-    )
-
-
 @pytest.mark.slow
 @pytest.mark.parametrize("signum, jobs", [(signal.SIGTERM, []), (signal.SIGINT, ["--jobs", "2"])])
 def test_a_signal_stops_the_batch_keeping_finished_inputs_and_whole_lines(batch, signum, jobs):
     for i in range(3, 6):
         np.save(batch / "in" / f"f{i:02d}.npy", np.load(batch / "in" / "f0.npy") + 0.01 * i)
     results = batch / "out" / "results.jsonl"
-    proc = _run(recover_argv(batch, batch / "in") + jobs)
+    proc = spawn_cli(recover_argv(batch, batch / "in") + jobs)
     deadline = time.time() + 240
     while time.time() < deadline and proc.poll() is None:
         if results.exists() and results.read_text().count("\n") >= 1:

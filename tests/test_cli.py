@@ -4,6 +4,7 @@ import sys
 
 import numpy as np
 import pytest
+from conftest import cli_error
 
 import sqparts
 from sqparts.cli import main
@@ -49,36 +50,29 @@ def test_render_mesh_show(files, capsys):
     assert (files / "pic.png").stat().st_size > 1000
 
 
-def _error(capsys, argv):
-    assert main(argv) == 2
-    err = capsys.readouterr().err.strip()
-    assert err.startswith("sqparts: error: ") and "\n" not in err and "Traceback" not in err
-    return err
-
-
 def test_bad_inputs_give_one_line_and_no_file(files, capsys):
     out = files / "o.npy"
     base = ["render", str(files / "scene.json"), "--camera", str(files / "cam.json"), "--out", str(out)]
-    assert "expected an existing file" in _error(capsys, ["render", str(files / "nope.json")] + base[2:])
+    assert "expected an existing file" in cli_error(capsys, ["render", str(files / "nope.json")] + base[2:])
     bad = dict(SCENE, parts=[dict(SCENE["parts"][0], size=[0.2, -1, 0.3])])
     (files / "neg.json").write_text(json.dumps(bad))
-    assert "expected semi-axes > 0" in _error(capsys, ["render", str(files / "neg.json")] + base[2:])
+    assert "expected semi-axes > 0" in cli_error(capsys, ["render", str(files / "neg.json")] + base[2:])
     unk = dict(SCENE, parts=[dict(SCENE["parts"][0], colour="red")])
     (files / "unk.json").write_text(json.dumps(unk))
-    assert "got unknown key(s) ['colour']" in _error(capsys, ["render", str(files / "unk.json")] + base[2:])
+    assert "got unknown key(s) ['colour']" in cli_error(capsys, ["render", str(files / "unk.json")] + base[2:])
     (files / "garbage.json").write_text("{]")
-    assert "expected valid JSON" in _error(
+    assert "expected valid JSON" in cli_error(
         capsys, ["render", str(files / "scene.json"), "--camera", str(files / "garbage.json"), "--out", str(out)]
     )
-    assert "--out: got" in _error(capsys, base[:-1] + [str(files / "o.jpg")])
-    assert "expected a path in an existing directory" in _error(
+    assert "--out: got" in cli_error(capsys, base[:-1] + [str(files / "o.jpg")])
+    assert "expected a path in an existing directory" in cli_error(
         capsys, base[:-1] + [str(files / "no" / "dir" / "o.npy")]
     )
     np.save(files / "cube.npy", np.zeros((2, 2, 2)))
-    assert "expected a 2-D numeric range image" in _error(
+    assert "expected a 2-D numeric range image" in cli_error(
         capsys, ["show", str(files / "cube.npy"), "--out", str(files / "p.png")]
     )
-    assert "--resolution: got '2', expected an integer in [4, 512]" in _error(
+    assert "--resolution: got '2', expected an integer in [4, 512]" in cli_error(
         capsys, ["mesh", str(files / "scene.json"), "--out", str(files / "m.ply"), "--resolution", "2"]
     )
     assert not out.exists() and not (files / "p.png").exists() and not (files / "m.ply").exists()

@@ -3,7 +3,9 @@ the direct call's results, a bad cache entry falls back to tracing, and a recove
 few distinct programs, none new for another image size within a bucket."""
 
 import contextlib
+import json
 import logging
+from pathlib import Path
 
 import equinox as eqx
 import jax
@@ -226,3 +228,40 @@ def test_recovery_from_exported_programs(one_part, tmp_path):
     for rec in (exporting, again):
         np.testing.assert_allclose(rec.parts.to_vector(), plain.parts.to_vector(), rtol=1e-4, atol=1e-5)
         assert rec.description_length == pytest.approx(plain.description_length, rel=1e-6)
+
+
+def test_crowded_processes_release_their_programs():
+    """Past the given share of the kernel's mapping limit the compiled programs are dropped
+    (and compiled again on the next call); below it nothing is touched."""
+    f = jax.jit(lambda x: jnp.sin(x) * 3.0)
+    x = jnp.arange(4.0)
+    f(x)
+    assert f._cache_size() == 1
+    assert not _compile.release_if_crowded(fraction=1.0)
+    assert f._cache_size() == 1
+    if not Path("/proc/self/maps").exists():
+        pytest.skip("no /proc: nothing to measure")
+    assert _compile.release_if_crowded(fraction=0.0)
+    assert f._cache_size() == 0
+    np.testing.assert_allclose(np.asarray(f(x)), np.sin(np.arange(4.0)) * 3.0, rtol=1e-6)
+
+
+def test_the_command_line_leaves_the_callers_caches_as_it_found_them(tmp_path, monkeypatch):
+    """main() called from Python turns the caches on for its run only."""
+    monkeypatch.setenv("SQPARTS_CACHE_DIR", str(tmp_path / "cache"))
+    names = ("jax_compilation_cache_dir", "jax_persistent_cache_min_compile_time_secs")
+    before = {n: getattr(jax.config, n) for n in names}
+    _compile.set_export_dir(None)
+    with _compile.caches_enabled():
+        assert _compile._state["dir"] == tmp_path / "cache" / "exported"
+        assert jax.config.jax_persistent_cache_min_compile_time_secs == 0.0
+    assert _compile._state["dir"] is None
+    assert {n: getattr(jax.config, n) for n in names} == before
+    from sqparts.cli import main
+
+    sqparts.save_scene(tmp_path / "scene.json", sqparts.stack_parts([PART]))
+    (tmp_path / "cam.json").write_text(json.dumps(sqparts.PinholeCamera(16, 12, 20.0, 20.0, 7.5, 5.5).to_json()))
+    argv = ["render", str(tmp_path / "scene.json"), "--camera", str(tmp_path / "cam.json")]
+    assert main([*argv, "--out", str(tmp_path / "d.npy"), "--quiet"]) == 0
+    assert _compile._state["dir"] is None
+    assert {n: getattr(jax.config, n) for n in names} == before

@@ -5,11 +5,8 @@ SIGTERM stop the run with 130 / 143 at any moment; finite reverse-mode gradients
 
 import json
 import os
-import re
 import signal
 import struct
-import subprocess
-import sys
 import time
 import zlib
 from pathlib import Path
@@ -18,6 +15,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
+from conftest import cli_error, no_staging_left, spawn_cli
 
 import sqparts
 from sqparts import cli
@@ -35,7 +33,6 @@ SCENE = {
         }
     ]
 }
-STYLE = re.compile(r"^sqparts: error: \S.*?: got .+, expected .+$")
 FAST = ["--resolution", "0", "--refine-rounds", "0", "--quiet"]
 OUTPUTS = {
     "parts.json",
@@ -58,18 +55,6 @@ def files(tmp_path):
     )
     np.save(tmp_path / "x.npy", depth)
     return tmp_path
-
-
-def one_line_error(capsys, argv) -> str:
-    assert main(argv) == 2
-    err = capsys.readouterr().err.strip()
-    assert "\n" not in err and "Traceback" not in err
-    assert STYLE.match(err), err
-    return err
-
-
-def no_staging_left(folder: Path) -> bool:
-    return not [p for p in folder.rglob(".sqparts-*")]
 
 
 # --- lost results ------------------------------------------------------------------------
@@ -116,7 +101,7 @@ def test_inputs_sharing_a_stem_each_get_their_folder(files, capsys):
     za = json.loads((out / "a/x.npy/parts.json").read_text())["parts"][0]["position"][2]
     zb = json.loads((out / "b/x/parts.json").read_text())["parts"][0]["position"][2]
     assert zb - za == pytest.approx(0.5, abs=0.1)
-    assert "twice" in one_line_error(
+    assert "twice" in cli_error(
         capsys,
         [
             "recover",
@@ -135,13 +120,13 @@ def test_existing_output_is_never_overwritten_silently(files, capsys):
     base = ["recover", str(files / "x.npy"), "--camera", str(files / "cam.json"), "--out", str(out), *FAST]
     assert main(base) == 0
     stamp = (out / "parts.json").stat().st_mtime_ns
-    assert "--overwrite" in one_line_error(capsys, base)
+    assert "--overwrite" in cli_error(capsys, base)
     assert (out / "parts.json").stat().st_mtime_ns == stamp
     (out / "mine.txt").write_text("keep?")
     assert main(base + ["--overwrite"]) == 0
     assert {p.name for p in out.iterdir()} == OUTPUTS and no_staging_left(files)
     render = ["render", str(files / "scene.json"), "--camera", str(files / "cam.json"), "--out", str(files / "x.npy")]
-    assert "exists" in one_line_error(capsys, render)
+    assert "exists" in cli_error(capsys, render)
 
 
 # --- partial output sets -------------------------------------------------------------------
@@ -184,23 +169,8 @@ def test_a_signal_between_writes_leaves_nothing(files, capsys, monkeypatch, sign
 
 def test_demo_with_a_bad_resolution_leaves_no_folder(tmp_path, capsys):
     out = tmp_path / "demo"
-    assert "--resolution: got '0'" in one_line_error(capsys, ["demo", "--resolution", "0", "--out", str(out)])
+    assert "--resolution: got '0'" in cli_error(capsys, ["demo", "--resolution", "0", "--out", str(out)])
     assert not out.exists()
-
-
-def _run(argv, *, ignore_sigint=False):
-    """``python -m sqparts ARGV`` in a new process; ``ignore_sigint`` starts it with SIGINT
-    ignored, as a shell starts a background job (so the interpreter installs no handler of
-    its own: the first one is the CLI's)."""
-    env = dict(os.environ, JAX_PLATFORMS="cpu")
-    code = (
-        "import runpy, sys\nsys.argv = ['sqparts', *sys.argv[1:]]\nrunpy.run_module('sqparts', run_name='__main__')\n"
-    )
-
-    command = [sys.executable, "-c", code, *argv]
-    if ignore_sigint:  # the shell's way (no preexec_fn: forking a process that runs JAX may deadlock)
-        command = ["sh", "-c", 'trap "" INT; exec "$0" "$@"', *command]
-    return subprocess.Popen(command, env=env, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
 
 
 def _wait_for_handler(proc, signum, timeout: float = 60.0) -> None:
@@ -226,7 +196,7 @@ def _wait_for_handler(proc, signum, timeout: float = 60.0) -> None:
 )
 def test_signals_stop_a_run_at_any_moment(files, signum, delay, ignore_sigint):
     out = files / "out"
-    proc = _run(
+    proc = spawn_cli(
         ["recover", str(files / "x.npy"), "--camera", str(files / "cam.json"), "--out", str(out), *FAST],
         ignore_sigint=ignore_sigint,
     )
@@ -296,7 +266,7 @@ def test_gradient_of_a_rendered_image_is_finite_for_a_boxy_part():
 @pytest.mark.parametrize("scale", ["-0.001", "nan", "1e6", "inf", "0"])
 def test_render_depth_scale_that_cannot_encode_the_image_is_refused(files, capsys, scale):
     out = files / "d.png"
-    err = one_line_error(
+    err = cli_error(
         capsys,
         [
             "render",
@@ -328,7 +298,7 @@ def test_non_finite_pinhole_matrix_is_refused(files, capsys, entry):
     k = list(CAMERA["intrinsic_matrix"])
     k[entry] = float("nan")
     (files / "nan.json").write_text(json.dumps(dict(CAMERA, intrinsic_matrix=k)))  # writes NaN
-    err = one_line_error(
+    err = cli_error(
         capsys,
         ["render", str(files / "scene.json"), "--camera", str(files / "nan.json"), "--out", str(files / "d.npy")],
     )
@@ -364,13 +334,13 @@ def test_depth_range_applies_without_clean_up(files):
 
 def test_deeply_nested_camera_json_is_one_line(files, capsys):
     (files / "deep.json").write_text("[" * 100_000 + "]" * 100_000)
-    err = one_line_error(
+    err = cli_error(
         capsys,
         ["render", str(files / "scene.json"), "--camera", str(files / "deep.json"), "--out", str(files / "d.npy")],
     )
     assert err.startswith("sqparts: error: camera:")
     (files / "deep.json").write_text('{"parts": ' + "[" * 100_000 + "]" * 100_000 + "}")
-    assert "scene:" in one_line_error(
+    assert "scene:" in cli_error(
         capsys, ["render", str(files / "deep.json"), "--camera", str(files / "cam.json"), "--out", str(files / "d.npy")]
     )
 
@@ -393,14 +363,14 @@ def test_image_header_declaring_a_huge_image_is_refused_before_decoding(files, c
     else:
         with open(path, "wb") as f:  # a header declaring 30000 x 30000 float32, and no data
             np.lib.format.write_array_header_1_0(f, {"descr": "<f4", "fortran_order": False, "shape": (30000, 30000)})
-    err = one_line_error(capsys, ["show", str(path), "--out", str(files / "p.png")])
+    err = cli_error(capsys, ["show", str(path), "--out", str(files / "p.png")])
     assert "input:" in err
     assert not (files / "p.png").exists()
 
 
 def test_huge_camera_is_refused_before_allocating(files, capsys):
     (files / "big.json").write_text(json.dumps(dict(CAMERA, width=50000, height=50000)))
-    err = one_line_error(
+    err = cli_error(
         capsys,
         ["render", str(files / "scene.json"), "--camera", str(files / "big.json"), "--out", str(files / "d.npy")],
     )
@@ -436,7 +406,7 @@ def test_huge_camera_is_refused_before_allocating(files, capsys):
 )
 def test_recover_numbers_are_validated_where_they_enter(files, capsys, flag, value):
     out = files / "out"
-    err = one_line_error(
+    err = cli_error(
         capsys, ["recover", str(files / "x.npy"), "--camera", str(files / "cam.json"), "--out", str(out), flag, value]
     )
     assert err.startswith(f"sqparts: error: {flag}: got ")
@@ -456,7 +426,7 @@ def test_recover_numbers_are_validated_where_they_enter(files, capsys, flag, val
     ],
 )
 def test_argparse_errors_are_in_the_one_style(capsys, argv, start):
-    err = one_line_error(capsys, argv)
+    err = cli_error(capsys, argv)
     assert err.startswith(f"sqparts: error: {start}"), err
 
 
@@ -513,7 +483,7 @@ def test_an_output_under_a_file_is_refused_before_any_work(files, capsys, monkey
 
     monkeypatch.setattr(sqparts._recover, "recover_scene", lambda *a, **k: pytest.fail("recovery ran"))
     (files / "afile").write_text("")
-    err = one_line_error(
+    err = cli_error(
         capsys,
         ["recover", str(files / "x.npy"), "--camera", str(files / "cam.json"), "--out", str(files / "afile" / "sub")],
     )
@@ -522,6 +492,6 @@ def test_an_output_under_a_file_is_refused_before_any_work(files, capsys, monkey
 
 def test_a_complex_range_image_is_refused(files, capsys):
     np.save(files / "c.npy", np.ones((24, 32), complex))
-    assert "expected a 2-D numeric range image" in one_line_error(
+    assert "expected a 2-D numeric range image" in cli_error(
         capsys, ["show", str(files / "c.npy"), "--out", str(files / "p.png")]
     )

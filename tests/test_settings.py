@@ -2,34 +2,18 @@
 
 import dataclasses
 import json
-import subprocess
-import sys
 
 import numpy as np
 import pytest
 
 import sqparts
+from sqparts.cli import main
 
 CAM = sqparts.PinholeCamera(48, 48, 180.0, 180.0, 23.5, 23.5)
 PART = sqparts.Part(
     size=[0.05, 0.07, 0.11], squareness=[0.6, 1.0], position=[0.0, 0.0, 1.2], orientation=[0.3, 0.2, 0.0]
 )
-# Not test_compile's settings: a program it loaded from its exported programs is not reused
-# here (in CI rehearsals, recompiling such a program aborted XLA in its cache).
 FAST = dict(search=sqparts.SearchSettings(max_size=0.14, window=40), refine=sqparts.RefineSettings(rounds=1))
-
-
-@pytest.fixture(scope="module", autouse=True)
-def no_persistent_cache():
-    """These recoveries compile without JAX's persistent cache: in three full-suite CI
-    rehearsals, reading or writing this module's first search program there aborted XLA
-    (after test_compile's exported programs; alone, and in that order locally, it passes)."""
-    import jax
-
-    before = jax.config.jax_enable_compilation_cache
-    jax.config.update("jax_enable_compilation_cache", False)
-    yield
-    jax.config.update("jax_enable_compilation_cache", before)
 
 
 @pytest.fixture(scope="module")
@@ -128,10 +112,7 @@ def test_the_command_line_builds_the_same_objects(depth, tmp_path):
     argv = ["recover", str(tmp_path / "x.npy"), "--camera", str(tmp_path / "cam.json"), "--out", str(tmp_path / "o")]
     argv += ["--grid", "coarse", "--max-size", "0.14", "--refine-rounds", "1", "--selection", "exact", "--quiet"]
     argv += ["--resolution", "0", "--no-figure-ground"]
-    # A new process, as a user runs it (main() in this process would switch the whole
-    # suite's compilation cache and exported programs on for every later test).
-    done = subprocess.run([sys.executable, "-m", "sqparts", *argv], capture_output=True, text=True, timeout=600)
-    assert done.returncode == 0, done.stderr
+    assert main(argv) == 0
     settings = json.loads((tmp_path / "o" / "parts.json").read_text())["settings"]
     assert settings["scene"] == dataclasses.asdict(sqparts.SceneSettings(resolution=0, figure_ground=False))
     (figure,) = settings["figures"]
