@@ -148,38 +148,29 @@ def _recover_options(args) -> dict:
     from ._search import SearchSettings
     from ._select import SelectSettings
 
-    up = depth_range = None
-    if args.up is not None:
-        try:
-            up = [float(x) for x in args.up.split(",")]
-        except ValueError:
-            up = []
-        if len(up) != 3 or not np.all(np.isfinite(up)) or not any(up):
-            raise ValueError(f"--up: got {args.up!r}, expected three finite numbers x,y,z, not all 0 (camera frame)")
-    if args.depth_range is not None:
-        try:
-            near, far = (float(x) for x in args.depth_range.split(","))
-        except ValueError:
-            near = far = np.nan
-        if not (0 <= near < far):
-            raise ValueError(f"--depth-range: got {args.depth_range!r}, expected NEAR,FAR with 0 <= NEAR < FAR")
-        depth_range = (near, far)
-    scene = SceneSettings(
-        resolution=args.resolution,
-        depth_range=depth_range,
-        clean=args.clean,
-        tear=args.tear,
-        figure_ground=args.figure_ground,
-        planes=args.planes,
-        min_figure_pixels=args.min_figure_pixels,
-        max_figures=args.max_figures,
-        max_border_fraction=args.max_border_fraction,
-        holes=args.holes,
-        prettify=args.prettify,
-        up=None if up is None else (up[0], up[1], up[2]),
-        max_angle=args.max_angle,
-        max_bits=args.max_bits,
-    )
+    try:
+        scene = SceneSettings(
+            resolution=args.resolution,
+            depth_range=None if args.depth_range is None else args.depth_range.split(","),
+            clean=args.clean,
+            tear=args.tear,
+            figure_ground=args.figure_ground,
+            planes=args.planes,
+            min_figure_pixels=args.min_figure_pixels,
+            max_figures=args.max_figures,
+            max_border_fraction=args.max_border_fraction,
+            holes=args.holes,
+            prettify=args.prettify,
+            up=None if args.up is None else args.up.split(","),
+            max_angle=args.max_angle,
+            max_bits=args.max_bits,
+        )
+    except ValueError as e:  # a comma list the settings refused: name the flag and the text given
+        field, _, rest = str(e).partition(": got ")
+        if field not in ("up", "depth_range"):
+            raise
+        flag = "--" + field.replace("_", "-")
+        raise ValueError(f"{flag}: got {getattr(args, field)!r}, expected {rest.partition(', expected ')[2]}") from None
     return dict(
         scene=scene,
         search=SearchSettings(grid=args.grid, max_size=args.max_size),

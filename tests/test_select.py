@@ -60,6 +60,28 @@ def test_exact_and_best_first_against_brute_force():
     assert best_first_optimal >= 8  # the greedy search is usually, not always, optimal
 
 
+def test_exact_selection_solves_groups_that_do_not_interact_apart():
+    """Candidates in three separate strips of the image (no shared pixel between strips)
+    form three groups; solved group by group, E is the brute-force minimum."""
+    rng = np.random.default_rng(5)
+    for _ in range(5):
+        strips = [_random_masks(rng, k, pixels=200) for k in (6, 5, 1)]
+        explained = np.zeros((12, 600), bool)
+        commission = np.zeros((12, 600), bool)
+        row = 0
+        for s, (e, c) in enumerate(strips):
+            explained[row : row + len(e), 200 * s : 200 * (s + 1)] = e
+            commission[row : row + len(c), 200 * s : 200 * (s + 1)] = c
+            row += len(e)
+        order = rng.permutation(12)  # groups are found, not read off the order
+        p = SelectionProblem.from_masks(explained[order], commission[order], COSTS)
+        groups = p.groups()
+        assert sorted(np.concatenate(groups).tolist()) == list(range(12))
+        assert all(len(g) <= 6 for g in groups) and len(groups) >= 3
+        x, optimal = sqparts.select_exact(p)
+        assert optimal and p.energy(x) == pytest.approx(p.energy(sqparts.select_brute_force(p)))
+
+
 def test_exact_selection_prints_nothing(capfd):
     # highspy >= 1.16 prints a banner from its C++ constructor, past Python's sys.stdout.
     e, c = _random_masks(np.random.default_rng(3), 5)
