@@ -13,6 +13,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+from conftest import cli_error
 
 import sqparts
 from sqparts._io import load_view_data, save_view_data
@@ -284,39 +285,11 @@ def test_recover_writes_view_files_and_rerun(tmp_path):
 def test_rerun_option_errors(tmp_path, capsys):
     (tmp_path / "cam.json").write_text(json.dumps(CAMERA))
     np.save(tmp_path / "x.npy", np.ones((24, 32), np.float32))
-    assert (
-        main(
-            [
-                "recover",
-                str(tmp_path / "x.npy"),
-                "--camera",
-                str(tmp_path / "cam.json"),
-                "--out",
-                str(tmp_path / "o"),
-                "--rerun",
-                str(tmp_path / "r.txt"),
-            ]
-        )
-        == 2
-    )
-    assert "--rerun: got " in capsys.readouterr().err
-    (tmp_path / "r.rrd").write_bytes(b"x")
-    assert (
-        main(
-            [
-                "recover",
-                str(tmp_path / "x.npy"),
-                "--camera",
-                str(tmp_path / "cam.json"),
-                "--out",
-                str(tmp_path / "o"),
-                "--rerun",
-                str(tmp_path / "r.rrd"),
-            ]
-        )
-        == 2
-    )
-    assert "--rerun: got " in capsys.readouterr().err and (tmp_path / "r.rrd").read_bytes() == b"x"
+    recover = ["recover", str(tmp_path / "x.npy"), "--camera", str(tmp_path / "cam.json"), "--out", str(tmp_path / "o")]
+    assert cli_error(capsys, [*recover, "--rerun", str(tmp_path / "r.txt")]).startswith("sqparts: error: --rerun: got ")
+    (tmp_path / "r.rrd").write_bytes(b"x")  # an existing recording is never overwritten
+    assert cli_error(capsys, [*recover, "--rerun", str(tmp_path / "r.rrd")]).startswith("sqparts: error: --rerun: got ")
+    assert (tmp_path / "r.rrd").read_bytes() == b"x" and not (tmp_path / "o").exists()
 
 
 def test_view_files_errors(out_dir):
