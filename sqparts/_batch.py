@@ -188,7 +188,7 @@ def recover_file(
     """
     import numpy as np
 
-    from ._fit import encoding_for
+    from ._encoding import encoding_for
     from ._io import staged_folder
     from ._recover import recover_scene
 

@@ -20,8 +20,10 @@ return.
 from __future__ import annotations
 
 import dataclasses
+import functools
 from typing import TYPE_CHECKING
 
+import jax
 import jax.numpy as jnp
 import numpy as np
 
@@ -332,3 +334,44 @@ def camera_from_json(data: dict) -> Camera:
         data["cx"],
         data["cy"],
     )
+
+
+# --- compiled rays of a camera, shared by images of other sizes --------------------------
+
+IMAGE_BUCKET = 32
+"""Compiled programs see images padded to a multiple of this many rows and columns (and
+the camera of the padded image, :func:`bucket_camera`), so images of other sizes with
+the same intrinsics share them."""
+
+
+def image_bucket(n: int) -> int:
+    return -(-int(n) // IMAGE_BUCKET) * IMAGE_BUCKET
+
+
+def bucket_camera(camera: Camera) -> Camera:
+    """``camera`` for an image padded at the bottom and right to a multiple of
+    ``IMAGE_BUCKET`` pixels: a pixel's ray does not depend on the image size, so the
+    compiled stages, which take the camera as a static argument, are shared by images
+    of other sizes whose rays agree (a crop's camera keeps its cx, cy only if the crop
+    starts at the top left)."""
+    return dataclasses.replace(camera, width=image_bucket(camera.width), height=image_bucket(camera.height))
+
+
+@functools.partial(jax.jit, static_argnames=("camera",))
+def _rays(camera: Camera):
+    return camera.rays()
+
+
+def camera_rays(camera: Camera) -> tuple[np.ndarray, np.ndarray]:
+    """``camera.rays()`` (host copies, (h, w, 3) each) from one compiled program per
+    bucketed camera, where the eager computation dispatches about ten."""
+    o, d = _rays(camera=bucket_camera(camera))
+    h, w = camera.height, camera.width
+    return np.asarray(o)[:h, :w], np.asarray(d)[:h, :w]
+
+
+def camera_points(camera: Camera, range_image) -> np.ndarray:
+    """``camera.points(range_image)`` (float64, (h, w, 3), NaN = none) from one compiled
+    program per camera, where the eager ray computation dispatches about ten."""
+    o, d = (np.asarray(a, np.float64) for a in camera_rays(camera))
+    return o + np.asarray(range_image, np.float64)[..., None] * d

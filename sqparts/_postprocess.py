@@ -23,8 +23,8 @@ import math
 
 import numpy as np
 
+from ._encoding import Costs
 from ._part import Part, rotation_matrix, rotation_vector, stack_parts
-from ._select import Costs
 
 # --- prettifying ------------------------------------------------------------------------
 
@@ -94,7 +94,7 @@ def prettify(parts: Part, data, costs: Costs, *, up, max_angle: float = 15.0, ma
     Returns (parts, cost, report), where each report entry says what was tried (``snap``,
     ``angle_deg``), the change in E (``delta_bits``), whether it was ``kept`` and, if
     not, ``why``."""
-    from ._refine import costs_removing, encoding_cost
+    from ._encoding import costs_removing, encoding_cost
 
     if not (isinstance(max_bits, (int, float)) and math.isfinite(max_bits) and max_bits >= 0):
         raise ValueError(f"max_bits: got {max_bits!r}, expected a finite number >= 0")

@@ -30,9 +30,8 @@ from scipy import ndimage
 from scipy.sparse import coo_matrix
 from scipy.sparse.csgraph import connected_components
 
-from ._camera import Camera
+from ._camera import Camera, camera_points
 from ._camera import check_range_image as _check_depth
-from ._search import camera_points
 
 DEFAULT_TEAR = 8.0
 """Depth jump, in pixel footprints, that tears the rubber sheet."""

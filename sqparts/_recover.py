@@ -22,22 +22,15 @@ from typing import TYPE_CHECKING
 import jax
 import numpy as np
 
-from ._camera import Camera
-from ._fit import Encoding
+from ._camera import Camera, camera_points
+from ._data import RangeData
+from ._encoding import Costs, Encoding, EncodingCost, encoding_cost, layer_errors, part_statistics, render_layers
 from ._grid import lookup_preset
 from ._part import Part, stack_parts
-from ._refine import (
-    EncodingCost,
-    RefineSettings,
-    encoding_cost,
-    layer_errors,
-    part_statistics,
-    render_each,
-    select_rendered,
-)
+from ._refine import RefineSettings
 from ._render import render_range_image
-from ._search import RangeData, SearchSettings, camera_points, fit_image, search_preset
-from ._select import Costs, SelectionProblem, SelectSettings
+from ._search import SearchSettings, fit_image, search_preset
+from ._select import SelectionProblem, SelectSettings, select_rendered
 
 if TYPE_CHECKING:
     from ._preprocess import CleanedRange, FigureGround
@@ -287,15 +280,15 @@ def recover(
 
 def _candidates(fits, data: RangeData):
     """All regions' candidates with Γ > 0 as one batch: the parts, their depth layers
-    over the whole image (:func:`~sqparts._refine.render_each`) and their explained and
-    commission masks by the joint encoding's rule (:func:`~sqparts._refine.layer_errors`):
+    over the whole image (:func:`~sqparts._encoding.render_layers`) and their explained and
+    commission masks by the joint encoding's rule (:func:`~sqparts._encoding.layer_errors`):
     a polished part may outgrow the window it was searched in, and its commission
     outside the window counts in E all the same."""
     parts = [f.parts[i] for f in fits for i, g in enumerate(np.asarray(f.gamma)) if g > 0]
     if not parts:
         return None, None, None, None
     parts = stack_parts(parts)
-    layers = render_each(parts.to_vector(), data.camera)
+    layers = render_layers(parts.to_vector(), data.camera)
     return parts, layers, *layer_errors(layers, data)
 
 
@@ -550,7 +543,8 @@ def recover_scene(
     bars, 1 for a one-pixel one), and its window is snapped to a few sizes so that figures
     share compiled programs.
     """
-    from ._fit import encoding_for
+    from ._data import figure_footprint, prepare
+    from ._encoding import encoding_for
     from ._postprocess import prettify as _prettify
     from ._preprocess import (
         DEFAULT_TEAR,
@@ -563,7 +557,7 @@ def recover_scene(
         pruning_stride,
     )
     from ._preprocess import figure_ground as _figure_ground
-    from ._search import default_max_size, figure_footprint, prepare, window_for
+    from ._search import default_max_size, window_for
 
     st = scene_preset(scene)
     search = search_preset(search)
@@ -743,8 +737,8 @@ def recover_multiscale(
     still pay its κ0 bits from fewer pixels: a person as one blob; as head, torso and
     limbs; with hands and feet. Each part is linked to its parent one level up.
     """
+    from ._data import prepare
     from ._preprocess import downsample, downsample_mask
-    from ._search import prepare
 
     if not (isinstance(levels, (int, np.integer)) and 1 <= levels <= 6):
         raise ValueError(f"levels: got {levels!r}, expected an integer in [1, 6]")

@@ -5,7 +5,7 @@ encoding cost of the whole image is computed by direct pixel count,
 
     E = κ0 n + κ1 |explained| + κ2 |commission| + κ3 (N - |explained|),
 
-with the costs of :class:`~sqparts._select.Costs`. Each round is one step of region
+with the costs of :class:`~sqparts._encoding.Costs`. Each round is one step of region
 growing over all parts at once: every part takes the figure pixels where it is visible
 plus the unexplained pixels next to them that lie near its surface, and is polished on
 them (optimistix Levenberg-Marquardt on radial surface distances, batched over parts)
@@ -32,300 +32,28 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+from ._camera import camera_points, camera_rays
 from ._compile import persistent_jit
-from ._fit import commission_mask
+from ._data import RangeData
+from ._encoding import (
+    PART_BUCKET,
+    Costs,
+    EncodingCost,
+    costs_adding,
+    costs_removing,
+    encoding_cost,
+    host_parts,
+    layers_cost,
+    layers_of,
+    least_pixels,
+    pad_parts,
+    part_vectors,
+    pixel_errors,
+    render_layers,
+)
 from ._part import Part, from_unconstrained, surface_distance, to_unconstrained
-from ._render import DEFAULT_NEWTON_STEPS, cast_part
-from ._search import RangeData, bucket_camera, camera_points, camera_rays, polish_part
-from ._select import Costs
-
-_BUCKET = 8
-
-
-_PART_TREE = jax.tree_util.tree_structure(Part(size=np.ones(3, np.float32)))
-
-
-def _host_parts(vectors) -> Part:
-    """A batch of parts with host (numpy) leaves from valid (n, 14) vectors (the order of
-    :meth:`~sqparts.Part.to_vector`), built without dispatching JAX operations: slicing,
-    stacking and editing them is plain numpy, and they enter compiled calls as they are."""
-    v = np.asarray(vectors, np.float32)
-    return jax.tree_util.tree_unflatten(
-        _PART_TREE, [v[:, 0:3], v[:, 3:6], v[:, 6:9], v[:, 9:11], v[:, 11:13], v[:, 13]]
-    )
-
-
-def _vectors(parts: Part) -> np.ndarray:
-    """(n, 14) host copy of ``parts.to_vector()``."""
-    return np.asarray(parts.to_vector(), np.float32).reshape(-1, 14)
-
-
-def _pad_parts(parts: Part) -> tuple[Part, int]:
-    """Pad a batch to a multiple of ``_BUCKET`` with parts behind the camera (never hit),
-    so the compiled renderer and solver only ever see batches of ``_BUCKET`` parts."""
-    n = len(parts)
-    m = -(-n // _BUCKET) * _BUCKET
-    dummy = np.array([0, 0, -1e3, 0, 0, 0, 1e-3, 1e-3, 1e-3, 1, 1, 0, 0, 0], np.float32)
-    return _host_parts(np.concatenate([_vectors(parts), np.broadcast_to(dummy, (m - n, 14))])), n
-
-
-@persistent_jit(static_argnames=("camera", "newton_steps"))
-def _render_each(parts, camera, newton_steps=DEFAULT_NEWTON_STEPS):
-    o, d = camera.rays()
-    t, hit = jax.vmap(cast_part, in_axes=(0, None, None, None))(parts, o, d, newton_steps)
-    return jnp.where(hit, t, jnp.inf)
-
-
-def render_each(vectors, camera) -> np.ndarray:
-    """(k, H, W) depth of each of the (k, 14) part vectors rendered on its own (inf =
-    miss), ``_BUCKET`` parts per compiled call. A scene's rendering is their nearest hit
-    (:func:`_compose`), so a trial that adds, replaces or removes parts re-renders only
-    the parts it changes."""
-    padded, k = _pad_parts(_host_parts(vectors))
-    h, w = camera.height, camera.width
-    if k == 0:
-        return np.full((0, h, w), np.inf, np.float32)
-    # Rendered on the bucketed image (the same rays, a few more of them), then cropped.
-    big = bucket_camera(camera)
-    return np.concatenate(
-        [np.asarray(_render_each(padded[j : j + _BUCKET], big))[:, :h, :w] for j in range(0, len(padded), _BUCKET)]
-    )[:k]
-
-
-def _compose(layers: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """Nearest hit of per-part depth layers: depth (NaN = none) and the visible part's
-    index (-1 = none; ties go to the earlier part, as in :func:`~sqparts.cast_scene`)."""
-    index = np.argmin(layers, axis=0)
-    t = np.take_along_axis(layers, index[None], axis=0)[0]
-    hit = np.isfinite(t)
-    return np.where(hit, t, np.nan).astype(np.float32), np.where(hit, index, -1)
-
-
-def render_labels(parts: Part, camera) -> tuple[np.ndarray, np.ndarray]:
-    """The parts rendered together (nearest hit wins): depth (NaN = none) and the
-    visible part's index (-1 = none)."""
-    return _compose(render_each(_vectors(parts), camera))
-
-
-@dataclasses.dataclass(frozen=True)
-class EncodingCost:
-    """E by direct pixel count for a set of parts rendered together."""
-
-    total: float
-    parts: int
-    explained: int
-    commission: int
-    omission: int
-    rendered: np.ndarray  # (H, W) float32 depth of the model, NaN = none
-    labels: np.ndarray  # (H, W) visible part, -1 = none
-    explained_mask: np.ndarray  # (H, W) bool
-    commission_mask: np.ndarray  # (H, W) bool
-    layers: np.ndarray | None = dataclasses.field(default=None, repr=False)  # (n, H, W) per-part depth, inf = miss
-
-
-def encoding_cost(parts: Part | None, data: RangeData, costs: Costs) -> EncodingCost:
-    """Render ``parts`` together and count E (Eq. 6 evaluated on the joint rendering)."""
-    vectors = np.zeros((0, 14), np.float32) if parts is None else _vectors(parts)
-    return layers_cost(render_each(vectors, data.camera), data, costs)
-
-
-def layers_cost(layers: np.ndarray, data: RangeData, costs: Costs) -> EncodingCost:
-    """E of the scene whose parts have the per-part depth ``layers`` (:func:`render_each`)."""
-    if len(layers) == 0:
-        shape = data.image.shape
-        return _count(0, np.full(shape, np.nan, np.float32), np.full(shape, -1), data, costs, layers)
-    return _count(len(layers), *_compose(layers), data, costs, layers)
-
-
-def costs_adding(cost: EncodingCost, extra, data: RangeData, costs: Costs) -> list[EncodingCost]:
-    """E of the parts behind ``cost`` plus each one of the (k, 14) vectors ``extra`` in
-    turn; only the extra parts are rendered (:func:`render_each`)."""
-    new = render_each(extra, data.camera)
-    return [layers_cost(np.concatenate([_layers(cost), t[None]]), data, costs) for t in new]
-
-
-def costs_removing(cost: EncodingCost, which, data: RangeData, costs: Costs) -> list[EncodingCost]:
-    """E of the parts behind ``cost`` less each part in ``which`` in turn (nothing is
-    rendered: the remaining layers are composed again)."""
-    n = len(_layers(cost))
-    return [layers_cost(_layers(cost)[np.arange(n) != i], data, costs) for i in which]
-
-
-def _least_pixels(costs: Costs) -> float:
-    """Explained pixels a part needs to pay for its κ0 bits."""
-    return costs.part / max(costs.omission - costs.explained, 1e-9)
-
-
-def _pixel_errors(hit, rendered, measured, figure, sigma):
-    """Explained (on the figure, within ±σ/2 of the measured depth) and commission
-    (rendered off the figure and not hidden by data in front: :func:`~sqparts.commission_mask`)
-    masks of rendered pixels ``hit``; numpy or jnp arrays."""
-    return hit & figure & (abs(rendered - measured) <= sigma / 2), commission_mask(
-        hit, rendered, measured, figure, sigma / 2
-    )
-
-
-def _layers(cost: EncodingCost) -> np.ndarray:
-    """``cost.layers``, which every cost from :func:`layers_cost` has."""
-    if cost.layers is None:
-        raise ValueError(
-            "cost: got an EncodingCost without per-part layers, expected one from encoding_cost or layers_cost"
-        )
-    return cost.layers
-
-
-def _count(n: int, rendered, labels, data: RangeData, costs: Costs, layers=None) -> EncodingCost:
-    with np.errstate(invalid="ignore"):
-        explained, commission = _pixel_errors(
-            labels >= 0, rendered, data.image, data.figure_region, data.encoding.sigma
-        )
-    e, c = int(explained.sum()), int(commission.sum())
-    return EncodingCost(
-        float(costs.total(n, e, c)),
-        n,
-        e,
-        c,
-        costs.figure_pixels - e,
-        rendered.astype(np.float32),
-        labels,
-        explained,
-        commission,
-        layers,
-    )
-
-
-def layer_errors(depth: np.ndarray, data: RangeData) -> tuple[np.ndarray, np.ndarray]:
-    """Explained and commission masks (:func:`_pixel_errors`) of rendered depth
-    (..., H, W) (inf = miss): one part's layer, a stack of them, or a scene's."""
-    with np.errstate(invalid="ignore"):
-        return _pixel_errors(np.isfinite(depth), depth, data.image, data.figure_region, data.encoding.sigma)
-
-
-def _layer_counts(depth: np.ndarray, data: RangeData) -> tuple[np.ndarray, np.ndarray]:
-    """Explained and commission pixel counts of rendered depth (..., H, W) (inf = miss)."""
-    e, c = layer_errors(depth, data)
-    return e.sum((-2, -1)), c.sum((-2, -1))
-
-
-def select_rendered(layers: np.ndarray, data: RangeData, costs: Costs, *, start=None, chunk: int = 32) -> np.ndarray:
-    """Best-first selection on E counted in the joint rendering of the candidates' depth
-    ``layers`` (n, H, W; :func:`render_each`): a pixel explained by several parts counts
-    once, a part hidden behind another explains nothing there. Eq. (7)'s area matrices
-    count only pairwise overlaps: where many swollen candidates overlap they credit
-    commission shared by k parts k(k-1)/2 times, and the quadratic optimum can be far
-    from the true E. From ``start`` (a bool selection, e.g. the quadratic's) and from
-    nothing, the single addition or removal that lowers E most is made until none does;
-    the better end is returned (bool (n,))."""
-    n = len(layers)
-    empty = np.full(layers.shape[1:], np.inf, np.float32)
-    best, best_e = None, np.inf
-    seeds = [np.zeros(n, bool)] + ([np.asarray(start, bool).copy()] if start is not None else [])
-    for x in seeds:
-        while True:
-            cur = layers[x].min(0) if x.any() else empty
-            k = int(x.sum())
-            e_now = costs.total(k, *_layer_counts(cur, data))
-            add = np.concatenate(
-                [
-                    costs.total(k + 1, *_layer_counts(np.minimum(cur, layers[j : j + chunk]), data))
-                    for j in range(0, n, chunk)
-                ]
-            )
-            add[x] = np.inf
-            on = np.flatnonzero(x)
-            drop = np.array(
-                [
-                    costs.total(k - 1, *_layer_counts(layers[np.delete(on, i)].min(0) if k > 1 else empty, data))
-                    for i in range(k)
-                ]
-            )
-            a = int(np.argmin(add))
-            d = int(np.argmin(drop)) if k else -1
-            if k and drop[d] <= add[a] and drop[d] < e_now - 1e-9:
-                x[on[d]] = False
-            elif add[a] < e_now - 1e-9:
-                x[a] = True
-            else:
-                break
-        if e_now < best_e:
-            best, best_e = x, e_now
-    assert best is not None  # E is finite, so the first seed always sets it
-    return best
-
-
-def part_statistics(parts: Part, data: RangeData, cost: EncodingCost) -> list[dict]:
-    """Per part, in the joint rendering: visible pixels, μ (explained), ε (commission),
-    Γ = μ - λε and bits saved (Eq. 5)."""
-    enc = data.encoding
-    out = []
-    for i in range(len(parts)):
-        mine = cost.labels == i
-        mu = int((mine & cost.explained_mask).sum())
-        eps = int((mine & cost.commission_mask).sum())
-        g = mu - enc.commission_weight * eps
-        out.append({"pixels": int(mine.sum()), "gamma": float(g), "bits_saved": float(enc.bits_saved(g))})
-    return out
-
-
-# Points and background rays per part in one fit: a fixed random subset beyond these
-# fits 14 parameters about as well as all of them at half the cost (final E of the
-# human, chair and castings with 512 points: 5 468, 6 253, 9 441 bits; with 1 024:
-# 5 484, 6 253, 9 452).
-_POINTS = 512
-_RAYS = 256
-
-
-@persistent_jit(static_argnames=("steps",))
-def _polish_bucket(parts, points, weights, origins, directions, ray_weights, steps):
-    def one(p, x, w, o, d, wr):
-        return polish_part(p, x, w, rays=(o, d, wr), steps=steps)
-
-    # One part after another (lax.map), not vmap: vmapping optimistix's while loop
-    # traces and compiles 2.5x longer (17.9 s against 7.5 s on the CPU) and is no faster.
-    return jax.lax.map(lambda args: one(*args), (parts, points, weights, origins, directions, ray_weights))
-
-
-def _gather(weights: np.ndarray, size: int, seed: int = 0) -> tuple[np.ndarray, np.ndarray]:
-    """Per row of ``weights`` (n, m): the indices of up to ``size`` of its non-zero
-    entries (a fixed random subset when there are more) and their weights, padded with
-    index 0 and weight 0."""
-    rng = np.random.default_rng(seed)
-    index = np.zeros((len(weights), size), np.int64)
-    out = np.zeros((len(weights), size), np.float32)
-    for i, w in enumerate(weights):
-        nz = np.flatnonzero(w)
-        if len(nz) > size:
-            nz = np.sort(rng.choice(nz, size, replace=False))
-        index[i, : len(nz)] = nz
-        out[i, : len(nz)] = w[nz]
-    return index, out
-
-
-def _polish_all(parts: Part, points, weights, steps: int, rays, ray_weights) -> Part:
-    """Each part polished on its own points (non-zero ``weights[i]`` over ``points``,
-    at most ``_POINTS`` of them) while missing its background rays (non-zero
-    ``ray_weights[i]`` over ``rays`` = (origins, directions), at most ``_RAYS``);
-    ``_BUCKET`` parts per compiled call, so one compilation serves any number of parts
-    and any image."""
-    padded, n = _pad_parts(parts)
-    m = len(padded)
-    pi, pw = _gather(np.asarray(weights)[:n], _POINTS)
-    ri, rw = _gather(np.asarray(ray_weights)[:n], _RAYS)
-    pi, pw, ri, rw = (np.concatenate([a, np.zeros((m - n,) + a.shape[1:], a.dtype)]) for a in (pi, pw, ri, rw))
-    x = np.asarray(points, np.float32)[pi]
-    if len(rays[0]) == 0:  # no background in view: nothing to miss
-        rays = (np.zeros((1, 3), np.float32), np.array([[0.0, 0.0, 1.0]], np.float32))
-    o, d = (np.asarray(a, np.float32)[ri] for a in rays)
-    d[rw == 0] = (0.0, 0.0, 1.0)  # padding rays stay finite
-    out = [
-        _polish_bucket(padded[k : k + _BUCKET], *(a[k : k + _BUCKET] for a in (x, pw, o, d, rw)), steps=steps)
-        for k in range(0, m, _BUCKET)
-    ]
-    return _host_parts(np.concatenate([_vectors(p) for p in out])[:n])
-
-
-def _pad_rows(a: np.ndarray, m: int) -> np.ndarray:
-    return np.concatenate([a, np.zeros((m - len(a),) + a.shape[1:], a.dtype)])
+from ._polish import pad_rows, polish_parts
+from ._render import cast_part
 
 
 def _once(fn):
@@ -353,7 +81,7 @@ def _figure_points(data: RangeData):
         idx = np.sort(np.random.default_rng(seed).choice(idx, max_points, replace=False))
     pts = camera_points(data.camera, data.image).reshape(-1, 3)[idx]
     m = int(math.ceil(len(idx) / 1024) * 1024)
-    return _pad_rows(pts.astype(np.float32), m), np.concatenate([idx, np.full(m - len(idx), -1)])
+    return pad_rows(pts.astype(np.float32), m), np.concatenate([idx, np.full(m - len(idx), -1)])
 
 
 @_once
@@ -379,7 +107,7 @@ def _rays_near(mask: np.ndarray, ray_index: np.ndarray, margin: int) -> np.ndarr
 def _grow_inputs(parts: Part, data: RangeData, cost: EncodingCost, which, *, tolerance: float = 2.0, grow: int = 2):
     """What one region-growing fit of the parts ``which`` (indices) needs, given their
     joint rendering ``cost``: their (k, 14) vectors, point weights and ray weights (for
-    :func:`_polish_all` with :func:`_figure_points` and :func:`_background_rays`).
+    :func:`polish_parts` with :func:`_figure_points` and :func:`_background_rays`).
 
     Each part takes the figure pixels where it is visible (within ``tolerance`` σ) and
     the unexplained figure pixels within ``grow`` pixels of them that lie within 3 scale
@@ -396,8 +124,8 @@ def _grow_inputs(parts: Part, data: RangeData, cost: EncodingCost, which, *, tol
     with np.errstate(invalid="ignore"):
         close = np.abs(cost.rendered - data.image).reshape(-1)[at] <= tolerance * data.encoding.sigma
     free = ~cost.explained_mask.reshape(-1)[at] & valid
-    vec = _vectors(parts)[which]
-    chosen = _host_parts(vec)
+    vec = part_vectors(parts)[which]
+    chosen = host_parts(vec)
     dist = np.abs(_distances(chosen, pts))
     scale = np.maximum(0.05 * np.asarray(chosen.size).max(1), data.encoding.sigma)[:, None]
     _, ray_index = _background_rays(data)
@@ -417,7 +145,7 @@ def _grow(data: RangeData, inputs, *, steps: int) -> np.ndarray:
     vec, weights, ray_weights = (np.concatenate(a) for a in zip(*inputs))
     pts, _ = _figure_points(data)
     rays, _ = _background_rays(data)
-    return _vectors(_polish_all(_host_parts(vec), pts, weights, steps, rays, ray_weights))
+    return part_vectors(polish_parts(host_parts(vec), pts, weights, steps, rays, ray_weights))
 
 
 def polish_jointly(parts: Part, data: RangeData, costs: Costs, *, steps: int = 20, cost: EncodingCost | None = None):
@@ -425,18 +153,18 @@ def polish_jointly(parts: Part, data: RangeData, costs: Costs, *, steps: int = 2
     change is accepted only if the joint E falls, largest parts first. ``cost``: the
     parts' :func:`encoding_cost`, if known. Returns (parts, cost)."""
     cost = encoding_cost(parts, data, costs) if cost is None else cost
-    current = _vectors(parts)
+    current = part_vectors(parts)
     new = _grow(data, [_grow_inputs(parts, data, cost, np.arange(len(parts)))], steps=steps)
-    new_layers = render_each(new, data.camera)
+    new_layers = render_layers(new, data.camera)
     order = np.argsort([-(cost.labels == i).sum() for i in range(len(parts))])
     for i in order:
-        layers = _layers(cost).copy()
+        layers = layers_of(cost).copy()
         layers[i] = new_layers[i]
         c = layers_cost(layers, data, costs)
         if c.total < cost.total - 1e-9:
             current, cost = current.copy(), c
             current[i] = new[i]
-    return _host_parts(current), cost
+    return host_parts(current), cost
 
 
 def split_parts(
@@ -459,10 +187,10 @@ def split_parts(
     from ._part import rotation_matrix
 
     cost = encoding_cost(parts, data, costs) if cost is None else cost
-    least = _least_pixels(costs)
+    least = least_pixels(costs)
     omitted = data.figure_mask & ~cost.explained_mask
     beside = np.array([(binary_dilation(cost.labels == i, iterations=2) & omitted).sum() for i in range(len(parts))])  # pyright: ignore[reportOperatorIssue]  # scipy is untyped: binary_dilation returns a bool array
-    vec = _vectors(parts)
+    vec = part_vectors(parts)
     trials, kept = [], []
     for i in [int(i) for i in np.argsort(-beside)[:tries] if beside[i] >= least]:
         v = vec[i].astype(np.float64)
@@ -472,13 +200,13 @@ def split_parts(
         halves[:, 8] = v[8] / 2
         halves[:, 11:14] = 0.0
         trials.append(np.concatenate([np.delete(vec, i, 0), halves]).astype(np.float32))
-        kept.append(np.delete(_layers(cost), i, 0))
+        kept.append(np.delete(layers_of(cost), i, 0))
     if not trials:
         return parts, cost
     n = len(parts) + 1
 
     def score(halves):
-        layers = render_each(halves, data.camera)
+        layers = render_layers(halves, data.camera)
         return [
             layers_cost(np.concatenate([rest, layers[2 * k : 2 * k + 2]]), data, costs) for k, rest in enumerate(kept)
         ]
@@ -486,14 +214,14 @@ def split_parts(
     scores = score(np.concatenate([t[-2:] for t in trials]))
     for _ in range(rounds):
         new = _grow(
-            data, [_grow_inputs(_host_parts(t), data, c, [n - 2, n - 1]) for t, c in zip(trials, scores)], steps=steps
+            data, [_grow_inputs(host_parts(t), data, c, [n - 2, n - 1]) for t, c in zip(trials, scores)], steps=steps
         )
         for k, t in enumerate(trials):
             t[-2:] = new[2 * k : 2 * k + 2]
         scores = score(new)
     best = int(np.argmin([c.total for c in scores]))
     if scores[best].total < cost.total - 1e-9:
-        return _host_parts(trials[best]), scores[best]
+        return host_parts(trials[best]), scores[best]
     return parts, cost
 
 
@@ -547,21 +275,21 @@ def fill_gaps(
     from ._search import fit_region, region_centers
 
     cost = encoding_cost(parts, data, costs) if cost is None else cost
-    least = _least_pixels(costs)
+    least = least_pixels(costs)
     omitted = data.figure_mask & ~cost.explained_mask
     blob_labels, count = omitted_blobs(omitted)
     if count == 0:
         return [(parts, cost)]
     sizes = np.bincount(blob_labels.ravel(), minlength=count + 1)[1:]
     inner = distance_transform_edt(omitted)
-    vec = _vectors(parts)
+    vec = part_vectors(parts)
     additions, seed, innermost = [], [], set()
 
     def search(centre, max_size):
         fit = fit_region(
             data, dataclasses.replace(settings, max_size=float(np.clip(max_size, 1e-6, settings.max_size))), centre
         )
-        good = _vectors(fit.parts)[np.asarray(fit.gamma) > 0]
+        good = part_vectors(fit.parts)[np.asarray(fit.gamma) > 0]
         additions.extend(good)
         seed.extend([centre] * len(good))
 
@@ -591,7 +319,7 @@ def fill_gaps(
     found = np.stack(additions)
     scores = costs_adding(cost, found, data, costs)
     for _ in range(rounds):
-        trials = [_host_parts(np.concatenate([vec, f[None]])) for f in found]
+        trials = [host_parts(np.concatenate([vec, f[None]])) for f in found]
         new = _grow(data, [_grow_inputs(t, data, c, [n]) for t, c in zip(trials, scores)], steps=steps)
         for k, (v, c) in enumerate(zip(new, costs_adding(cost, new, data, costs))):
             if c.total < scores[k].total:
@@ -600,15 +328,15 @@ def fill_gaps(
     for k, (s, c) in enumerate(zip(seed, scores)):
         if s not in best or c.total < scores[best[s]].total:
             best[s] = k
-    rest = _layers(cost).min(0) if n else np.full(data.image.shape, np.inf, np.float32)
+    rest = layers_of(cost).min(0) if n else np.full(data.image.shape, np.inf, np.float32)
     for k in best.values():
-        found[k] = settle_part(found[k], _layers(scores[k])[n], rest, data, costs)
+        found[k] = settle_part(found[k], layers_of(scores[k])[n], rest, data, costs)
     settled = dict(zip(best.values(), costs_adding(cost, found[list(best.values())], data, costs)))
 
     def add(keys):
         v, e = vec, cost
         for k in sorted(keys, key=lambda k: settled[k].total):
-            c = layers_cost(np.concatenate([_layers(e), _layers(settled[k])[n:]]), data, costs)
+            c = layers_cost(np.concatenate([layers_of(e), layers_of(settled[k])[n:]]), data, costs)
             if c.total < e.total - 1e-9:
                 v, e = np.concatenate([v, found[k : k + 1]]), c
         return v, e
@@ -618,7 +346,7 @@ def fill_gaps(
         more = add(list(best.values()))
         if not np.array_equal(more[0], fills[0][0]):  # False for different part counts too
             fills.append(more)
-    return [(_host_parts(v), e) for v, e in fills]
+    return [(host_parts(v), e) for v, e in fills]
 
 
 _CROP = 32
@@ -641,7 +369,7 @@ def _crop_trials(u, steps, seed, step, corner, rest, measured, figure, sigma, ca
     def one(v):
         t, hit = cast_part(from_unconstrained(v), o, d)
         z = jnp.minimum(jnp.where(hit, t, jnp.inf), rest)
-        explained, commission = _pixel_errors(jnp.isfinite(z), z, measured, figure, sigma)
+        explained, commission = pixel_errors(jnp.isfinite(z), z, measured, figure, sigma)
         border = hit[0].any() | hit[-1].any() | hit[:, 0].any() | hit[:, -1].any()
         return explained.sum(), commission.sum(), border
 
@@ -672,7 +400,7 @@ def settle_part(vector, layer, rest, data: RangeData, costs: Costs, *, iteration
     pixel = float(data.camera.pixel_size_at(float(vector[2])))
     # Steps: a pixel in position, 0.1 rad, 10% in size, 0.4 in logit squareness, 0.2 in bend and taper.
     base = np.array([pixel] * 3 + [0.1] * 6 + [0.4] * 2 + [0.2] * 3, np.float32)
-    u, scale, failures = np.asarray(to_unconstrained(_host_parts(vector[None])))[0], 1.0, 0
+    u, scale, failures = np.asarray(to_unconstrained(host_parts(vector[None])))[0], 1.0, 0
     for i in range(iterations):
         trials, e, c, border = (
             np.asarray(a)
@@ -696,7 +424,7 @@ def settle_part(vector, layer, rest, data: RangeData, costs: Costs, *, iteration
                 scale, failures = scale / 2, 0
                 if scale < 0.05:
                     break
-    return _vectors(from_unconstrained(u[None]))[0]
+    return part_vectors(from_unconstrained(u[None]))[0]
 
 
 def drop_unprofitable(parts: Part, data: RangeData, costs: Costs, *, cost: EncodingCost | None = None):
@@ -887,11 +615,11 @@ def _surface_distance(parts, points):
 
 def _distances(parts: Part, points) -> np.ndarray:
     """(n, m) radial distance (:func:`~sqparts.surface_distance`) of every point to every
-    part, ``_BUCKET`` parts per compiled call."""
-    padded, n = _pad_parts(parts)
+    part, ``PART_BUCKET`` parts per compiled call."""
+    padded, n = pad_parts(parts)
     pts = np.asarray(points)
     return np.concatenate(
-        [np.asarray(_surface_distance(padded[k : k + _BUCKET], pts)) for k in range(0, len(padded), _BUCKET)]
+        [np.asarray(_surface_distance(padded[k : k + PART_BUCKET], pts)) for k in range(0, len(padded), PART_BUCKET)]
     )[:n]
 
 
@@ -928,7 +656,7 @@ def merge_adjacent(
         grown = [binary_dilation(cost.labels == i, iterations=2) for i in range(n)]
         adjacent = np.array([[i != j and (grown[i] & (cost.labels == j)).any() for j in range(n)] for i in range(n)])
         adjacent |= adjacent.T
-        vec = _vectors(parts)
+        vec = part_vectors(parts)
         inits, weights, ray_weights, members = [], [], [], []
         # Each figure pixel no part explains goes to the part whose visible pixels are
         # nearest: the pixels a part (or a group) summarising its parts answers for.
@@ -979,12 +707,12 @@ def merge_adjacent(
             # ``calls`` solves of ``steps`` each, not one longer one: the same compiled program.
             out = start[rows]
             for _ in range(calls if len(out) else 0):
-                out = _vectors(_polish_all(_host_parts(out), pts, w_all[rows], steps, rays, wr_all[rows]))
+                out = part_vectors(polish_parts(host_parts(out), pts, w_all[rows], steps, rays, wr_all[rows]))
             return out
 
         fitted_vec = np.concatenate([fit(slice(0, n_pairs), 1), fit(slice(n_pairs, len(inits)), 2)])
         # Share of each pair's points within σ/2 of the fitted surface (no rendering).
-        dist = _distances(_host_parts(fitted_vec[:n_pairs]), pts) if n_pairs else np.zeros((0, len(pts)))
+        dist = _distances(host_parts(fitted_vec[:n_pairs]), pts) if n_pairs else np.zeros((0, len(pts)))
         share = ((np.abs(dist) <= data.encoding.sigma / 2) * w_all[:n_pairs]).sum(1) / np.maximum(
             w_all[:n_pairs].sum(1), 1
         )
@@ -992,11 +720,11 @@ def merge_adjacent(
         trials = np.concatenate([fitted_vec[best], fitted_vec[n_pairs:], np.stack(inits)[n_pairs:]])
         groups = [members[k] for k in best] + members[n_pairs:] * 2
         base = cost
-        for vector, group, layer in zip(trials, groups, render_each(trials, data.camera)):
+        for vector, group, layer in zip(trials, groups, render_layers(trials, data.camera)):
             keep = [q for q in range(n) if q not in group]
-            c = layers_cost(np.concatenate([_layers(base)[keep], layer[None]]), data, costs)
+            c = layers_cost(np.concatenate([layers_of(base)[keep], layer[None]]), data, costs)
             if c.total < cost.total - 1e-9:
-                parts, cost, merged = _host_parts(np.concatenate([vec[keep], vector[None]])), c, True
+                parts, cost, merged = host_parts(np.concatenate([vec[keep], vector[None]])), c, True
     return parts, cost
 
 
@@ -1025,7 +753,7 @@ def refine_parts(
     for itself can still stop a merge that would have paid more, so dropping and
     merging run after each, and the shorter description is kept. Returns (parts, final
     cost, history of E after each stage)."""
-    parts = _host_parts(_vectors(parts))
+    parts = host_parts(part_vectors(parts))
     cost = encoding_cost(parts, data, costs)
     history = [("initial", cost.total)]
     for r in range(rounds):
@@ -1063,7 +791,7 @@ def refine_parts(
         k = min(range(len(ends)), key=lambda k: ends[k][1].total)
         parts, cost, stages = ends[k]
         history.append(("fill gaps", fills[k][1].total))
-    return Part.from_vector(_vectors(parts)), cost, history + stages
+    return Part.from_vector(part_vectors(parts)), cost, history + stages
 
 
 MAX_REFINE_ROUNDS = 100

@@ -27,38 +27,29 @@ import math
 import equinox as eqx
 import jax
 import jax.numpy as jnp
-import lineax as lx
 import numpy as np
-import optimistix as optx
 from jax.sharding import Mesh
 from jax.sharding import PartitionSpec as P
 
-from ._camera import Camera, check_range_image
+from ._camera import Camera, camera_points
 from ._compile import persistent_jit
-from ._fit import Encoding, commission_mask, encoding_for, gamma_terms
+from ._data import RangeData, prepare
+from ._encoding import Encoding, commission_mask, gamma_terms
 from ._grid import Grid, grid_preset, lookup_preset
 from ._part import (
     Part,
-    from_unconstrained,
     matmul,
     matrix_to_rotation_vector,
     rotation_matrix,
-    surface_distance,
-    to_local,
-    to_unconstrained,
 )
+from ._polish import grow_polish
 from ._render import cast_part
-from ._typing import ArrayLike, Float
 
 SEARCH_NEWTON_STEPS = 6
 """Newton steps when scoring hypotheses (grazing silhouette pixels barely move Γ)."""
 NUM_BINS = 1024
 """Histogram bins of width σ/2 (offsets of ±256 σ around the anchor pixel's own)."""
 CHUNK_RAYS = 2**16
-IMAGE_BUCKET = 32
-"""Compiled programs see images padded to a multiple of this many rows and columns (and
-the camera of the padded image, :func:`bucket_camera`), so images of other sizes with
-the same intrinsics share them."""
 """Rays per chunk of hypotheses: ``batch_size`` is capped at CHUNK_RAYS / window pixels."""
 POLISH_SCALE = 0.05
 """Width of the polishing's Cauchy weights, as a fraction of the hypothesis' largest
@@ -187,121 +178,6 @@ blobs (figures in ``benchmarks/README.md``)."""
 def search_preset(name_or_settings) -> SearchSettings:
     """:class:`SearchSettings` from a preset name or a SearchSettings (returned as is)."""
     return lookup_preset(name_or_settings, SearchSettings, SEARCH_PRESETS, "search")
-
-
-@dataclasses.dataclass(frozen=True)
-class RangeData:
-    """A range image prepared for search: NaN-padded depth and figure mask, camera and
-    encoding. Only its arrays enter compiled code (σ and λ as runtime scalars), so a new
-    image never triggers a recompile."""
-
-    depth: jax.Array  # (Hb + 2 pad, Wb + 2 pad) float32, NaN = no return; Hb, Wb: H, W
-    figure: jax.Array  # same shape, bool        # rounded up to IMAGE_BUCKET (NaN, False)
-    pad: int
-    camera: Camera
-    encoding: Encoding
-
-    @property
-    def arrays(self):
-        """(depth, figure, σ, λ): what the compiled stages take."""
-        enc = self.encoding
-        return (self.depth, self.figure, np.float32(enc.sigma), np.float32(enc.commission_weight))
-
-    @property
-    def compiled_camera(self) -> Camera:
-        """The camera the compiled stages see (:func:`bucket_camera`)."""
-        return bucket_camera(self.camera)
-
-    @property
-    def image(self) -> np.ndarray:
-        p = self.pad
-        return np.asarray(self.depth)[p : p + self.camera.height, p : p + self.camera.width]
-
-    @property
-    def figure_region(self) -> np.ndarray:
-        """The figure's pixels, including those without a return inside its outline
-        (neither explained nor commission)."""
-        p = self.pad
-        return np.asarray(self.figure)[p : p + self.camera.height, p : p + self.camera.width]
-
-    @property
-    def figure_mask(self) -> np.ndarray:
-        """The figure's pixels that have a return (the pixels to be explained)."""
-        return self.figure_region & np.isfinite(self.image)
-
-
-def prepare(depth, camera: Camera, *, figure=None, encoding: Encoding | None = None, pad: int = 64) -> RangeData:
-    """Check a range image and pad it for windowed search.
-
-    ``figure`` (bool, same shape) marks the figure of interest; default: every pixel with
-    a return. Figure pixels without a return (holes in a sensor's data) are *unknown*: a
-    part drawn there is neither an explained pixel nor an error of commission.
-    ``encoding`` defaults to :func:`~sqparts.encoding_for` of the figure, σ at least
-    half a pixel footprint at the figure's depth (:func:`figure_footprint`).
-    """
-    d = check_range_image(depth, camera).astype(np.float32)
-    fig = np.isfinite(d) if figure is None else np.asarray(figure, bool)
-    if fig.shape != d.shape:
-        raise ValueError(f"figure: got shape {fig.shape}, expected {d.shape}")
-    if (fig & np.isfinite(d)).sum() < 4:
-        raise ValueError(
-            f"depth: got a figure of {int((fig & np.isfinite(d)).sum())} pixels with returns, expected at least 4"
-        )
-    if encoding is not None and not isinstance(encoding, Encoding):
-        raise TypeError(
-            f"encoding: got {encoding!r:.60} ({type(encoding).__name__}), expected a sqparts.Encoding or None"
-        )
-    enc = encoding or encoding_for(d[fig & np.isfinite(d)], footprint=figure_footprint(d, fig, camera))
-    h, w = d.shape
-    grow = ((pad, pad + _bucket(h) - h), (pad, pad + _bucket(w) - w))
-    # device_put, not jnp.asarray: a transfer, not a compiled program per shape.
-    return RangeData(
-        jax.device_put(np.pad(d, grow, constant_values=np.nan)),
-        jax.device_put(np.pad(fig, grow, constant_values=False)),
-        pad,
-        camera,
-        enc,
-    )
-
-
-def figure_footprint(depth, figure, camera: Camera) -> float:
-    """Metric width of one pixel at the median depth of the figure's returns (NaN if it
-    has none): the least σ of :func:`~sqparts.encoding_for` is half of it."""
-    d = np.asarray(depth)[np.asarray(figure, bool) & np.isfinite(depth)]
-    return float(np.asarray(camera.pixel_size_at(np.float32(np.median(d))))) if d.size else math.nan
-
-
-def _bucket(n: int) -> int:
-    return -(-int(n) // IMAGE_BUCKET) * IMAGE_BUCKET
-
-
-def bucket_camera(camera: Camera) -> Camera:
-    """``camera`` for an image padded at the bottom and right to a multiple of
-    ``IMAGE_BUCKET`` pixels: a pixel's ray does not depend on the image size, so the
-    compiled stages, which take the camera as a static argument, are shared by images
-    of other sizes whose rays agree (a crop's camera keeps its cx, cy only if the crop
-    starts at the top left)."""
-    return dataclasses.replace(camera, width=_bucket(camera.width), height=_bucket(camera.height))
-
-
-@functools.partial(jax.jit, static_argnames=("camera",))
-def _rays(camera: Camera):
-    return camera.rays()
-
-
-def camera_rays(camera: Camera) -> tuple[np.ndarray, np.ndarray]:
-    """``camera.rays()`` (host copies, (h, w, 3) each) from one compiled program per
-    bucketed camera, where the eager computation dispatches about ten."""
-    o, d = _rays(camera=bucket_camera(camera))
-    h, w = camera.height, camera.width
-    return np.asarray(o)[:h, :w], np.asarray(d)[:h, :w]
-
-
-def camera_points(camera: Camera, range_image) -> np.ndarray:
-    """``camera.points(range_image)`` (float64, (h, w, 3), NaN = none) from one compiled
-    program per camera, where the eager ray computation dispatches about ten."""
-    o, d = (np.asarray(a, np.float64) for a in camera_rays(camera))
-    return o + np.asarray(range_image, np.float64)[..., None] * d
 
 
 def default_max_size(data: RangeData) -> float:
@@ -664,97 +540,6 @@ def _finish(
             parts, scored = jax.tree_util.tree_map(cat, (parts, scored), (polished, jax.vmap(score)(polished)))
     gam, _, explained, hit, commission, anchored = scored
     return parts, gam, explained, hit, commission, anchored
-
-
-def ray_penetration(part: Part, origin, direction, far: Float[ArrayLike, ""] = jnp.inf):
-    """Signed radial distance (:func:`~sqparts.surface_distance`) of the ray's point
-    deepest inside the part's ellipsoid of semi-axes ``size``, among the points
-    ``origin + t direction`` with t <= ``far`` (the free segment in front of a return):
-    negative when the ray enters the part there (exact for ellipsoids, a smooth proxy
-    for the rest)."""
-    o = to_local(part, origin) / part.size
-    d = matmul(rotation_matrix(part.orientation).T, direction) / part.size
-    t = jnp.minimum(-matmul(o, d) / matmul(d, d), far)
-    return surface_distance(part, origin + t * direction)
-
-
-# The damped Gauss-Newton step through the normal equations (lineax >= 0.1's Normal: a
-# 14x14 Cholesky) instead of optimistix's default QR of the stacked (residuals + 14) x 14
-# Jacobian. The normal equations square the condition number, but the damping and the
-# prior below keep them well-posed; the steps agree to 1e-7 and a bucket of 8 parts
-# polishes in 79 ms instead of 112 ms on the CPU (human recovery warm: 8.3 -> 6.5 s).
-_LM = optx.LevenbergMarquardt(rtol=1e-6, atol=1e-8, linear_solver=lx.Normal(lx.Cholesky()))
-
-
-def polish_part(part: Part, points, weights, *, rays=None, steps: int = 20) -> Part:
-    """Levenberg-Marquardt (optimistix) on the weighted radial distances
-    (:func:`~sqparts.surface_distance`) of ``points`` from the part's surface.
-
-    ``rays`` = (origins, directions, weights[, far]), optional: rays off the figure,
-    which the part must miss (up to ``far``, default: the whole ray); each adds its
-    weighted penetration (:func:`ray_penetration`) so the part cannot swell past the
-    silhouette while hugging the visible points.
-    Runs a fixed number of steps and never raises; returns the input if the solve produced
-    non-finite values or the weights cover fewer than 8 points.
-    """
-    u0 = to_unconstrained(part)
-    w = weights.astype(u0.dtype)
-
-    def residuals(u, _):
-        p = from_unconstrained(u)
-        r = w * jax.vmap(lambda x: surface_distance(p, x))(points)
-        if rays is not None:
-            o, d, wr, *far = rays
-            far = far[0] if far else jnp.full(wr.shape, jnp.inf, wr.dtype)
-            pen = jax.vmap(ray_penetration, in_axes=(None, 0, 0, 0))(p, o, d, far)
-            r = jnp.concatenate([r, wr * jnp.minimum(pen, 0.0)])
-        # A weak prior on the 14 numbers keeps unobserved ones near their start.
-        return r, 1e-3 * (u - u0)
-
-    sol = optx.least_squares(residuals, _LM, u0, max_steps=steps, throw=False)
-    ok = jnp.all(jnp.isfinite(sol.value)) & (jnp.sum(w > 0) >= 8)
-    return from_unconstrained(jnp.where(ok, sol.value, u0))
-
-
-def grow_polish(
-    part: Part, origins, directions, depth, figure, seed, *, scale, rounds: int, steps: int, grow: int = 2
-) -> Part:
-    """Polish a hypothesis on a window of the image by region growing (an ICP).
-
-    ``origins``, ``directions`` (H, W, 3) are the window's rays, ``depth`` (H, W) its
-    measured depth (NaN: no return), ``figure`` (H, W) its figure pixels and ``seed`` (H, W)
-    the pixels the hypothesis explains. Each round grows the support by ``grow`` pixels
-    into neighbours within ``3 scale`` of the surface and fits the support with Cauchy
-    weights of width ``scale`` (:func:`polish_part`), while rays off the figure must miss
-    the part in front of their return (all along when there is none: a part may hide
-    behind an occluding figure). So a coarse hypothesis walks onto its whole visible
-    surface without jumping to an occluder or a neighbouring part, or swelling past its
-    silhouette.
-    """
-    valid = figure & jnp.isfinite(depth)
-    flat = (origins + jnp.where(valid, depth, 0.0)[..., None] * directions).reshape(-1, 3)
-    # Every other off-figure ray is enough to keep the part inside its silhouette.
-    r = slice(0, None, 2)
-    far = jnp.where(jnp.isfinite(depth[r, r]), depth[r, r] - scale, jnp.inf).reshape(-1)
-    rays = (
-        origins[r, r].reshape(-1, 3),
-        directions[r, r].reshape(-1, 3),
-        (~figure[r, r]).reshape(-1).astype(flat.dtype),
-        far,
-    )
-    size = 2 * grow + 1
-
-    def one_round(carry, first):
-        p, support = carry
-        d = jnp.abs(jax.vmap(lambda x: surface_distance(p, x))(flat)).reshape(valid.shape)
-        grown = jax.lax.reduce_window(support.astype(jnp.float32), 0.0, jax.lax.max, (size, size), (1, 1), "SAME") > 0
-        support = jnp.where(first, support & valid, grown & valid & (d < 3 * scale))
-        w = jnp.where(support, jax.lax.rsqrt(1 + (d / scale) ** 2), 0.0)
-        return (polish_part(p, flat, w.reshape(-1), rays=rays, steps=steps), support), None
-
-    first = jnp.arange(rounds) == 0
-    (part, _), _ = jax.lax.scan(one_round, (part, seed), first)
-    return part
 
 
 def fit_region(data: RangeData, settings: SearchSettings, centre) -> RegionFit:

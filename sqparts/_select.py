@@ -1,4 +1,4 @@
-"""Global encoding: area matrices, the description length E(X) and part selection
+"""Part selection: the candidates whose description E(X) is shortest
 (paper section 3.5, Eqs. 6-7).
 
 For n candidate parts with explained-pixel masks e_i and commission masks c_i:
@@ -19,7 +19,10 @@ For n candidate parts with explained-pixel masks e_i and commission masks c_i:
 Selection minimises E over binary X: :func:`select_best_first` (the paper's iterative
 best-first search, in JAX: add the part that lowers E most, drop any part whose removal
 lowers E, until neither helps) and :func:`select_exact` (the integer-programming route:
-the quadratic is linearised with y_ij = x_i x_j and solved to optimality by HiGHS).
+the quadratic is linearised with y_ij = x_i x_j and solved to optimality by HiGHS, group
+by group of interacting candidates). The choice is then corrected on E counted in the
+candidates' joint rendering (:func:`select_rendered`). The costs and E themselves are
+:mod:`sqparts._encoding`'s.
 """
 
 from __future__ import annotations
@@ -36,48 +39,8 @@ import jax.numpy as jnp
 import numpy as np
 
 from ._compile import persistent_jit
-from ._fit import Encoding
-
-
-@dataclasses.dataclass(frozen=True)
-class Costs:
-    """κ0..κ3 of Eq. (6) in bits, and N."""
-
-    part: float
-    explained: float
-    commission: float
-    omission: float
-    figure_pixels: int
-
-    @classmethod
-    def from_encoding(cls, encoding: Encoding, figure_pixels: int) -> "Costs":
-        return cls(
-            part=encoding.part_bits,
-            explained=encoding.noise_bits,
-            commission=encoding.commission_bits,
-            omission=encoding.pixel_bits,
-            figure_pixels=int(figure_pixels),
-        )
-
-    def total(self, parts, explained, commission):
-        """E of Eq. (6) from counts: ``parts`` parts, ``explained`` pixels explained
-        within ±σ/2 and ``commission`` pixels rendered off the figure (numbers or arrays)."""
-        return (
-            self.part * parts
-            + self.explained * explained
-            + self.commission * commission
-            + self.omission * (self.figure_pixels - explained)
-        )
-
-
-def area_matrix(masks) -> np.ndarray:
-    """M (n, n): diagonal = pixels in each mask, off-diagonal = -1/2 the shared pixels."""
-    masks = np.asarray(masks, bool)
-    m = masks.reshape(len(masks), int(np.prod(masks.shape[1:]))).astype(np.float64)
-    overlap = m @ m.T
-    out = -0.5 * overlap
-    np.fill_diagonal(out, np.diag(overlap))
-    return out
+from ._data import RangeData
+from ._encoding import Costs, area_matrix, layer_counts
 
 
 @dataclasses.dataclass(frozen=True)
@@ -144,16 +107,6 @@ class SelectionProblem:
             + c.commission * (x @ self.commission @ x)
             + c.omission * (c.figure_pixels - xa)
         )
-
-
-def description_length(explained, commission, costs: Costs) -> float:
-    """E by direct pixel count: parts, then the union of explained and commission pixels."""
-    explained = np.asarray(explained, bool)
-    commission = np.asarray(commission, bool)
-    n = len(explained)
-    e = int(explained.any(0).sum()) if n else 0
-    c = int(commission.any(0).sum()) if n else 0
-    return costs.total(n, e, c)
 
 
 _BUCKET = 16
@@ -362,3 +315,49 @@ class SelectSettings:
     def select(self, problem: SelectionProblem) -> tuple[np.ndarray, str]:
         """:func:`select_parts` with these settings."""
         return select_parts(problem, method=self.method, exact_limit=self.exact_limit, time_limit=self.time_limit)
+
+
+def select_rendered(layers: np.ndarray, data: RangeData, costs: Costs, *, start=None, chunk: int = 32) -> np.ndarray:
+    """Best-first selection on E counted in the joint rendering of the candidates' depth
+    ``layers`` (n, H, W; :func:`render_layers`): a pixel explained by several parts counts
+    once, a part hidden behind another explains nothing there. Eq. (7)'s area matrices
+    count only pairwise overlaps: where many swollen candidates overlap they credit
+    commission shared by k parts k(k-1)/2 times, and the quadratic optimum can be far
+    from the true E. From ``start`` (a bool selection, e.g. the quadratic's) and from
+    nothing, the single addition or removal that lowers E most is made until none does;
+    the better end is returned (bool (n,))."""
+    n = len(layers)
+    empty = np.full(layers.shape[1:], np.inf, np.float32)
+    best, best_e = None, np.inf
+    seeds = [np.zeros(n, bool)] + ([np.asarray(start, bool).copy()] if start is not None else [])
+    for x in seeds:
+        while True:
+            cur = layers[x].min(0) if x.any() else empty
+            k = int(x.sum())
+            e_now = costs.total(k, *layer_counts(cur, data))
+            add = np.concatenate(
+                [
+                    costs.total(k + 1, *layer_counts(np.minimum(cur, layers[j : j + chunk]), data))
+                    for j in range(0, n, chunk)
+                ]
+            )
+            add[x] = np.inf
+            on = np.flatnonzero(x)
+            drop = np.array(
+                [
+                    costs.total(k - 1, *layer_counts(layers[np.delete(on, i)].min(0) if k > 1 else empty, data))
+                    for i in range(k)
+                ]
+            )
+            a = int(np.argmin(add))
+            d = int(np.argmin(drop)) if k else -1
+            if k and drop[d] <= add[a] and drop[d] < e_now - 1e-9:
+                x[on[d]] = False
+            elif add[a] < e_now - 1e-9:
+                x[a] = True
+            else:
+                break
+        if e_now < best_e:
+            best, best_e = x, e_now
+    assert best is not None  # E is finite, so the first seed always sets it
+    return best

@@ -149,7 +149,7 @@ def test_sigma_at_edges_is_half_a_footprint():
 
 
 def prepare_data(depth, cam):
-    from sqparts._search import prepare
+    from sqparts._data import prepare
 
     return prepare(depth, cam)
 

@@ -7,9 +7,9 @@ import pytest
 from scipy.spatial.transform import Rotation
 
 import sqparts
+from sqparts._data import prepare
+from sqparts._encoding import Costs
 from sqparts._scenes import limb
-from sqparts._search import prepare
-from sqparts._select import Costs
 
 UP = np.array([0.0, -1.0, 0.0])  # camera y points down
 
@@ -84,7 +84,7 @@ def test_prettify_tilted_gate(rng):
     for _ in range(6):  # 3-6 degrees in the image plane, the visible kind of tilt
         tilts.append(np.array([0.0, 0.0, 1.0]) * np.radians(rng.uniform(3, 6)) * rng.choice([-1, 1]))
     tilted = gate(tilts)
-    from sqparts._refine import encoding_cost
+    from sqparts._encoding import encoding_cost
 
     before = encoding_cost(tilted, data, costs).total
     parts, cost, report = sqparts.prettify(tilted, data, costs, up=UP)
@@ -179,7 +179,7 @@ def test_prettify_builtin_gate(rng):
     behind them): its members tilted by 2-5 degrees in the image plane are snapped back,
     the rails to within a degree of horizontal and the posts of vertical, and the
     20-degree brace is left as it is."""
-    from sqparts._refine import encoding_cost
+    from sqparts._encoding import encoding_cost
 
     scene = sqparts.builtin_scene("gate")
     depth = np.asarray(sqparts.render_range_image(scene.parts, scene.camera))

@@ -117,7 +117,7 @@ def test_refinement_splits_a_part_that_spans_two():
 
 
 def test_adding_a_part_by_merging_renderings_matches_rendering_the_scene(depth):
-    from sqparts._refine import costs_adding
+    from sqparts._encoding import costs_adding
 
     data = sqparts.prepare(depth, CAM)
     costs = sqparts.Costs.from_encoding(data.encoding, int(data.figure_mask.sum()))
@@ -137,14 +137,14 @@ def test_selection_on_the_joint_rendering_against_brute_force(depth):
     # k(k-1)/2 times over, so the quadratic's optimum takes them all; the best-first
     # correction on the joint rendering must reach the brute-force optimum of E counted
     # pixel by pixel (numpy, every subset).
-    from sqparts._refine import render_each
+    from sqparts._encoding import render_layers
 
     data = sqparts.prepare(depth, CAM)
     costs = sqparts.Costs.from_encoding(data.encoding, int(data.figure_mask.sum()))
     truth = np.asarray(SCENE.to_vector())
     swollen = [truth[0] * np.r_[1, 1, 1, 1, 1, 1, s, s, s, 1, 1, 1, 1, 1] for s in (1.3, 1.35, 1.4, 1.45, 1.5)]
     vectors = np.concatenate([truth, swollen]).astype(np.float32)
-    layers = render_each(vectors, CAM)
+    layers = render_layers(vectors, CAM)
     fig = np.isfinite(depth)
     with np.errstate(invalid="ignore"):
         explained = np.isfinite(layers) & fig & (np.abs(layers - depth) <= data.encoding.sigma / 2)
@@ -293,7 +293,7 @@ def test_builtin_scenes_render():
 def test_joint_rendering_in_buckets_matches_one_pass():
     # Refinement renders 8 parts per compiled call and merges by depth; the human's 16
     # parts (two buckets, a forearm in front of the body) must match the one-pass renderer.
-    from sqparts._refine import render_labels
+    from sqparts._encoding import render_labels
 
     s = sqparts.builtin_scene("human", resolution=48)
     depth, labels = (np.asarray(a) for a in sqparts.render_range_image(s.parts, s.camera, return_labels=True))
@@ -319,7 +319,8 @@ def test_settling_a_small_part_removes_its_commission():
     # silhouette by 14 pixels.
     # The pattern search on E itself brings it back to about the truth's own cost.
     # References: the truth rendered with the block, and full joint renderings.
-    from sqparts._refine import render_each, settle_part
+    from sqparts._encoding import render_layers
+    from sqparts._refine import settle_part
 
     cam = sqparts.PinholeCamera(64, 64, 280.0, 280.0, 31.5, 31.5)
     scene = _knob_scene()
@@ -328,8 +329,8 @@ def test_settling_a_small_part_removes_its_commission():
     costs = sqparts.Costs.from_encoding(data.encoding, int(data.figure_mask.sum()))
     knob = np.asarray(scene[1].to_vector())
     start = knob + np.r_[0.0, 0.002, 0.0, 0, 0, 0, 0.003, 0.003, 0.003, np.zeros(5)]
-    block = render_each(np.asarray(scene[:1].to_vector()), cam)
-    settled = settle_part(start, render_each(start[None], cam)[0], block.min(0), data, costs)
+    block = render_layers(np.asarray(scene[:1].to_vector()), cam)
+    settled = settle_part(start, render_layers(start[None], cam)[0], block.min(0), data, costs)
 
     def cost(v):
         return sqparts.encoding_cost(sqparts.stack_parts([scene[0], sqparts.Part.from_vector(v)]), data, costs)

@@ -337,8 +337,9 @@ def test_every_matrix_product_runs_at_full_precision():
     # JAX's default float32 product on NVIDIA GPUs is TF32 (10-bit mantissa): it moved the
     # human's rendered depth by 6 mm and changed its recovered model. Every product the
     # renderer, the search and polishing trace must ask for full precision.
+    from sqparts._polish import polish_part, ray_penetration
     from sqparts._render import cast_part
-    from sqparts._search import polish_part, pose_hypothesis, ray_penetration
+    from sqparts._search import pose_hypothesis
 
     part = sqparts.Part(
         size=[0.1, 0.2, 0.3],
