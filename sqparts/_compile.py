@@ -37,7 +37,9 @@ import logging
 import os
 import pickle
 import tempfile
+import threading
 from collections.abc import Callable
+from concurrent.futures import ThreadPoolExecutor
 from pathlib import Path
 
 import jax
@@ -118,6 +120,48 @@ def release_if_crowded(fraction: float = 0.5) -> bool:
     return True
 
 
+def _cores() -> int:
+    try:
+        return len(os.sched_getaffinity(0))
+    except (AttributeError, OSError):
+        return os.cpu_count() or 1
+
+
+_pool: dict[str, ThreadPoolExecutor] = {}
+_pool_lock = threading.Lock()
+
+
+def concurrently(fn: Callable, items, *, progress=None) -> list:
+    """``[fn(x) for x in items]``, the calls run on a pool of threads, one per usable CPU
+    core (``SQPARTS_THREADS`` overrides; 1: one after another in this thread).
+
+    For independent compiled calls (a batch of parts split into buckets): XLA runs each
+    on the thread that waits for it, mostly on one core, and releases the GIL meanwhile,
+    so two buckets on two cores take about half the time (4 buckets of 8 parts polished in
+    0.13 s instead of 0.28 s on the 2-core CPU). Each call computes what it computes alone:
+    the results do not depend on the threads. An exception is raised as in the loop.
+    ``progress`` (e.g. ``tqdm.tqdm``) wraps the iteration over the calls as they are
+    waited for, in order."""
+    items = list(items)
+    wrap = progress or (lambda it: it)
+    try:
+        threads = int(os.environ.get("SQPARTS_THREADS", "0")) or _cores()
+    except ValueError:
+        threads = _cores()
+    if threads <= 1 or len(items) <= 1:
+        return [fn(x) for x in wrap(items)]
+    with _pool_lock:
+        pool = _pool.get("pool")
+        if pool is None or pool._max_workers != threads:  # noqa: SLF001 (its size, to follow SQPARTS_THREADS)
+            pool = _pool["pool"] = ThreadPoolExecutor(threads, thread_name_prefix="sqparts")
+    futures = [pool.submit(fn, x) for x in items]
+    try:
+        return [f.result() for f in wrap(futures)]
+    finally:
+        for f in futures:  # an exception or an interrupt: what has not started never will
+            f.cancel()
+
+
 def set_export_dir(directory) -> None:
     """Store exported programs under ``directory`` (created if needed); ``None``: off."""
     if directory is None:
@@ -196,6 +240,7 @@ def persistent_jit(fun=None, *, static_argnames=()):
     signature = inspect.signature(fun)
     loaded: dict[str, Callable | None] = {}  # key -> callable on the flat leaves, or None (use jitted)
     _loaded_tables.append(loaded)
+    lock = threading.Lock()
     name = getattr(fun, "__qualname__", getattr(fun, "__name__", "fun"))
 
     @functools.wraps(fun)
@@ -226,9 +271,11 @@ def persistent_jit(fun=None, *, static_argnames=()):
         key = hashlib.sha256(text.encode()).hexdigest()[:32]
         runner = loaded.get(key)
         if runner is None and key not in loaded:
-            path = directory / f"{fun.__module__.rsplit('.', 1)[-1]}.{name}-{key}.jaxexport"
-            runner = _load(path, avals) or _export(path, fun, static, tree, avals)
-            loaded[key] = runner
+            with lock:  # threads meeting a new signature together (concurrently): one export
+                if key not in loaded:
+                    path = directory / f"{fun.__module__.rsplit('.', 1)[-1]}.{name}-{key}.jaxexport"
+                    loaded[key] = _load(path, avals) or _export(path, fun, static, tree, avals)
+                runner = loaded[key]
         if runner is None:
             return jitted(*args, **kwargs)
         try:

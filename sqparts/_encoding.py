@@ -43,7 +43,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from ._camera import bucket_camera
-from ._compile import persistent_jit
+from ._compile import concurrently, persistent_jit
 from ._part import Part
 from ._render import DEFAULT_NEWTON_STEPS, cast_part
 from ._typing import Array, Bool, Float
@@ -361,10 +361,10 @@ def render_layers(vectors, camera) -> np.ndarray:
     # Rendered on the bucketed image (the same rays, a few more of them), then cropped.
     big = bucket_camera(camera)
     return np.concatenate(
-        [
-            np.asarray(_render_layers(padded[j : j + PART_BUCKET], big))[:, :h, :w]
-            for j in range(0, len(padded), PART_BUCKET)
-        ]
+        concurrently(
+            lambda j: np.asarray(_render_layers(padded[j : j + PART_BUCKET], big))[:, :h, :w],
+            range(0, len(padded), PART_BUCKET),
+        )
     )[:k]
 
 

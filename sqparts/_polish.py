@@ -15,7 +15,7 @@ import lineax as lx
 import numpy as np
 import optimistix as optx
 
-from ._compile import persistent_jit
+from ._compile import concurrently, persistent_jit
 from ._encoding import PART_BUCKET, host_parts, pad_parts, part_vectors
 from ._part import Part, from_unconstrained, matmul, rotation_matrix, surface_distance, to_local, to_unconstrained
 from ._typing import ArrayLike, Float
@@ -164,11 +164,15 @@ def polish_parts(parts: Part, points, weights, steps: int, rays, ray_weights) ->
         rays = (np.zeros((1, 3), np.float32), np.array([[0.0, 0.0, 1.0]], np.float32))
     o, d = (np.asarray(a, np.float32)[ri] for a in rays)
     d[rw == 0] = (0.0, 0.0, 1.0)  # padding rays stay finite
-    out = [
-        _polish_bucket(padded[k : k + PART_BUCKET], *(a[k : k + PART_BUCKET] for a in (x, pw, o, d, rw)), steps=steps)
-        for k in range(0, m, PART_BUCKET)
-    ]
-    return host_parts(np.concatenate([part_vectors(p) for p in out])[:n])
+
+    def bucket(k):
+        return part_vectors(
+            _polish_bucket(
+                padded[k : k + PART_BUCKET], *(a[k : k + PART_BUCKET] for a in (x, pw, o, d, rw)), steps=steps
+            )
+        )
+
+    return host_parts(np.concatenate(concurrently(bucket, range(0, m, PART_BUCKET)))[:n])
 
 
 def pad_rows(a: np.ndarray, m: int) -> np.ndarray:

@@ -33,7 +33,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from ._camera import camera_points, camera_rays
-from ._compile import persistent_jit
+from ._compile import concurrently, persistent_jit
 from ._data import RangeData
 from ._encoding import (
     PART_BUCKET,
@@ -283,15 +283,10 @@ def fill_gaps(
     sizes = np.bincount(blob_labels.ravel(), minlength=count + 1)[1:]
     inner = distance_transform_edt(omitted)
     vec = part_vectors(parts)
-    additions, seed, innermost = [], [], set()
+    additions, seed, innermost, searches = [], [], set(), []
 
     def search(centre, max_size):
-        fit = fit_region(
-            data, dataclasses.replace(settings, max_size=float(np.clip(max_size, 1e-6, settings.max_size))), centre
-        )
-        good = part_vectors(fit.parts)[np.asarray(fit.gamma) > 0]
-        additions.extend(good)
-        seed.extend([centre] * len(good))
+        searches.append((centre, float(np.clip(max_size, 1e-6, settings.max_size))))
 
     for b in np.argsort(-sizes, kind="stable")[:blobs]:
         blob = blob_labels == b + 1
@@ -313,6 +308,12 @@ def fill_gaps(
             ]
             for r, c in points[:seeds]:
                 search((r, c), 4 * pixel * float(radius[r, c]))
+    # The searches are independent: run concurrently, their finds kept in this order.
+    fits = concurrently(lambda job: fit_region(data, dataclasses.replace(settings, max_size=job[1]), job[0]), searches)
+    for (centre, _), fit in zip(searches, fits):
+        good = part_vectors(fit.parts)[np.asarray(fit.gamma) > 0]
+        additions.extend(good)
+        seed.extend([centre] * len(good))
     if not additions:
         return [(parts, cost)]
     n = len(parts)
@@ -619,7 +620,10 @@ def _distances(parts: Part, points) -> np.ndarray:
     padded, n = pad_parts(parts)
     pts = np.asarray(points)
     return np.concatenate(
-        [np.asarray(_surface_distance(padded[k : k + PART_BUCKET], pts)) for k in range(0, len(padded), PART_BUCKET)]
+        concurrently(
+            lambda k: np.asarray(_surface_distance(padded[k : k + PART_BUCKET], pts)),
+            range(0, len(padded), PART_BUCKET),
+        )
     )[:n]
 
 

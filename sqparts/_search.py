@@ -32,7 +32,7 @@ from jax.sharding import Mesh
 from jax.sharding import PartitionSpec as P
 
 from ._camera import Camera, camera_points
-from ._compile import persistent_jit
+from ._compile import concurrently, persistent_jit
 from ._data import RangeData, prepare
 from ._encoding import Encoding, commission_mask, gamma_terms
 from ._grid import Grid, grid_preset, lookup_preset
@@ -674,8 +674,8 @@ def fit_image(
         spacing = settings.spacing or max(3.0, px / 3)
         centres = region_centers(data.figure_region, spacing=spacing, method=settings.region_method)
     centres = np.asarray(centres, np.int32).reshape(-1, 2)
-    it = progress(centres) if progress else centres
-    return [fit_region(data, settings, c) for c in it], data, settings
+    # Regions are independent: fitted concurrently (one thread per core), the same fits.
+    return concurrently(lambda c: fit_region(data, settings, c), centres, progress=progress), data, settings
 
 
 # --- the expanding grid method (Appendix) ----------------------------------------------

@@ -265,3 +265,57 @@ def test_the_command_line_leaves_the_callers_caches_as_it_found_them(tmp_path, m
     assert main([*argv, "--out", str(tmp_path / "d.npy"), "--quiet"]) == 0
     assert _compile._state["dir"] is None
     assert {n: getattr(jax.config, n) for n in names} == before
+
+
+def test_concurrently_is_the_loop_in_order(monkeypatch):
+    """The threads' results are the loop's, in the items' order, whatever the thread
+    count; an exception reaches the caller; ``progress`` sees every call."""
+    import time as _time
+
+    def slow_square(x):
+        _time.sleep(0.01 * (5 - x))  # later items finish first
+        return x * x
+
+    seen = []
+
+    def progress(it):
+        for f in it:
+            seen.append(f)
+            yield f
+
+    for threads in ("1", "3"):
+        monkeypatch.setenv("SQPARTS_THREADS", threads)
+        seen.clear()
+        assert _compile.concurrently(slow_square, range(5), progress=progress) == [0, 1, 4, 9, 16]
+        assert len(seen) == 5
+
+        def fails(x):
+            if x == 2:
+                raise ValueError("item 2")
+            return x
+
+        with pytest.raises(ValueError, match="item 2"):
+            _compile.concurrently(fails, range(4))
+
+
+def test_bucketed_polishing_on_threads_equals_one_after_another(monkeypatch):
+    """Three buckets of parts polished on two threads: bit for bit what one thread gives."""
+    from sqparts._polish import polish_parts
+
+    rng = np.random.default_rng(4)
+    parts = sqparts.stack_parts(
+        [
+            sqparts.Part(size=rng.uniform(0.1, 0.3, 3), position=[0, 0, 2.0], orientation=rng.normal(size=3))
+            for _ in range(20)
+        ]
+    )
+    points = (rng.normal(size=(600, 3)) * 0.2 + [0, 0, 2.0]).astype(np.float32)
+    weights = (rng.random((20, 600)) < 0.3).astype(np.float32)
+    rays = (np.zeros((100, 3), np.float32), np.tile(np.float32([[0, 0, 1]]), (100, 1)))
+    ray_weights = (rng.random((20, 100)) < 0.5).astype(np.float32)
+    out = {}
+    for threads in ("1", "2"):
+        monkeypatch.setenv("SQPARTS_THREADS", threads)
+        out[threads] = np.asarray(polish_parts(parts, points, weights, 4, rays, ray_weights).to_vector())
+    np.testing.assert_array_equal(out["1"], out["2"])
+    assert not np.array_equal(out["1"], np.asarray(parts.to_vector()))  # it did polish
