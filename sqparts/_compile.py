@@ -31,6 +31,7 @@ from __future__ import annotations
 
 import contextlib
 import functools
+import gc
 import hashlib
 import inspect
 import logging
@@ -53,6 +54,7 @@ __all__ = [
     "enable_caches",
     "caches_enabled",
     "release_if_crowded",
+    "concurrently",
 ]
 
 _log = logging.getLogger(__name__)
@@ -111,8 +113,6 @@ def release_if_crowded(fraction: float = 0.5) -> bool:
         return False
     if count <= fraction * limit:
         return False
-    import gc
-
     _log.info("sqparts: %d of %d memory mappings in use; releasing compiled programs", count, limit)
     forget_loaded()
     jax.clear_caches()
@@ -127,8 +127,8 @@ def _cores() -> int:
         return os.cpu_count() or 1
 
 
-_pool: dict[str, ThreadPoolExecutor] = {}
-_pool_lock = threading.Lock()
+_pools: dict[int, ThreadPoolExecutor] = {}  # by thread count (SQPARTS_THREADS may change)
+_pools_lock = threading.Lock()
 
 
 def concurrently(fn: Callable, items, *, progress=None) -> list:
@@ -150,10 +150,10 @@ def concurrently(fn: Callable, items, *, progress=None) -> list:
         threads = _cores()
     if threads <= 1 or len(items) <= 1:
         return [fn(x) for x in wrap(items)]
-    with _pool_lock:
-        pool = _pool.get("pool")
-        if pool is None or pool._max_workers != threads:  # noqa: SLF001 (its size, to follow SQPARTS_THREADS)
-            pool = _pool["pool"] = ThreadPoolExecutor(threads, thread_name_prefix="sqparts")
+    with _pools_lock:
+        pool = _pools.get(threads) or _pools.setdefault(
+            threads, ThreadPoolExecutor(threads, thread_name_prefix="sqparts")
+        )
     futures = [pool.submit(fn, x) for x in items]
     try:
         return [f.result() for f in wrap(futures)]
