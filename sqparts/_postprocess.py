@@ -5,7 +5,9 @@ horizontal parts are likely to *be* vertical or horizontal. :func:`snap_to_gravi
 turns a part by the smallest rotation that makes its axis nearest to "up" exactly
 vertical (or, failing that, its longest axis exactly horizontal) when the axis is within
 ``max_angle`` of it; :func:`prettify` keeps each snap only when the description length
-E rises by at most ``max_bits``: a part is straightened when the data allow it.
+E rises by at most ``max_bits``: a part is straightened when the data allow it. A
+snapped part that is bent or tapered is also tried without its deformation (a taper can
+stand in for a lean), and the cheaper of the two is judged.
 
 **Residual surface model** (section 2.1.1, Figure 11f): the parts are a "cartoon"; the
 data's small deviations from them, R - R*, are described separately by a fractal
@@ -93,7 +95,8 @@ def prettify(parts: Part, data, costs: Costs, *, up, max_angle: float = 15.0, ma
     it would not shorten the description: a snap may not make a part worth dropping).
     Returns (parts, cost, report), where each report entry says what was tried (``snap``,
     ``angle_deg``), the change in E (``delta_bits``), whether it was ``kept`` and, if
-    not, ``why``."""
+    not, ``why``. A snapped part that is bent or tapered is also tried straight
+    (``straightened``: the cheaper of the two is the one judged)."""
     from ._encoding import costs_removing, encoding_cost
 
     if not (isinstance(max_bits, (int, float)) and math.isfinite(max_bits) and max_bits >= 0):
@@ -107,12 +110,23 @@ def prettify(parts: Part, data, costs: Costs, *, up, max_angle: float = 15.0, ma
 
     current, pays = parts, paying(cost)
     for i, entry in enumerate(report):
-        entry["kept"], entry["delta_bits"] = False, 0.0
+        entry["kept"], entry["straightened"], entry["delta_bits"] = False, False, 0.0
         if entry["snap"] == "none":
             continue
-        trial = stack_parts([snapped[j] if j == i else current[j] for j in every])
-        trial_cost = encoding_cost(trial, data, costs)
-        entry["delta_bits"] = trial_cost.total - cost.total
+        # A bend or taper can stand in for a tilt (a tapered post leaning back shows a
+        # front at one depth), so the snapped part is also tried straight.
+        shapes = [snapped[i]]
+        if np.any(np.asarray(snapped[i].bend) != 0) or np.asarray(snapped[i].taper) != 0:
+            shapes.append(
+                dataclasses.replace(
+                    snapped[i], bend=np.zeros_like(snapped[i].bend), taper=np.zeros_like(snapped[i].taper)
+                )
+            )
+        trials = [stack_parts([shape if j == i else current[j] for j in every]) for shape in shapes]
+        trial_costs = [encoding_cost(t, data, costs) for t in trials]
+        k = int(np.argmin([c.total for c in trial_costs]))
+        trial, trial_cost = trials[k], trial_costs[k]
+        entry["delta_bits"], entry["straightened"] = trial_cost.total - cost.total, k == 1
         if entry["delta_bits"] > max_bits:
             entry["why"] = "costs more than max_bits"
             continue

@@ -13,7 +13,8 @@ while the background rays around it must miss it; a change is kept only if E fal
 the paper's accept-if-improved descent. Then a part that spans two (a torso with its
 pelvis) is split in two along its axis, blobs of unexplained pixels are searched again
 at their own scale for the parts the first search missed (a long blob also at its
-skeleton points; each new small part settled by a pattern search on E itself), a part
+skeleton points; a member too thin for a blob, a gate's two-pixel brace, started from
+its pixels' moments; each new small part settled by a pattern search on E itself), a part
 that no longer pays for its bits is dropped, and adjacent parts are merged when one part
 encodes them more cheaply: two into one bent part (section 4.1), or a group into one part
 started from its pixels' moments (a flat box for a laptop seen as patches), after which
@@ -239,6 +240,45 @@ def omitted_blobs(omitted: np.ndarray) -> tuple[np.ndarray, int]:
     return np.where(omitted, grey_dilation(cores, footprint=square), 0), count
 
 
+def thin_members(omitted: np.ndarray, shown: np.ndarray, blob_labels: np.ndarray, points: np.ndarray, reach: float):
+    """The unexplained members too thin for :func:`omitted_blobs` (a gate's two-pixel
+    bars: no 3x3 neighbourhood fits in them), as masks, largest first.
+
+    A piece is an 8-connected set of unexplained pixels outside every blob; a sliver
+    along a part's outline touches that part's pixels along most of its length, so only
+    pieces with at most half their pixels next to a rendered part (``shown``) count. A
+    member that other members cross (a brace over the rails) is cut into collinear
+    pieces: a piece joins another when all its 3-D ``points`` ((H, W, 3), camera frame)
+    lie within ``reach`` (metres) of the other's principal line, and the joined pieces
+    are one member."""
+    from scipy.ndimage import binary_dilation, label
+    from scipy.sparse.csgraph import connected_components
+
+    square = np.ones((3, 3), bool)
+    pieces, count = label(omitted & (blob_labels == 0), structure=square)  # pyright: ignore[reportGeneralTypeIssues]  # scipy is untyped: label returns (labels, count) without output=
+    beside = binary_dilation(shown, structure=square)
+    kept = [m for m in (pieces == k for k in range(1, count + 1)) if m.sum() >= 3 and (m & beside).sum() <= m.sum() / 2]
+    if not kept:
+        return []
+    clouds = [points[m].astype(np.float64) for m in kept]
+    lines = []
+    for p in clouds:
+        c = p.mean(0)
+        lines.append((c, np.linalg.eigh(np.cov((p - c).T))[1][:, -1]))
+
+    def off_line(p, line):
+        c, u = line
+        q = p - c
+        return np.linalg.norm(q - np.outer(q @ u, u), axis=1)
+
+    near = np.array(
+        [[i == j or off_line(clouds[j], lines[i]).max() <= reach for j in range(len(kept))] for i in range(len(kept))]
+    )
+    _, member = connected_components(near | near.T, directed=False)
+    masks = [np.any([kept[i] for i in np.flatnonzero(member == k)], axis=0) for k in np.unique(member)]
+    return sorted(masks, key=lambda m: -int(m.sum()))
+
+
 def fill_gaps(
     parts: Part,
     data: RangeData,
@@ -260,7 +300,11 @@ def fill_gaps(
     the lid's rim seen edge-on), so it is also searched at up to ``seeds`` more of its
     skeleton points (:func:`~sqparts._search.region_centers`, thickest first, spaced by
     the blob's inscribed radius), each at a scale of four times its own inscribed
-    radius. Each candidate is grown by ``rounds`` of region growing beside the current
+    radius. Members too thin for a blob (:func:`thin_members`: a gate's two-pixel brace,
+    cut into pieces by the rails it crosses) get the moment starts of their pixels
+    (:func:`_moment_candidates`), ``blobs`` of them at most, largest first: a window
+    search on a fixed grid of directions meets a two-pixel bar at a slant only where it
+    crosses the window. Each candidate is grown by ``rounds`` of region growing beside the current
     parts, the best one per search is settled on E itself (:func:`settle_part`: a pixel of
     commission outweighs the few a hand explains), and they are added, largest gain
     first, when E falls. ``settings`` are the first search's
@@ -278,8 +322,6 @@ def fill_gaps(
     least = least_pixels(costs)
     omitted = data.figure_mask & ~cost.explained_mask
     blob_labels, count = omitted_blobs(omitted)
-    if count == 0:
-        return [(parts, cost)]
     sizes = np.bincount(blob_labels.ravel(), minlength=count + 1)[1:]
     inner = distance_transform_edt(omitted)
     vec = part_vectors(parts)
@@ -308,6 +350,21 @@ def fill_gaps(
             ]
             for r, c in points[:seeds]:
                 search((r, c), 4 * pixel * float(radius[r, c]))
+    # Members too thin for a blob start from their pixels' moments: a window search
+    # along a fixed grid of directions meets a two-pixel bar at a slant only where it
+    # crosses the window.
+    points = camera_points(data.camera, data.image)
+    pixel = float(data.camera.pixel_size_at(float(np.nanmedian(data.image[data.figure_mask]))))
+    thin = [
+        m
+        for m in thin_members(omitted, cost.labels >= 0, blob_labels, points, 2 * pixel + data.encoding.sigma)
+        if m.sum() >= least
+    ]
+    for k, member in enumerate(thin[:blobs]):
+        starts = _moment_candidates(points[member], data.encoding.sigma)
+        additions.extend(starts)
+        seed.extend([("thin", k)] * len(starts))
+        innermost.add(("thin", k))
     # The searches are independent: run concurrently, their finds kept in this order.
     fits = concurrently(lambda job: fit_region(data, dataclasses.replace(settings, max_size=job[1]), job[0]), searches)
     for (centre, _), fit in zip(searches, fits):
@@ -451,9 +508,10 @@ def drop_unprofitable(parts: Part, data: RangeData, costs: Costs, *, cost: Encod
 
 
 def _merge_candidates(a: np.ndarray, b: np.ndarray) -> np.ndarray:
-    """(3, 14) vectors of single parts spanning the parts with vectors ``a`` and ``b``
-    from end to end: straight and bent both ways in the plane of the joint (the point
-    nearest both parts' long axes), none if they coincide."""
+    """(4, 14) vectors of single parts spanning the parts with vectors ``a`` and ``b``
+    from end to end: round, straight and bent both ways in the plane of the joint (the
+    point nearest both parts' long axes), and straight from the farthest end of one to
+    that of the other with their mean squareness; none if they coincide."""
     from scipy.spatial.transform import Rotation
 
     pa, pb = a[0:3].astype(np.float64), b[0:3].astype(np.float64)
@@ -475,13 +533,16 @@ def _merge_candidates(a: np.ndarray, b: np.ndarray) -> np.ndarray:
     rv = Rotation.from_matrix(np.stack([x, np.cross(z, x), z], 1)).as_rotvec()
     width = max(np.sort(a[6:9])[1], np.sort(b[6:9])[1])
     depth = max(a[6:9].min(), b[6:9].min())
-    return np.asarray(
-        [
-            [*(pa + pb) / 2, *rv, width, depth, np.linalg.norm(axis) / 2, 1.0, 1.0, bend, 0.0, 0.0]
-            for bend in (-0.3, 0.0, 0.3)
-        ],
-        np.float32,
-    )
+    round_ = [
+        [*(pa + pb) / 2, *rv, width, depth, np.linalg.norm(axis) / 2, 1.0, 1.0, bend, 0.0, 0.0]
+        for bend in (-0.3, 0.0, 0.3)
+    ]
+    # Two pieces of one straight member share its cross-section, and it runs from the
+    # farthest end of one to the farthest end of the other.
+    ends = [(p - pa) @ z + sign * v[6:9].max() * (u @ z) for p, u, v in ((pa, ua, a), (pb, ub, b)) for sign in (-1, 1)]
+    lo, hi = min(ends), max(ends)
+    straight = [*(pa + z * (lo + hi) / 2), *rv, width, depth, (hi - lo) / 2, *(a[9:11] + b[9:11]) / 2, 0.0, 0.0, 0.0]
+    return np.asarray(round_ + [straight], np.float32)
 
 
 def _moment_candidates(points: np.ndarray, sigma: float) -> np.ndarray:
@@ -642,11 +703,10 @@ def merge_adjacent(
     a shorter one (a polish that settled on the wrong squareness or depth, a straight fit
     of a bent part). All are
     fitted by batched LM calls to their parts' explained pixels (the moment starts,
-    farther from their answer, twice over); the ``tries`` best pair fits (by the
-    share of the pair's points within σ/2 of their surface) and every group start, as it
-    is and fitted, are tried in the joint rendering (the radial distances that the fits
-    minimise thicken a thin plate, and rank it poorly), and the lowest E is kept if it is
-    below the current one."""
+    farther from their answer, twice over); every start, as it is and fitted, is tried
+    in the joint rendering (the radial distances that the fits minimise thicken a thin
+    plate, and lengthen a bar whose ends meet other parts), and the lowest E is kept if
+    it is below the current one."""
     from scipy.ndimage import binary_dilation, distance_transform_edt
 
     cost = encoding_cost(parts, data, costs) if cost is None else cost
@@ -715,14 +775,10 @@ def merge_adjacent(
             return out
 
         fitted_vec = np.concatenate([fit(slice(0, n_pairs), 1), fit(slice(n_pairs, len(inits)), 2)])
-        # Share of each pair's points within σ/2 of the fitted surface (no rendering).
-        dist = _distances(host_parts(fitted_vec[:n_pairs]), pts) if n_pairs else np.zeros((0, len(pts)))
-        share = ((np.abs(dist) <= data.encoding.sigma / 2) * w_all[:n_pairs]).sum(1) / np.maximum(
-            w_all[:n_pairs].sum(1), 1
-        )
-        best = np.argsort(-share)[:tries]
-        trials = np.concatenate([fitted_vec[best], fitted_vec[n_pairs:], np.stack(inits)[n_pairs:]])
-        groups = [members[k] for k in best] + members[n_pairs:] * 2
+        # Every start is tried as it is and fitted: the radial distances that the fits
+        # minimise thicken a thin plate, and lengthen a bar whose ends meet other parts.
+        trials = np.concatenate([fitted_vec, start])
+        groups = members * 2
         base = cost
         for vector, group, layer in zip(trials, groups, render_layers(trials, data.camera)):
             keep = [q for q in range(n) if q not in group]

@@ -213,3 +213,45 @@ def test_prettify_builtin_gate(rng):
         else:  # the brace
             assert entry["snap"] == "none" and not entry["kept"]
             np.testing.assert_allclose(np.asarray(parts.rotation())[-1], before, atol=1e-6)
+
+
+def test_prettify_straightens_a_taper_that_stood_in_for_a_tilt():
+    # A straight vertical post (pinhole camera, 2 m), and a fit of it that leans 4 degrees
+    # back about its centre and tapers, so its front stays near the data's depth. Snapping
+    # alone would leave the taper's slope in depth; snapped and straightened it is the
+    # post itself: the same vector, the truth's own E.
+    from sqparts._encoding import encoding_cost, part_vectors
+
+    cam = sqparts.PinholeCamera(64, 96, 250.0, 250.0, 31.5, 47.5)
+    post = limb([0.0, -0.3, 2.0], [0.0, 0.3, 2.0], 0.03, 0.03, (0.3, 0.3))
+    depth = np.asarray(sqparts.render_range_image(sqparts.stack_parts([post]), cam))
+    data = prepare(depth, cam)
+    costs = Costs.from_encoding(data.encoding, int(data.figure_mask.sum()))
+    lean = Rotation.from_rotvec([np.radians(4.0), 0.0, 0.0]).as_matrix() @ np.asarray(post.rotation())
+    fit = sqparts.Part(
+        size=post.size,
+        squareness=post.squareness,
+        position=post.position,
+        orientation=Rotation.from_matrix(lean).as_rotvec().astype(np.float32),
+        taper=np.float32(-0.3),
+    )
+    parts, cost, report = sqparts.prettify(sqparts.stack_parts([fit]), data, costs, up=UP)
+    assert report[0]["snap"] == "vertical" and report[0]["kept"] and report[0]["straightened"]
+    np.testing.assert_allclose(part_vectors(parts)[0], part_vectors(sqparts.stack_parts([post]))[0], atol=1e-5)
+    assert cost.total == pytest.approx(encoding_cost(sqparts.stack_parts([post]), data, costs).total)
+    # Not straightened where the deformation is the data's: a tapered post stays tapered.
+    tapered = limb([0.0, -0.3, 2.0], [0.0, 0.3, 2.0], 0.03, 0.03, (0.3, 0.3), taper=-0.4)
+    depth = np.asarray(sqparts.render_range_image(sqparts.stack_parts([tapered]), cam))
+    data = prepare(depth, cam)
+    costs = Costs.from_encoding(data.encoding, int(data.figure_mask.sum()))
+    tilt = Rotation.from_rotvec([0.0, 0.0, np.radians(3.0)]).as_matrix() @ np.asarray(tapered.rotation())
+    leaning = sqparts.Part(
+        size=tapered.size,
+        squareness=tapered.squareness,
+        position=tapered.position,
+        orientation=Rotation.from_matrix(tilt).as_rotvec().astype(np.float32),
+        taper=tapered.taper,
+    )
+    parts, _, report = sqparts.prettify(sqparts.stack_parts([leaning]), data, costs, up=UP)
+    assert report[0]["kept"] and not report[0]["straightened"]
+    assert float(parts.taper[0]) == pytest.approx(-0.4)

@@ -498,3 +498,93 @@ def test_refinement_redescribes_a_straight_fit_of_a_bent_tapered_part():
     assert np.linalg.norm(float(new.bend[0, 0]) * r[:, 0] - 0.4 * m[:, 0]) < 0.1
     # The taper is odd along the axis: its sign follows the axis' direction.
     assert abs(float(new.taper[0]) * np.sign(r[:, 2] @ m[:, 2]) - 0.3) < 0.1
+
+
+def test_thin_members_join_collinear_pieces_and_skip_slivers():
+    # Pixels on a plane z = 2 (1 cm apart): a diagonal bar two pixels across, crossed
+    # (and cut in three) by two explained horizontal rails, and a one-pixel sliver along
+    # a rail's outline. The bar's three pieces are one member; the sliver is none.
+    from sqparts._refine import thin_members
+
+    h, w = 40, 80
+    rows, cols = np.mgrid[0:h, 0:w]
+    points = np.stack([cols * 0.01, rows * 0.01, np.full((h, w), 2.0)], -1)
+    bar = np.abs(rows - (5 + 0.35 * cols)) < 1.0  # two pixels across, about 19 degrees
+    bar &= (cols >= 2) & (cols <= 78)
+    shown = np.zeros((h, w), bool)
+    shown[14:17, :] = True  # the rails, explained
+    shown[26:29, :] = True
+    sliver = np.zeros((h, w), bool)
+    sliver[13, 50:75] = True  # along the first rail's top
+    omitted = (bar | sliver) & ~shown
+    members = thin_members(omitted, shown, np.zeros((h, w), np.int64), points, reach=0.02)
+    assert len(members) == 1
+    assert np.array_equal(members[0], bar & ~shown & ~sliver | (members[0] & sliver))
+    assert not (members[0] & sliver).any()
+    # Pieces off the bar's line stay apart: the bar and a parallel one 8 pixels lower.
+    other = np.abs(rows - (13 + 0.35 * cols)) < 1.0
+    other &= (cols >= 40) & (cols <= 60) & ~shown
+    two = thin_members((bar | other) & ~shown & ~(bar & other), shown, np.zeros((h, w), np.int64), points, reach=0.02)
+    assert len(two) == 2 and {int(m.sum()) for m in two} == {
+        int((bar & ~shown & ~other).sum()),
+        int((other & ~bar).sum()),
+    }
+
+
+def _gate_without(drop):
+    """The built-in gate (Figure 10: members two pixels across, nothing between them),
+    its prepared data and costs, and its true parts without the indices ``drop``."""
+    scene = sqparts.builtin_scene("gate")
+    depth = np.asarray(sqparts.render_range_image(scene.parts, scene.camera))
+    data = sqparts.prepare(depth, scene.camera)
+    costs = sqparts.Costs.from_encoding(data.encoding, int(data.figure_mask.sum()))
+    keep = [i for i in range(len(scene.parts)) if i not in drop]
+    return scene, data, costs, scene.parts[np.array(keep)]
+
+
+def test_refinement_finds_a_thin_brace_across_the_rails():
+    # Started from the gate's posts and rails, the brace (two pixels across, cut in
+    # three by the rails it crosses, so no 3x3 neighbourhood fits in it) is found by the
+    # gap search from its pixels' moments, along the true brace's direction.
+    scene, data, costs, start = _gate_without([5])
+    settings = sqparts.make_settings(data, "fast", max_size=1.2)
+    parts, cost, history = sqparts.refine_parts(start, data, costs, rounds=0, split=False, merge=False, search=settings)
+    assert len(parts) == 6 and dict(history)["fill gaps"] < dict(history)["initial"]
+    true_axis = np.asarray(scene.parts.rotation())[5][:, 2]
+    new_axis = np.asarray(parts.rotation())[5][:, 2]
+    assert np.degrees(np.arccos(min(1.0, abs(float(true_axis @ new_axis))))) < 2.0
+    _, labels = (np.asarray(a) for a in sqparts.render_range_image(scene.parts, scene.camera, return_labels=True))
+    brace = labels == 5
+    assert (cost.explained_mask & brace).sum() >= 0.9 * brace.sum()
+
+
+def test_refinement_merges_the_halves_of_a_box_bar_between_its_neighbours():
+    # The gate's top rail (a box: squareness 0.2) started as two overlapping halves, each
+    # adjacent to a post and the brace, so no group of adjacent parts is the two alone:
+    # the pair's own starts (a straight bar of the halves' squareness) merge them.
+    from sqparts._refine import _merge_candidates, merge_adjacent
+    from sqparts._scenes import limb
+
+    scene, data, costs, start = _gate_without([2])
+    w = float(scene.parts.size[2, 0])
+    halves = [
+        limb([-2.4, -0.8, 20.0], [0.3, -0.8, 20.0], w, w, (0.2, 0.2)),
+        limb([-0.6, -0.8, 20.0], [2.4, -0.8, 20.0], w, w, (0.2, 0.2)),
+    ]
+    # Closed form: one start is the whole rail, end to end, straight, with its squareness.
+    from sqparts._encoding import part_vectors
+
+    starts = _merge_candidates(*part_vectors(sqparts.stack_parts(halves)))
+    rail = part_vectors(scene.parts)[2]
+    straight = [v for v in starts if np.allclose(v[9:11], 0.2) and not v[11:].any()]
+    assert len(straight) == 1
+    axis = np.asarray(sqparts.Part.from_vector(straight[0]).rotation())[:, 2]
+    np.testing.assert_allclose(straight[0][[0, 1, 2, 8]], rail[[0, 1, 2, 8]], atol=0.05)
+    assert abs(axis[0]) > 0.9999
+    parts = sqparts.stack_parts([start[i] for i in range(len(start))] + halves)
+    before = sqparts.encoding_cost(parts, data, costs)
+    merged, cost = merge_adjacent(parts, data, costs, cost=before)
+    assert len(merged) == 6 and cost.total < before.total - 0.5 * costs.part
+    _, labels = (np.asarray(a) for a in sqparts.render_range_image(scene.parts, scene.camera, return_labels=True))
+    pixels = labels == 2
+    assert (cost.explained_mask & pixels).sum() >= 0.9 * (before.explained_mask & pixels).sum()
