@@ -240,14 +240,11 @@ def omitted_blobs(omitted: np.ndarray) -> tuple[np.ndarray, int]:
     return np.where(omitted, grey_dilation(cores, footprint=square), 0), count
 
 
-def thin_members(omitted: np.ndarray, shown: np.ndarray, searched: np.ndarray, points: np.ndarray, reach: float):
-    """The unexplained members that no blob search covers (``searched``: the pixels of
-    the :func:`omitted_blobs` searched), as masks, largest first: those too thin for a
-    blob (a gate's two-pixel bars: no 3x3 neighbourhood fits in them) and those that
-    fall apart into blobs too small to pay for a part (a bar 2-3 pixels across at a slant,
-    whose 3x3 cores are a few pixels each).
+def thin_members(omitted: np.ndarray, shown: np.ndarray, blob_labels: np.ndarray, points: np.ndarray, reach: float):
+    """The unexplained members too thin for :func:`omitted_blobs` (a gate's two-pixel
+    bars: no 3x3 neighbourhood fits in them), as masks, largest first.
 
-    A piece is an 8-connected set of unexplained pixels outside the searched blobs; a sliver
+    A piece is an 8-connected set of unexplained pixels outside every blob; a sliver
     along a part's outline touches that part's pixels along most of its length, so only
     pieces with at most half their pixels next to a rendered part (``shown``) count. A
     member that other members cross (a brace over the rails) is cut into collinear
@@ -258,7 +255,7 @@ def thin_members(omitted: np.ndarray, shown: np.ndarray, searched: np.ndarray, p
     from scipy.sparse.csgraph import connected_components
 
     square = np.ones((3, 3), bool)
-    pieces, count = label(omitted & ~searched, structure=square)  # pyright: ignore[reportGeneralTypeIssues]  # scipy is untyped: label returns (labels, count) without output=
+    pieces, count = label(omitted & (blob_labels == 0), structure=square)  # pyright: ignore[reportGeneralTypeIssues]  # scipy is untyped: label returns (labels, count) without output=
     beside = binary_dilation(shown, structure=square)
     kept = [m for m in (pieces == k for k in range(1, count + 1)) if m.sum() >= 3 and (m & beside).sum() <= m.sum() / 2]
     if not kept:
@@ -303,11 +300,11 @@ def fill_gaps(
     the lid's rim seen edge-on), so it is also searched at up to ``seeds`` more of its
     skeleton points (:func:`~sqparts._search.region_centers`, thickest first, spaced by
     the blob's inscribed radius), each at a scale of four times its own inscribed
-    radius. Each searched blob, and each member that no blob search covers
-    (:func:`thin_members`: a gate's two-pixel brace, cut into pieces by the rails it
-    crosses; ``blobs`` of them at most, largest first), also gets the moment starts of
-    its pixels (:func:`_moment_candidates`): a window search on a fixed grid of
-    directions meets a two-pixel bar at a slant only where it crosses the window. Each candidate is grown by ``rounds`` of region growing beside the current
+    radius. Members too thin for a blob (:func:`thin_members`: a gate's two-pixel brace,
+    cut into pieces by the rails it crosses) get the moment starts of their pixels
+    (:func:`_moment_candidates`), ``blobs`` of them at most, largest first: a window
+    search on a fixed grid of directions meets a two-pixel bar at a slant only where it
+    crosses the window. Each candidate is grown by ``rounds`` of region growing beside the current
     parts, the best one per search is settled on E itself (:func:`settle_part`: a pixel of
     commission outweighs the few a hand explains), and they are added, largest gain
     first, when E falls. ``settings`` are the first search's
@@ -328,8 +325,7 @@ def fill_gaps(
     sizes = np.bincount(blob_labels.ravel(), minlength=count + 1)[1:]
     inner = distance_transform_edt(omitted)
     vec = part_vectors(parts)
-    additions, seed, innermost, searches, summaries = [], [], set(), [], []
-    searched = np.zeros(omitted.shape, bool)
+    additions, seed, innermost, searches = [], [], set(), []
 
     def search(centre, max_size):
         searches.append((centre, float(np.clip(max_size, 1e-6, settings.max_size))))
@@ -345,8 +341,6 @@ def fill_gaps(
         length = max(np.ptp(rows), np.ptp(cols)) + 1  # across the image, not in depth
         search(centre, 0.75 * pixel * length)
         innermost.add(centre)
-        summaries.append((centre, blob))
-        searched |= blob
         if length > 4 * radius[centre]:
             spacing = max(float(radius[centre]), 1.0)
             points = [
@@ -356,23 +350,21 @@ def fill_gaps(
             ]
             for r, c in points[:seeds]:
                 search((r, c), 4 * pixel * float(radius[r, c]))
-    # The members no blob search covers: too thin for a blob, or fallen apart into
-    # blobs too small to pay.
+    # Members too thin for a blob start from their pixels' moments: a window search
+    # along a fixed grid of directions meets a two-pixel bar at a slant only where it
+    # crosses the window.
     points = camera_points(data.camera, data.image)
     pixel = float(data.camera.pixel_size_at(float(np.nanmedian(data.image[data.figure_mask]))))
     thin = [
         m
-        for m in thin_members(omitted, cost.labels >= 0, searched, points, 2 * pixel + data.encoding.sigma)
+        for m in thin_members(omitted, cost.labels >= 0, blob_labels, points, 2 * pixel + data.encoding.sigma)
         if m.sum() >= least
     ]
     for k, member in enumerate(thin[:blobs]):
-        summaries.append((("thin", k), member))
-        innermost.add(("thin", k))
-    # Every blob and member is also summarised from its pixels' moments, as one part.
-    for key, mask in summaries:
-        starts = _moment_candidates(points[mask], data.encoding.sigma)
+        starts = _moment_candidates(points[member], data.encoding.sigma)
         additions.extend(starts)
-        seed.extend([key] * len(starts))
+        seed.extend([("thin", k)] * len(starts))
+        innermost.add(("thin", k))
     # The searches are independent: run concurrently, their finds kept in this order.
     fits = concurrently(lambda job: fit_region(data, dataclasses.replace(settings, max_size=job[1]), job[0]), searches)
     for (centre, _), fit in zip(searches, fits):

@@ -517,14 +517,14 @@ def test_thin_members_join_collinear_pieces_and_skip_slivers():
     sliver = np.zeros((h, w), bool)
     sliver[13, 50:75] = True  # along the first rail's top
     omitted = (bar | sliver) & ~shown
-    members = thin_members(omitted, shown, np.zeros((h, w), bool), points, reach=0.02)
+    members = thin_members(omitted, shown, np.zeros((h, w), np.int64), points, reach=0.02)
     assert len(members) == 1
     assert np.array_equal(members[0], bar & ~shown & ~sliver | (members[0] & sliver))
     assert not (members[0] & sliver).any()
     # Pieces off the bar's line stay apart: the bar and a parallel one 8 pixels lower.
     other = np.abs(rows - (13 + 0.35 * cols)) < 1.0
     other &= (cols >= 40) & (cols <= 60) & ~shown
-    two = thin_members((bar | other) & ~shown & ~(bar & other), shown, np.zeros((h, w), bool), points, reach=0.02)
+    two = thin_members((bar | other) & ~shown & ~(bar & other), shown, np.zeros((h, w), np.int64), points, reach=0.02)
     assert len(two) == 2 and {int(m.sum()) for m in two} == {
         int((bar & ~shown & ~other).sum()),
         int((other & ~bar).sum()),
