@@ -22,43 +22,21 @@ from _common import save
 from bench_recover import true_parts_found
 
 import sqparts
-from sqparts._scenes import limb
 
 GATES = {
     "four rails, other diagonal, 18 m": {"distance": 18.0, "rails": (-0.8, -0.2, 0.4, 0.9), "brace": (-0.8, 0.9)},
-    "pinhole camera, 22 m": {"distance": 22.0, "rails": (-0.8, 0.05, 0.9), "brace": (0.9, -0.8), "pinhole": True},
+    "pinhole camera, 22 m": {"distance": 22.0, "pinhole": True},
     "two rails, steeper brace, 16 m": {"distance": 16.0, "rails": (-0.8, 0.9), "brace": (1.1, -0.9)},
 }
-"""Name: (distance in metres, rail heights, the brace's heights at its left and right
-ends, camera). The scanner's step is the built-in gate's 0.25 degrees; the bars are 17.5
-cm across, about two pixels at 20 m."""
-
-
-def gate(distance, rails, brace, *, pinhole=False, width=128, height=48):
-    step = np.radians(0.25)
-    w = 20.0 * step
-    parts, names = [], []
-    for i, x in enumerate((-2.4, 2.4)):
-        parts.append(limb([x, -1.0, distance], [x, 1.2, distance], w, w, (0.2, 0.2)))
-        names.append(f"post {i + 1}")
-    for i, y in enumerate(rails):
-        parts.append(limb([-2.4, y, distance], [2.4, y, distance], w, w, (0.2, 0.2)))
-        names.append(f"bar {i + 1}")
-    parts.append(limb([-2.3, brace[0], distance], [2.3, brace[1], distance], w, w, (0.2, 0.2)))
-    names.append("brace")
-    c = ((width - 1) / 2, (height - 1) / 2)
-    if pinhole:
-        cam = sqparts.PinholeCamera(width, height, 1 / step, 1 / step, *c)
-    else:
-        cam = sqparts.ScannerCamera(width, height, step, step, *c)
-    return sqparts.stack_parts(parts), cam, names
+"""Name: :func:`sqparts._scenes.gate`'s keywords (distance in metres, rail heights, the
+brace's heights at its left and right ends, camera); the rest is the built-in gate's."""
 
 
 def main() -> None:
     rows = []
     for name, spec in GATES.items():
-        kw = dict(spec)
-        parts, cam, names = gate(kw.pop("distance"), kw.pop("rails"), kw.pop("brace"), **kw)
+        s = sqparts.builtin_scene("gate", **spec)
+        parts, cam, names = s.parts, s.camera, s.part_names
         depth = np.asarray(sqparts.render_range_image(parts, cam))
         t0 = time.perf_counter()
         r = sqparts.recover_scene(depth, cam, scene=sqparts.SceneSettings(prettify=True, up=(0.0, -1.0, 0.0)))

@@ -186,28 +186,44 @@ def castings(resolution: int = 96, *, seed: int = 3) -> BuiltinScene:
     )
 
 
-def gate(width: int = 128, height: int = 48) -> BuiltinScene:
-    """A field gate (Figure 10) 20 m away seen by a wide-angle scanner like the ERIM
-    range finder; its members are about two pixels wide."""
+def gate(
+    width: int = 128,
+    height: int = 48,
+    *,
+    distance: float = 20.0,
+    rails=(-0.8, 0.05, 0.9),
+    brace=(0.9, -0.8),
+    pinhole: bool = False,
+) -> BuiltinScene:
+    """A field gate (Figure 10) ``distance`` metres away seen by a wide-angle scanner like
+    the ERIM range finder (0.25 degrees a pixel; ``pinhole``: a pinhole camera of the same
+    focal length): two posts, a rail at each height in ``rails`` and a brace from the
+    left post's side at height ``brace[0]`` to the right post's at ``brace[1]`` (camera y,
+    down). Its members are 17.5 cm across, about two pixels at 20 m."""
     step = np.radians(0.25)
-    d = 20.0
-    w = d * step  # one pixel at 20 m
+    w = 20.0 * step  # one pixel at 20 m
+    d = float(distance)
     parts, names = [], []
     for i, x in enumerate((-2.4, 2.4)):
         parts.append(limb([x, -1.0, d], [x, 1.2, d], w, w, (0.2, 0.2)))
         names.append(f"post {i + 1}")
-    for i, y in enumerate((-0.8, 0.05, 0.9)):
+    for i, y in enumerate(rails):
         parts.append(limb([-2.4, y, d], [2.4, y, d], w, w, (0.2, 0.2)))
         names.append(f"bar {i + 1}")
-    parts.append(limb([-2.3, 0.9, d], [2.3, -0.8, d], w, w, (0.2, 0.2)))
+    parts.append(limb([-2.3, brace[0], d], [2.3, brace[1], d], w, w, (0.2, 0.2)))
     names.append("brace")
-    cam = ScannerCamera(width, height, step, step, (width - 1) / 2, (height - 1) / 2)
+    c = ((width - 1) / 2, (height - 1) / 2)
+    cam = (
+        PinholeCamera(width, height, 1 / step, 1 / step, *c)
+        if pinhole
+        else ScannerCamera(width, height, step, step, *c)
+    )
     return BuiltinScene(
         "gate",
         stack_parts(parts),
         cam,
         tuple(names),
-        "a gate 20 m away (Figure 10), members about two pixels wide, scanner camera",
+        f"a gate {d:g} m away (Figure 10), members about {40 / d:.1f} pixels wide, {'pinhole' if pinhole else 'scanner'} camera",
     )
 
 
