@@ -329,8 +329,10 @@ def host_parts(vectors) -> Part:
 
 
 def part_vectors(parts: Part) -> np.ndarray:
-    """(n, 14) host copy of ``parts.to_vector()``."""
-    return np.asarray(parts.to_vector(), np.float32).reshape(-1, 14)
+    """(n, 14) host copy of ``parts.to_vector()``, concatenated on the host (no round trip
+    through the device: refinement calls this on every trial)."""
+    *head, taper = (np.asarray(a, np.float32) for a in jax.tree_util.tree_leaves(parts))
+    return np.concatenate([*head, taper[..., None]], axis=-1).reshape(-1, 14)
 
 
 def pad_parts(parts: Part) -> tuple[Part, int]:
@@ -413,11 +415,39 @@ def layers_cost(layers: np.ndarray, data: RangeData, costs: Costs) -> EncodingCo
     return _count(len(layers), *_compose(layers), data, costs, layers)
 
 
+class Composition:
+    """The nearest hit of a fixed stack of per-part depth layers (m, H, W), composed once,
+    onto which one more layer at a time is put (:meth:`adding`): a trial that adds one part,
+    or replaces a group of parts by one, composes one layer instead of m + 1 (the nearest
+    hit's ``argmin`` over the stack is most of :func:`layers_cost`'s time)."""
+
+    def __init__(self, layers: np.ndarray):
+        self.layers = layers
+        if len(layers):
+            self.index = np.argmin(layers, axis=0)
+            self.depth = np.take_along_axis(layers, self.index[None], axis=0)[0]
+        else:
+            self.index = np.zeros(layers.shape[1:], np.int64)
+            self.depth = np.full(layers.shape[1:], np.inf, np.float32)
+
+    def adding(self, layer: np.ndarray, data: RangeData, costs: Costs) -> EncodingCost:
+        """:func:`layers_cost` of the stack with ``layer`` (H, W) after it: the same
+        rendering, labels (ties go to the earlier part) and E."""
+        m = len(self.layers)
+        nearer = layer < self.depth
+        t = np.where(nearer, layer, self.depth)
+        hit = np.isfinite(t)
+        labels = np.where(hit, np.where(nearer, m, self.index), -1)
+        rendered = np.where(hit, t, np.nan).astype(np.float32)
+        return _count(m + 1, rendered, labels, data, costs, np.concatenate([self.layers, layer[None]]))
+
+
 def costs_adding(cost: EncodingCost, extra, data: RangeData, costs: Costs) -> list[EncodingCost]:
     """E of the parts behind ``cost`` plus each one of the (k, 14) vectors ``extra`` in
-    turn; only the extra parts are rendered (:func:`render_layers`)."""
-    new = render_layers(extra, data.camera)
-    return [layers_cost(np.concatenate([layers_of(cost), t[None]]), data, costs) for t in new]
+    turn; only the extra parts are rendered (:func:`render_layers`), and the others'
+    nearest hit is composed once (:class:`Composition`)."""
+    base = Composition(layers_of(cost))
+    return [base.adding(t, data, costs) for t in render_layers(extra, data.camera)]
 
 
 def costs_removing(cost: EncodingCost, which, data: RangeData, costs: Costs) -> list[EncodingCost]:

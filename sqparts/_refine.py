@@ -38,6 +38,7 @@ from ._compile import concurrently, persistent_jit
 from ._data import RangeData
 from ._encoding import (
     PART_BUCKET,
+    Composition,
     Costs,
     EncodingCost,
     costs_adding,
@@ -779,10 +780,12 @@ def merge_adjacent(
         # minimise thicken a thin plate, and lengthen a bar whose ends meet other parts.
         trials = np.concatenate([fitted_vec, start])
         groups = members * 2
-        base = cost
+        base, rests = cost, {}  # the other parts' nearest hit, composed once per group
         for vector, group, layer in zip(trials, groups, render_layers(trials, data.camera)):
             keep = [q for q in range(n) if q not in group]
-            c = layers_cost(np.concatenate([layers_of(base)[keep], layer[None]]), data, costs)
+            if group not in rests:
+                rests[group] = Composition(layers_of(base)[keep])
+            c = rests[group].adding(layer, data, costs)
             if c.total < cost.total - 1e-9:
                 parts, cost, merged = host_parts(np.concatenate([vec[keep], vector[None]])), c, True
     return parts, cost

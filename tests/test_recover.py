@@ -131,6 +131,38 @@ def test_adding_a_part_by_merging_renderings_matches_rendering_the_scene(depth):
         assert np.array_equal(merged.labels, full.labels)
 
 
+def test_composing_one_layer_onto_the_rest_matches_a_brute_force_nearest_hit(depth):
+    """Composition.adding (the rest's nearest hit composed once, one layer put on it)
+    against a per-pixel loop: the nearest finite depth, ties to the earlier part, none
+    where every layer misses; E from the same pixel counts."""
+    from sqparts._encoding import Composition, layers_cost
+
+    data = sqparts.prepare(depth, CAM)
+    costs = sqparts.Costs.from_encoding(data.encoding, int(data.figure_mask.sum()))
+    rng = np.random.default_rng(3)
+    h, w = depth.shape
+    # Depths drawn from a few values near the data's, so that many pixels tie.
+    values = np.nanmedian(depth) + np.array([-0.05, 0.0, 0.0, 0.02], np.float32)
+    for m in (0, 1, 4):
+        stack = np.where(rng.random((m + 2, h, w)) < 0.5, rng.choice(values, (m + 2, h, w)), np.inf).astype(np.float32)
+        rest = Composition(stack[:m])
+        for layer in stack[m:]:
+            got = rest.adding(layer, data, costs)
+            full = np.concatenate([stack[:m], layer[None]])
+            want = np.full((h, w), -1)
+            for r in range(h):
+                for c in range(w):
+                    column = full[:, r, c]
+                    if np.isfinite(column).any():
+                        want[r, c] = int(np.flatnonzero(column == column.min())[0])
+            assert np.array_equal(got.labels, want)
+            nearest = np.where(want >= 0, full.min(0), np.nan)
+            assert np.array_equal(got.rendered, nearest, equal_nan=True)
+            plain = layers_cost(full, data, costs)
+            assert (got.total, got.explained, got.commission) == (plain.total, plain.explained, plain.commission)
+            assert np.array_equal(got.layers, full)
+
+
 def test_selection_on_the_joint_rendering_against_brute_force(depth):
     # Candidates: the two true parts and five swollen copies of one. The swollen copies
     # share most of their commission ring, which Eq. (7)'s pairwise area matrices credit
