@@ -413,12 +413,14 @@ _RANDOM_TRIALS = 35
 
 
 @persistent_jit(static_argnames=("camera",))
-def _crop_trials(u, steps, seed, step, corner, rest, measured, figure, sigma, camera):
-    """The part with unconstrained vector ``u`` and 63 neighbours (each parameter a step
-    ``steps_i`` up and down, and ``_RANDOM_TRIALS`` random moves of the same scale)
-    rendered in a ``_CROP``² crop at ``corner`` over the other parts' nearest depth
-    ``rest``: per trial its unconstrained vector, explained and commission pixel counts
-    in the crop, and whether it reaches the crop's border."""
+def _crop_trials(start, u, first, steps, seed, step, corner, rest, measured, figure, sigma, camera):
+    """The part with unconstrained vector ``u`` (when ``first``: that of the 14-vector
+    ``start``, converted here rather than in a program of its own) and 63 neighbours (each
+    parameter a step ``steps_i`` up and down, and ``_RANDOM_TRIALS`` random moves of the
+    same scale) rendered in a ``_CROP``² crop at ``corner`` over the other parts' nearest
+    depth ``rest``: per trial its unconstrained vector, its 14-vector, explained and
+    commission pixel counts in the crop, and whether it reaches the crop's border."""
+    u = jnp.where(first, to_unconstrained(Part.from_vector(start)), u)
     key = jax.random.fold_in(jax.random.key(seed), step)  # inside: no eager key programs
     eye = jnp.diag(steps)
     moves = jax.random.normal(key, (_RANDOM_TRIALS, len(u))) * steps / jnp.sqrt(len(u) / 2.0)
@@ -432,7 +434,8 @@ def _crop_trials(u, steps, seed, step, corner, rest, measured, figure, sigma, ca
         border = hit[0].any() | hit[-1].any() | hit[:, 0].any() | hit[:, -1].any()
         return explained.sum(), commission.sum(), border
 
-    return (trials, *jax.vmap(one)(trials))
+    vectors = jax.vmap(lambda v: from_unconstrained(v).to_vector())(trials)
+    return (trials, vectors, *jax.vmap(one)(trials))
 
 
 def settle_part(vector, layer, rest, data: RangeData, costs: Costs, *, iterations: int = 48, seed: int = 0):
@@ -459,12 +462,15 @@ def settle_part(vector, layer, rest, data: RangeData, costs: Costs, *, iteration
     pixel = float(data.camera.pixel_size_at(float(vector[2])))
     # Steps: a pixel in position, 0.1 rad, 10% in size, 0.4 in logit squareness, 0.2 in bend and taper.
     base = np.array([pixel] * 3 + [0.1] * 6 + [0.4] * 2 + [0.2] * 3, np.float32)
-    u, scale, failures = np.asarray(to_unconstrained(host_parts(vector[None])))[0], 1.0, 0
+    start = np.asarray(vector, np.float32)
+    u, current, scale, failures = np.zeros(14, np.float32), None, 1.0, 0
     for i in range(iterations):
-        trials, e, c, border = (
+        trials, vectors, e, c, border = (
             np.asarray(a)
             for a in _crop_trials(
+                start,
                 u,
+                np.bool_(i == 0),
                 base * scale,
                 np.int32(seed),
                 np.uint32(i),
@@ -475,15 +481,17 @@ def settle_part(vector, layer, rest, data: RangeData, costs: Costs, *, iteration
         )
         f = np.where(border, np.inf, costs.total(0, e, c))  # E up to the pixels outside the crop
         k = int(np.argmin(f))
-        if f[k] < f[0] - 1e-9:  # trial 0 is the current part
-            u, failures = trials[k], 0
+        if current is None:  # trial 0 is the current part
+            u, current = trials[0], vectors[0]
+        if f[k] < f[0] - 1e-9:
+            u, current, failures = trials[k], vectors[k], 0
         else:
             failures += 1
             if failures == 2:  # the random moves differ each time: two misses halve the steps
                 scale, failures = scale / 2, 0
                 if scale < 0.05:
                     break
-    return part_vectors(from_unconstrained(u[None]))[0]
+    return vector if current is None else current
 
 
 def drop_unprofitable(parts: Part, data: RangeData, costs: Costs, *, cost: EncodingCost | None = None):

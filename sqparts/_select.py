@@ -109,8 +109,10 @@ class SelectionProblem:
         )
 
 
-_BUCKET = 16
-"""Best-first selection is compiled for multiples of this many candidates."""
+_BUCKET = 64
+"""Best-first selection is compiled for this many candidates, or the next power of two
+above: one program for every problem up to 64 candidates (selection by groups solves
+problems of several sizes in one recovery)."""
 
 
 @persistent_jit
@@ -145,9 +147,9 @@ def select_best_first(problem: SelectionProblem, *, max_iter: int | None = None)
     n = problem.size
     if n == 0:
         return np.zeros(0, bool)
-    # Padded to a multiple of _BUCKET with parts that never pay (the largest cost, no
-    # overlaps): one compiled program serves every candidate count up to it.
-    m = -(-n // _BUCKET) * _BUCKET
+    # Padded to _BUCKET or the next power of two with parts that never pay (the largest
+    # cost, no overlaps): one compiled program serves every candidate count up to it.
+    m = max(_BUCKET, 1 << (n - 1).bit_length())
     linear = np.full(m, np.finfo(np.float32).max, np.float32)
     linear[:n] = problem.linear
     pairwise = np.zeros((m, m), np.float32)

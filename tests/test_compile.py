@@ -319,3 +319,28 @@ def test_bucketed_polishing_on_threads_equals_one_after_another(monkeypatch):
         out[threads] = np.asarray(polish_parts(parts, points, weights, 4, rays, ray_weights).to_vector())
     np.testing.assert_array_equal(out["1"], out["2"])
     assert not np.array_equal(out["1"], np.asarray(parts.to_vector()))  # it did polish
+
+
+def test_best_first_selection_builds_one_program_for_problems_up_to_64_candidates():
+    """Selection by groups solves problems of several sizes in one recovery: every size up
+    to 64 candidates shares one compiled best-first program, and each answer is the same
+    as a brute-force check that no single flip lowers E (best-first's fixed point)."""
+    costs = sqparts.Costs(part=112.0, explained=2.0, commission=24.0, omission=6.0, figure_pixels=600)
+    rng = np.random.default_rng(5)
+    problems = []
+    for n in (5, 23, 64):
+        explained = np.zeros((n, 600), bool)
+        for i in range(n):
+            s = rng.integers(0, 540)
+            explained[i, s : s + rng.integers(20, 150)] = True
+        problems.append(sqparts.SelectionProblem.from_masks(explained, rng.random((n, 600)) < 0.02, costs))
+    sqparts.select_best_first(problems[0])  # the program, built once
+    with count_programs() as later:
+        chosen = [sqparts.select_best_first(p) for p in problems[1:]]
+    assert later["n"] == 0
+    for p, x in zip(problems[1:], chosen):
+        e = p.energy(x)
+        for i in range(p.size):
+            flipped = x.copy()
+            flipped[i] = ~flipped[i]
+            assert p.energy(flipped) >= e - 1e-3

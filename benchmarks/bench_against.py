@@ -1,0 +1,115 @@
+"""Warm recovery time and results of this checkout against another (``--base``), each
+scene in new processes, the two checkouts' processes interleaved, and whether the
+recovered parts are bit-for-bit the same.
+
+Per scene and checkout: one process that recovers the scene once cold (compiling) and
+``--runs`` times warm with :func:`sqparts.recover`'s defaults; the warm runs' median is
+the figure. ``single`` is ``bench_cli.py``'s 96x96 one-part image; the others are
+built-in scenes. Several ``--rounds`` repeat the whole interleaving (the machines are
+shared and noisy: compare medians taken in the same run).
+
+    git worktree add --detach /tmp/wt-base <commit>
+    JAX_PLATFORMS=cpu python benchmarks/bench_against.py --base /tmp/wt-base [--scenes single human chair castings]
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import statistics
+import subprocess
+import sys
+import tempfile
+from pathlib import Path
+
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+
+from _common import save
+from bench_cli import CAMERA, SCENE
+
+ROOT = Path(__file__).resolve().parents[1]
+
+CHILD = r"""
+import json, sys, time
+import numpy as np
+import sqparts
+name, runs, scene, camera = sys.argv[1], int(sys.argv[2]), json.loads(sys.argv[3]), json.loads(sys.argv[4])
+if name == "single":
+    parts, cam = sqparts.scene_from_dict(scene)[0], sqparts.camera_from_json(camera)
+else:
+    s = sqparts.builtin_scene(name)
+    parts, cam = s.parts, s.camera
+depth = np.asarray(sqparts.render_range_image(parts, cam))
+t = time.perf_counter()
+r = sqparts.recover(depth, cam)
+cold = time.perf_counter() - t
+times, stages = [], []
+for _ in range(runs):
+    t = time.perf_counter()
+    r = sqparts.recover(depth, cam)
+    times.append(time.perf_counter() - t)
+    stages.append(r.timings)
+print("RESULT " + json.dumps({"parts": len(r.parts), "E": r.cost.total, "explained": r.fraction_explained,
+    "cold_s": cold, "warm_s": times, "stages": stages, "vectors": np.asarray(r.parts.to_vector()).tolist()}))
+"""
+
+
+def run(checkout: Path, scene: str, runs: int) -> dict:
+    env = dict(os.environ, PYTHONPATH=str(checkout), JAX_PLATFORMS="cpu")
+    p = subprocess.run(
+        [sys.executable, "-c", CHILD, scene, str(runs), json.dumps(SCENE), json.dumps(CAMERA)],
+        env=env,
+        capture_output=True,
+        text=True,
+        cwd=tempfile.gettempdir(),  # no checkout on the path but PYTHONPATH's
+    )
+    if p.returncode != 0:
+        raise RuntimeError(f"{checkout}: {scene} failed:\n{p.stderr[-3000:]}")
+    return json.loads(next(line[7:] for line in p.stdout.splitlines() if line.startswith("RESULT ")))
+
+
+def main():
+    ap = argparse.ArgumentParser()
+    ap.add_argument("--base", required=True, type=Path, help="checkout of the baseline")
+    ap.add_argument("--scenes", nargs="+", default=["single", "human", "chair", "castings"])
+    ap.add_argument("--runs", type=int, default=5, help="warm runs per process")
+    ap.add_argument("--rounds", type=int, default=2)
+    args = ap.parse_args()
+    checkouts = {"base": args.base.resolve(), "new": ROOT}
+    rows = []
+    for scene in args.scenes:
+        got = {v: [] for v in checkouts}
+        for _ in range(args.rounds):
+            for v, checkout in checkouts.items():
+                got[v].append(run(checkout, scene, args.runs))
+                print(
+                    f"{scene} {v}: {got[v][-1]['parts']} parts, E {got[v][-1]['E']:.3f}, "
+                    f"warm median {statistics.median(got[v][-1]['warm_s']):.2f} s",
+                    flush=True,
+                )
+        warm = {v: statistics.median([t for r in got[v] for t in r["warm_s"]]) for v in checkouts}
+        base, new = got["base"][-1], got["new"][-1]
+        row = {
+            "scene": scene,
+            "parts": {v: got[v][-1]["parts"] for v in checkouts},
+            "E": {v: got[v][-1]["E"] for v in checkouts},
+            "explained": {v: got[v][-1]["explained"] for v in checkouts},
+            "identical_parts": base["vectors"] == new["vectors"],
+            "warm_median_s": warm,
+            "warm_s": {v: [t for r in got[v] for t in r["warm_s"]] for v in checkouts},
+            "cold_s": {v: [r["cold_s"] for r in got[v]] for v in checkouts},
+            "stages_last_run": {v: got[v][-1]["stages"][-1] for v in checkouts},
+            "speedup": warm["base"] / warm["new"],
+        }
+        rows.append(row)
+        print(
+            f"{scene}: base {warm['base']:.2f} s, new {warm['new']:.2f} s (x{row['speedup']:.2f}); "
+            f"identical parts: {row['identical_parts']}",
+            flush=True,
+        )
+    save("against", {"base": str(checkouts["base"]), "runs": args.runs, "rounds": args.rounds, "rows": rows})
+
+
+if __name__ == "__main__":
+    main()
