@@ -2,10 +2,10 @@
 scene in new processes, the two checkouts' processes interleaved, and whether the
 recovered parts are bit-for-bit the same.
 
-Per scene and checkout: one process that recovers the scene once cold (compiling) and
-``--runs`` times warm with :func:`sqparts.recover`'s defaults; the warm runs' median is
-the figure. ``single`` is ``bench_cli.py``'s 96x96 one-part image; the others are
-built-in scenes. Several ``--rounds`` repeat the whole interleaving (the machines are
+Per scene and checkout: one process that recovers the scene once cold (compiling, and
+counting the XLA programs it builds) and ``--runs`` times warm with
+:func:`sqparts.recover`'s defaults; the warm runs' median is the figure. ``single`` is
+``bench_cli.py``'s 96x96 one-part image; the others are built-in scenes. Several ``--rounds`` repeat the whole interleaving (the machines are
 shared and noisy: compare medians taken in the same run).
 
     git worktree add --detach /tmp/wt-base <commit>
@@ -32,8 +32,12 @@ ROOT = Path(__file__).resolve().parents[1]
 
 CHILD = r"""
 import json, sys, time
+import jax
 import numpy as np
 import sqparts
+built = [0]
+jax.monitoring.register_event_duration_secs_listener(
+    lambda name, secs, **kw: built.__setitem__(0, built[0] + (name == "/jax/core/compile/backend_compile_duration")))
 name, runs, scene, camera = sys.argv[1], int(sys.argv[2]), json.loads(sys.argv[3]), json.loads(sys.argv[4])
 if name == "single":
     parts, cam = sqparts.scene_from_dict(scene)[0], sqparts.camera_from_json(camera)
@@ -41,9 +45,11 @@ else:
     s = sqparts.builtin_scene(name)
     parts, cam = s.parts, s.camera
 depth = np.asarray(sqparts.render_range_image(parts, cam))
+built[0] = 0
 t = time.perf_counter()
 r = sqparts.recover(depth, cam)
 cold = time.perf_counter() - t
+programs = built[0]
 times, stages = [], []
 for _ in range(runs):
     t = time.perf_counter()
@@ -51,7 +57,7 @@ for _ in range(runs):
     times.append(time.perf_counter() - t)
     stages.append(r.timings)
 print("RESULT " + json.dumps({"parts": len(r.parts), "E": r.cost.total, "explained": r.fraction_explained,
-    "cold_s": cold, "warm_s": times, "stages": stages, "vectors": np.asarray(r.parts.to_vector()).tolist()}))
+    "cold_s": cold, "programs": programs, "warm_programs": built[0] - programs, "warm_s": times, "stages": stages, "vectors": np.asarray(r.parts.to_vector()).tolist()}))
 """
 
 
@@ -99,6 +105,8 @@ def main():
             "warm_median_s": warm,
             "warm_s": {v: [t for r in got[v] for t in r["warm_s"]] for v in checkouts},
             "cold_s": {v: [r["cold_s"] for r in got[v]] for v in checkouts},
+            "programs_first_recovery": {v: got[v][-1]["programs"] for v in checkouts},
+            "programs_warm_runs": {v: got[v][-1]["warm_programs"] for v in checkouts},
             "stages_last_run": {v: got[v][-1]["stages"][-1] for v in checkouts},
             "speedup": warm["base"] / warm["new"],
         }
