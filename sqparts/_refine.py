@@ -788,7 +788,8 @@ def merge_adjacent(
         # minimise thicken a thin plate, and lengthen a bar whose ends meet other parts.
         trials = np.concatenate([fitted_vec, start])
         groups = members * 2
-        base, rests = cost, {}  # the other parts' nearest hit, composed once per group
+        base = cost
+        rests: dict[tuple, Composition] = {}  # the other parts' nearest hit, composed once per group
         for vector, group, layer in zip(trials, groups, render_layers(trials, data.camera)):
             keep = [q for q in range(n) if q not in group]
             if group not in rests:
