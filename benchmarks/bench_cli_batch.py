@@ -15,12 +15,9 @@ from __future__ import annotations
 
 import argparse
 import json
-import os
 import shutil
-import subprocess
 import sys
 import tempfile
-import time
 from pathlib import Path
 
 import numpy as np
@@ -28,7 +25,7 @@ import numpy as np
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 
 from _common import save
-from bench_cli import CAMERA, max_difference, parts_of
+from bench_cli import CAMERA, max_difference, parts_of, run
 
 import sqparts
 
@@ -53,13 +50,8 @@ def images(folder: Path, count: int) -> list[Path]:
 
 
 def call(cache: Path, args) -> float:
-    env = dict(os.environ, PYTHONPATH=str(ROOT), SQPARTS_CACHE_DIR=str(cache), JAX_PLATFORMS="cpu")
-    t0 = time.perf_counter()
-    p = subprocess.run([sys.executable, "-m", "sqparts", *args], env=env, capture_output=True, text=True)
-    wall = time.perf_counter() - t0
-    if p.returncode != 0:
-        raise RuntimeError(f"sqparts {' '.join(args)} failed:\n{p.stderr[-3000:]}")
-    return wall
+    """Wall seconds of one ``python -m sqparts ARGS`` in a new process (:func:`bench_cli.run`)."""
+    return run(ROOT, cache, args)[0]
 
 
 def main():

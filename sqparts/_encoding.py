@@ -370,13 +370,23 @@ def render_layers(vectors, camera) -> np.ndarray:
     )[:k]
 
 
+def _nearest(layers: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Nearest depth of per-part depth layers (inf = none) and the index of its layer
+    (ties go to the earlier part, as in :func:`~sqparts.cast_scene`)."""
+    index = np.argmin(layers, axis=0)
+    return np.take_along_axis(layers, index[None], axis=0)[0], index
+
+
+def _visible(depth: np.ndarray, index: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """A nearest hit as a rendering: depth (NaN = none) and the visible part (-1 = none)."""
+    hit = np.isfinite(depth)
+    return np.where(hit, depth, np.nan).astype(np.float32), np.where(hit, index, -1)
+
+
 def _compose(layers: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """Nearest hit of per-part depth layers: depth (NaN = none) and the visible part's
-    index (-1 = none; ties go to the earlier part, as in :func:`~sqparts.cast_scene`)."""
-    index = np.argmin(layers, axis=0)
-    t = np.take_along_axis(layers, index[None], axis=0)[0]
-    hit = np.isfinite(t)
-    return np.where(hit, t, np.nan).astype(np.float32), np.where(hit, index, -1)
+    index (-1 = none; ties go to the earlier part)."""
+    return _visible(*_nearest(layers))
 
 
 def render_labels(parts: Part, camera) -> tuple[np.ndarray, np.ndarray]:
@@ -424,22 +434,17 @@ class Composition:
     def __init__(self, layers: np.ndarray):
         self.layers = layers
         if len(layers):
-            self.index = np.argmin(layers, axis=0)
-            self.depth = np.take_along_axis(layers, self.index[None], axis=0)[0]
+            self.depth, self.index = _nearest(layers)
         else:
-            self.index = np.zeros(layers.shape[1:], np.int64)
-            self.depth = np.full(layers.shape[1:], np.inf, np.float32)
+            self.depth, self.index = np.full(layers.shape[1:], np.inf, np.float32), np.zeros(layers.shape[1:], np.int64)
 
     def adding(self, layer: np.ndarray, data: RangeData, costs: Costs) -> EncodingCost:
         """:func:`layers_cost` of the stack with ``layer`` (H, W) after it: the same
         rendering, labels (ties go to the earlier part) and E."""
         m = len(self.layers)
         nearer = layer < self.depth
-        t = np.where(nearer, layer, self.depth)
-        hit = np.isfinite(t)
-        labels = np.where(hit, np.where(nearer, m, self.index), -1)
-        rendered = np.where(hit, t, np.nan).astype(np.float32)
-        return _count(m + 1, rendered, labels, data, costs, np.concatenate([self.layers, layer[None]]))
+        visible = _visible(np.where(nearer, layer, self.depth), np.where(nearer, m, self.index))
+        return _count(m + 1, *visible, data, costs, np.concatenate([self.layers, layer[None]]))
 
 
 def costs_adding(cost: EncodingCost, extra, data: RangeData, costs: Costs) -> list[EncodingCost]:
