@@ -131,10 +131,13 @@ _EXPORTS = {
         "describe",
         "describe_figures",
         "part_volume",
+        "surface_cloud",
     ),
     "_recognize": (
+        "Alignment",
         "Match",
         "MatchSettings",
+        "align_descriptions",
         "calibrate_threshold",
         "estimate_pose",
         "match_descriptions",

@@ -32,10 +32,10 @@ import numpy as np
 if TYPE_CHECKING:
     from ._recover import Recovery, SceneRecovery
 
-from ._describe import Description, describe, merged_alternatives, part_volume
+from ._describe import Description, describe, merged_alternatives, part_volume, surface_cloud
 from ._io import _load_json, atomic_write, scene_from_dict, scene_to_dict
 from ._part import Part, stack_parts
-from ._recognize import MatchSettings, calibrate_threshold, match_descriptions
+from ._recognize import MatchSettings, align_descriptions, calibrate_threshold, match_descriptions
 
 DATABASE_FORMAT = "sqparts-database/1"
 MODEL_FORMAT = "sqparts-model/1"
@@ -137,6 +137,7 @@ def _stored_from_json(data, where: str) -> StoredDescription:
     desc = Description.from_json(data.get("description"), where=f"{where}.description")
     if len(desc) != (len(parts) if parts.batch_shape else 1):
         raise ValueError(f"{where}.description: got {len(desc)} parts, expected {len(parts)} (as in {where}.parts)")
+    desc = dataclasses.replace(desc, surface=surface_cloud(parts))  # not stored: made again from the parts
     return StoredDescription(str(data.get("kind", "main")), parts, desc)
 
 
@@ -347,17 +348,28 @@ class ModelDatabase:
 
     def match(self, query: Description, *, settings: MatchSettings = MatchSettings(), exclude=None):
         """Per object, its best (score, view, kind, Match, stored) against ``query``, best first.
-        ``exclude``: (name, view index) to leave out."""
+        ``exclude``: (name, view index) to leave out.
+
+        A view's score is the geometric mean of its best description's part match and
+        the alignment of the view's main solid with the query's
+        (:func:`~sqparts._recognize.align_descriptions`; the variants are the same solid
+        cut otherwise, so it is aligned once), and the match's pose is the alignment's
+        (when ``settings.alignment_tolerance`` is set)."""
         out = []
         for name, views in self.objects.items():
             best = None
             for k, view in enumerate(views):
                 if exclude == (name, k):
                     continue
-                for stored in view.descriptions:
-                    m = match_descriptions(query, stored.description, settings)
-                    if best is None or m.score > best[0]:
-                        best = (m.score, k, stored.kind, m, stored)
+                m, stored = max(
+                    ((match_descriptions(query, s.description, settings), s) for s in view.descriptions),
+                    key=lambda r: r[0].score,
+                )
+                if settings.alignment_tolerance is not None:
+                    a = align_descriptions(query, view.main.description, settings)
+                    m = dataclasses.replace(m, score=float(np.sqrt(m.score * a.score)), pose=a.pose)
+                if best is None or m.score > best[0]:
+                    best = (m.score, k, stored.kind, m, stored)
             if best is not None:
                 out.append((name, *best))
         return sorted(out, key=lambda r: -r[1])

@@ -170,6 +170,48 @@ def shape_distribution(parts: Part, *, count: int = 12) -> np.ndarray:
     return h / h.sum()
 
 
+SURFACE_SAMPLES = 2000
+"""Points of a :class:`Description`'s :attr:`~Description.surface` (the solid's outer
+surface): dense enough that two draws of the same surface lie well within the alignment's
+tolerance of each other, so that distances to them stand for distances to the surface."""
+
+
+def _inside(points: np.ndarray, size, squareness, rotation, position) -> np.ndarray:
+    """(n,) bool: ``points`` strictly inside the undeformed superquadric (F < 1, Eq. 1)."""
+    a = np.abs((points - position) @ rotation) / size + 1e-12
+    e1, e2 = squareness
+    f = (a[:, 0] ** (2 / e2) + a[:, 1] ** (2 / e2)) ** (e2 / e1) + a[:, 2] ** (2 / e1)
+    return f < 1.0 - 1e-6
+
+
+def surface_cloud(parts: Part, *, samples: int = SURFACE_SAMPLES, count: int = 32) -> np.ndarray:
+    """(samples, 3) points spread by area over the outer surface of the solid the parts
+    make together: each part's :func:`area_samples`, less those inside another part,
+    drawn in proportion to the area each stands for (systematic resampling: sample k is
+    the cell where the cumulative area passes (k + 1/2) / samples of the total, so a
+    large cell may be drawn more than once and the same parts always give the same
+    points). The inside test ignores taper and bend (the other part's undeformed Eq. 1).
+    The solid as a whole, however it was cut into parts: what
+    :func:`sqparts._recognize.align_descriptions` aligns."""
+    size, sq, bend, taper, position, orientation = _as_arrays(parts)
+    rot = _rotation_matrices(orientation)
+    pts, areas = [], []
+    for k in range(len(size)):
+        p, a = area_samples(size[k], sq[k], bend[k], taper[k], rot[k], position[k], count=count)
+        hidden = np.zeros(len(p), bool)
+        for j in range(len(size)):
+            if j != k:
+                hidden |= _inside(p, size[j], sq[j], rot[j], position[j])
+        pts.append(p)
+        areas.append(np.where(hidden, 0.0, a))
+    p, a = np.concatenate(pts), np.concatenate(areas)
+    if not a.sum() > 0:  # every sample inside another part (parts wholly inside others): all of them
+        a = np.ones(len(a))
+    cumulative = np.cumsum(a)
+    pick = np.searchsorted(cumulative, (np.arange(samples) + 0.5) / samples * cumulative[-1])
+    return p[np.minimum(pick, len(p) - 1)]
+
+
 @dataclasses.dataclass(frozen=True, eq=False)
 class Description:
     """The part structure of one figure (section 1: a stable description to match).
@@ -191,6 +233,10 @@ class Description:
     shape_distribution : (SHAPE_BINS,) array or None
         The whole object's :func:`shape_distribution` (None: not known, e.g. a description
         read from a file written before it existed; matching then uses the parts alone).
+    surface : (SURFACE_SAMPLES, 3) array or None
+        Points on the solid's outer surface in the frame of ``positions``
+        (:func:`surface_cloud`), for aligning whole solids; not part of the JSON form (a
+        stored view recomputes it from its parts). None: matching uses the parts alone.
     """
 
     scale: float
@@ -200,6 +246,7 @@ class Description:
     rotations: np.ndarray
     names: tuple = ()
     shape_distribution: np.ndarray | None = None
+    surface: np.ndarray | None = None
 
     def __len__(self) -> int:
         return len(self.attributes)
@@ -215,9 +262,12 @@ class Description:
 
     def transformed(self, rotation, translation) -> "Description":
         """The same description with the pose data moved by a rigid motion (p -> R p + t)."""
-        r = np.asarray(rotation, float)
+        r, t = np.asarray(rotation, float), np.asarray(translation, float)
         return dataclasses.replace(
-            self, positions=self.positions @ r.T + np.asarray(translation, float), rotations=r @ self.rotations
+            self,
+            positions=self.positions @ r.T + t,
+            rotations=r @ self.rotations,
+            surface=None if self.surface is None else self.surface @ r.T + t,
         )
 
     def to_json(self) -> dict:
@@ -400,6 +450,7 @@ def describe(parts: Part, *, names=None, touch_gap: float = TOUCH_GAP) -> Descri
         sorted_rot,
         tuple(names) if names is not None else (),
         shape_distribution(parts),
+        surface_cloud(parts),
     )
 
 

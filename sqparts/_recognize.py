@@ -21,14 +21,26 @@ difference divided by a tolerance that is a fraction of the model's scale.
 The model's pose in the query's frame is estimated from the matched parts' centres by
 weighted Kabsch (``scipy.spatial.transform.Rotation.align_vectors``), or from the axes
 of the best matched pair when fewer than three parts match.
+
+Beside the part match, the two whole solids are aligned (:func:`align_descriptions`):
+each pair of similar parts, one in the query and one in the model, proposes poses that
+put one part's axes on the other's (the 24 ways a part's axes can be relabelled and
+flipped: a superquadric's axes are known only up to that), the proposals are scored
+all at once by how much of the model's outer surface lands near the query's, and the
+best few are refined by iterative closest points (weighted Kabsch on both directions'
+nearest neighbours). Its score, the share of each surface lying within a tolerance of
+the other, does not depend on how either solid was cut into parts; the database
+scores a stored view by the geometric mean of the two (``MatchSettings.alignment_tolerance``).
 """
 
 from __future__ import annotations
 
 import dataclasses
+import itertools
 
 import numpy as np
 from scipy.optimize import linear_sum_assignment
+from scipy.spatial import KDTree
 from scipy.spatial.transform import Rotation
 
 from ._describe import ATTRIBUTES, RELATIONS, SHAPE_BINS, SHAPE_RANGE, Description
@@ -54,6 +66,14 @@ class MatchSettings:
         between surface points moved by half the object's scale); None (the default): the
         parts alone. Off by default: a whole-object term punishes a query with parts hidden
         (occlusion), which the part match by itself tolerates.
+    alignment_tolerance : the whole-solid alignment (:func:`align_descriptions`): the
+        tolerance σ of a surface point's distance to the other surface, a fraction of the
+        larger object's scale; a point at distance d counts exp(-d²/2σ²). The database
+        scores a view by the geometric mean of the part match's score and the
+        alignment's. None: parts alone.
+    alignment_pairs : how many (query part, model part) pairs, most similar and largest
+        first, propose poses (24 each).
+    alignment_starts : how many of the best proposals are refined.
     weighting : a matched pair's weight: ``"fraction"``, sqrt(v_query v_model) of the two
         parts' volume fractions; ``"volume"``, min(V_query, V_model) / max(ΣV_query,
         ΣV_model) of their volumes in scene units, so that a query explaining only a small
@@ -69,6 +89,9 @@ class MatchSettings:
     iterations: int = 4
     weighting: str = "volume"
     shape_tolerance: float | None = None
+    alignment_tolerance: float | None = 0.08
+    alignment_pairs: int = 12
+    alignment_starts: int = 4
 
     def __post_init__(self):
         if self.weighting not in ("fraction", "volume"):
@@ -76,6 +99,13 @@ class MatchSettings:
         t = self.shape_tolerance
         if t is not None and not (isinstance(t, (int, float)) and np.isfinite(t) and t > 0):
             raise ValueError(f"shape_tolerance: got {t!r}, expected a number > 0 or None")
+        t = self.alignment_tolerance
+        if t is not None and not (isinstance(t, (int, float)) and np.isfinite(t) and t > 0):
+            raise ValueError(f"alignment_tolerance: got {t!r}, expected a number > 0 or None")
+        for name in ("alignment_pairs", "alignment_starts"):
+            k = getattr(self, name)
+            if isinstance(k, bool) or not isinstance(k, (int, np.integer)) or k < 1:
+                raise ValueError(f"{name}: got {k!r}, expected an integer >= 1")
 
 
 @dataclasses.dataclass(frozen=True)
@@ -245,6 +275,117 @@ def match_descriptions(query: Description, model: Description, settings: MatchSe
     w = weight[best_pairs[:, 0], best_pairs[:, 1]] if len(best_pairs) else None
     score = best_score * shape_similarity(query, model, settings.shape_tolerance)
     return Match(score, best_pairs, estimate_pose(query, model, best_pairs, w))
+
+
+@dataclasses.dataclass(frozen=True)
+class Alignment:
+    """Two whole solids aligned (:func:`align_descriptions`).
+
+    Attributes
+    ----------
+    score : float in [0, 1], the mean over both surfaces of exp(-d²/2σ²), d a surface
+        point's distance to the other surface.
+    pose : (4, 4) array taking model-frame points to the query's frame.
+    """
+
+    score: float
+    pose: np.ndarray
+
+
+def _proper_relabellings() -> np.ndarray:
+    """The 24 signed permutation matrices with determinant +1 (a box's rotations)."""
+    out = []
+    for perm in itertools.permutations(range(3)):
+        for signs in itertools.product((1.0, -1.0), repeat=3):
+            m = np.zeros((3, 3))
+            m[np.arange(3), perm] = signs
+            if np.linalg.det(m) > 0:
+                out.append(m)
+    return np.array(out)
+
+
+_RELABEL = _proper_relabellings()
+_ICP_ITERATIONS = 15
+_SPARSE = 5
+"""Moved points are every fifth of a surface's (itself an area-proportional draw, of 400
+of the 2000); the distances are to all the other surface's points."""
+
+
+def _similarity(tree: KDTree, points: np.ndarray, sigma: float) -> np.ndarray:
+    """exp(-d²/2σ²) of each point's distance d to the tree's points (0 beyond 3σ)."""
+    d, _ = tree.query(points, distance_upper_bound=3 * sigma)
+    return np.exp(-0.5 * (d / sigma) ** 2)
+
+
+def _refine_pose(q, qtree, m, mtree, r, t, sigma):
+    """``q``, ``m``: the sparse points moved; ``qtree``, ``mtree``: all of each surface."""
+    """Iterative closest points from (r, t): each step a weighted Kabsch on the nearest
+    neighbours of both surfaces (model to query and query to model), weights falling
+    with distance (exp(-d²/8σ²)), so that surface one solid has and the other lacks (an
+    occluded or extra part) pulls little."""
+    for _ in range(_ICP_ITERATIONS):
+        d1, i1 = qtree.query(m @ r.T + t)
+        d2, i2 = mtree.query((q - t) @ r)
+        src = np.concatenate([m, mtree.data[i2]])
+        dst = np.concatenate([qtree.data[i1], q])
+        w = np.exp(-0.125 * (np.concatenate([d1, d2]) / sigma) ** 2) + 1e-12
+        sc, dc = np.average(src, 0, w), np.average(dst, 0, w)
+        u, _, vt = np.linalg.svd(((src - sc) * w[:, None]).T @ (dst - dc))
+        r = vt.T @ np.diag([1.0, 1.0, np.sign(np.linalg.det(vt.T @ u.T))]) @ u.T
+        t = dc - r @ sc
+    return r, t
+
+
+def align_descriptions(query: Description, model: Description, settings: MatchSettings = MatchSettings()) -> Alignment:
+    """Align the model's whole solid to the query's (see the module docstring).
+
+    Poses are proposed by the ``settings.alignment_pairs`` pairs of parts with the
+    largest unary similarity times volume weight (as the part match weighs them): the
+    model part's sorted axes put on the query part's in each of the 24 proper
+    relabellings, its centre on the query part's centre and, separately, the model's
+    volume-weighted centre on the query's. All proposals are scored by the mean
+    similarity of the model's surface points to the query's surface; the
+    ``settings.alignment_starts`` best distinct ones are refined by :func:`_refine_pose`
+    and the best-scoring result is kept. Needs both descriptions' ``surface``
+    (score 1 and the identity when either lacks it).
+    """
+    if query.surface is None or model.surface is None or settings.alignment_tolerance is None:
+        return Alignment(1.0, np.eye(4))
+    qtree, mtree = KDTree(query.surface), KDTree(model.surface)
+    q, m = query.surface[::_SPARSE], model.surface[::_SPARSE]
+    sigma = settings.alignment_tolerance * max(query.scale, model.scale)
+    unary = unary_similarity(query, model, settings)
+    benefit = unary * np.sqrt(query.volumes[:, None] * model.volumes[None, :])
+    pairs = np.argsort(-benefit, axis=None, kind="stable")[: settings.alignment_pairs]
+    qi, mj = np.unravel_index(pairs, benefit.shape)
+
+    rq, rm = query.rotations[qi].copy(), model.rotations[mj].copy()
+    for r in (rq, rm):  # sorted axes as rotations: a left-handed triple's last axis flipped
+        r[np.linalg.det(r) < 0, :, 2] *= -1
+    rot = np.einsum("pab,sbc,pdc->psad", rq, _RELABEL, rm).reshape(-1, 3, 3)
+    cq = np.average(query.positions, 0, query.volumes)
+    cm = np.average(model.positions, 0, model.volumes)
+    anchors_q = np.concatenate([np.repeat(query.positions[qi], len(_RELABEL), 0), np.repeat(cq[None], len(rot), 0)])
+    anchors_m = np.concatenate([np.repeat(model.positions[mj], len(_RELABEL), 0), np.repeat(cm[None], len(rot), 0)])
+    rot = np.concatenate([rot, rot])
+    trans = anchors_q - np.einsum("sab,sb->sa", rot, anchors_m)
+    moved = np.einsum("sab,nb->sna", rot, m) + trans[:, None]
+    rank = _similarity(qtree, moved.reshape(-1, 3), sigma).reshape(len(rot), -1).mean(1)
+    starts: list[int] = []
+    for s in np.argsort(-rank, kind="stable"):
+        if all(np.linalg.norm(rot[s] - rot[o]) > 0.3 or np.linalg.norm(trans[s] - trans[o]) > sigma for o in starts):
+            starts.append(int(s))
+        if len(starts) == settings.alignment_starts:
+            break
+    best = Alignment(-1.0, np.eye(4))
+    for s in starts:
+        r, t = _refine_pose(q, qtree, m, mtree, rot[s], trans[s], sigma)
+        score = 0.5 * (_similarity(qtree, m @ r.T + t, sigma).mean() + _similarity(mtree, (q - t) @ r, sigma).mean())
+        if score > best.score:
+            pose = np.eye(4)
+            pose[:3, :3], pose[:3, 3] = r, t
+            best = Alignment(float(score), pose)
+    return best
 
 
 def shape_similarity(query: Description, model: Description, tolerance: float | None = 0.5) -> float:

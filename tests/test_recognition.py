@@ -13,9 +13,9 @@ from scipy.spatial.transform import Rotation
 
 import sqparts
 from sqparts._database import ModelDatabase, match_figures, transform_parts, view_from_parts
-from sqparts._describe import SHAPE_BINS, SHAPE_RANGE, Description, describe, shape_distribution
+from sqparts._describe import SHAPE_BINS, SHAPE_RANGE, Description, describe, shape_distribution, surface_cloud
 from sqparts._part import stack_parts
-from sqparts._recognize import shape_similarity
+from sqparts._recognize import align_descriptions, shape_similarity
 from sqparts.cli import main
 
 
@@ -335,6 +335,71 @@ def test_a_database_path_that_is_a_file_is_refused(tmp_path):
 def test_bad_match_settings_are_refused():
     with pytest.raises(ValueError, match=r"weighting: got 'x', expected 'fraction' or 'volume'"):
         sqparts.MatchSettings(weighting="x")
+    with pytest.raises(ValueError, match=r"alignment_tolerance: got 0, expected a number > 0 or None"):
+        sqparts.MatchSettings(alignment_tolerance=0)
+    with pytest.raises(ValueError, match=r"alignment_pairs: got True, expected an integer >= 1"):
+        sqparts.MatchSettings(alignment_pairs=True)
+
+
+# --- the whole solid: its outer surface, aligned -----------------------------------------
+
+
+def test_surface_cloud_covers_the_outer_surface_of_two_overlapping_spheres():
+    """Two spheres (radii 0.2 and 0.1, centres 0.25 apart): every point lies on one sphere
+    and outside the other, and the share on each is its exposed area's (closed form:
+    a sphere of radius r loses a cap of area 2 pi r h to the other)."""
+    r1, r2, d = 0.2, 0.1, 0.25
+    spheres = stack_parts(
+        [
+            sqparts.Part(size=[r1] * 3, squareness=[1.0, 1.0], position=[0.0, 0.0, 2.0]),
+            sqparts.Part(size=[r2] * 3, squareness=[1.0, 1.0], position=[d, 0.0, 2.0]),
+        ]
+    )
+    pts = surface_cloud(spheres)
+    a = np.linalg.norm(pts - [0.0, 0.0, 2.0], axis=1)
+    b = np.linalg.norm(pts - [d, 0.0, 2.0], axis=1)
+    on_first = np.abs(a - r1) < 1e-5
+    assert np.all(on_first | (np.abs(b - r2) < 1e-5))
+    assert np.all(a >= r1 - 1e-5) and np.all(b >= r2 - 1e-5)  # nothing inside the other sphere
+    x = (d * d + r1 * r1 - r2 * r2) / (2 * d)  # the plane of the circle where the spheres meet
+    exposed1 = 4 * np.pi * r1**2 - 2 * np.pi * r1 * (r1 - x)
+    exposed2 = 4 * np.pi * r2**2 - 2 * np.pi * r2 * (r2 - (d - x))
+    assert on_first.mean() == pytest.approx(exposed1 / (exposed1 + exposed2), abs=0.03)
+
+
+@pytest.mark.parametrize("scene", ["chair", "castings"])
+def test_aligning_a_moved_solid_finds_the_motion(scene):
+    parts = sqparts.builtin_scene(scene).parts
+    query, pose = moved(parts)
+    a = align_descriptions(describe(query), describe(parts))
+    assert a.score > 0.99
+    np.testing.assert_allclose(a.pose, pose, atol=2e-3)
+    others = [n for n in ("human", "chair", "castings") if n != scene]
+    for other in others:
+        assert align_descriptions(describe(query), describe(sqparts.builtin_scene(other).parts)).score < 0.5
+
+
+def test_alignment_tolerates_a_hidden_part_and_ignores_how_the_solid_is_cut():
+    """The chair with a leg hidden still aligns with the chair (pose as moved) better than
+    with the other objects; the bar-and-head solid cut 40/60 aligns with the uncut one
+    far better than another object does, where the part graph changes."""
+    chair = sqparts.builtin_scene("chair").parts
+    query, pose = moved(chair[1:])
+    a = align_descriptions(describe(query), describe(chair))
+    np.testing.assert_allclose(a.pose, pose, atol=1e-2)  # within 1 cm: the hidden leg pulls a little
+    for other in ("human", "castings"):
+        assert a.score > align_descriptions(describe(query), describe(sqparts.builtin_scene(other).parts)).score + 0.3
+    bar = sqparts.Part(size=[0.05, 0.05, 0.4], squareness=[0.3, 1.0], position=[0.0, 0.0, 2.0])
+    head = sqparts.Part(size=[0.15, 0.12, 0.1], squareness=[0.5, 0.5], position=[0.0, 0.0, 2.5])
+    pieces = [
+        sqparts.Part(size=[0.05, 0.05, 0.16], squareness=[0.3, 1.0], position=[0.0, 0.0, 1.76]),
+        sqparts.Part(size=[0.05, 0.05, 0.24], squareness=[0.3, 1.0], position=[0.0, 0.0, 2.16]),
+    ]
+    model = describe(stack_parts([bar, head]))
+    cut = align_descriptions(describe(moved(stack_parts([*pieces, head]))[0]), model)
+    other = describe(stack_parts([head, dataclasses.replace(head, position=np.array([0.0, 0.3, 2.5]))]))
+    # Not 1: the two pieces' rounded ends pinch the bar where it was cut.
+    assert cut.score > 0.8 and cut.score > align_descriptions(other, model).score + 0.3
 
 
 # --- the whole-object term: the D2 shape distribution of the parts' surfaces -----------
