@@ -247,9 +247,20 @@ def main():
         help="also weigh each match by the whole objects' shape distributions (MatchSettings(shape_tolerance=0.5)); "
         "results saved as recognition_shape*",
     )
+    ap.add_argument(
+        "--plot-only",
+        action="store_true",
+        help="redraw the pictures from the saved results JSON (no recovery, no matching)",
+    )
     args = ap.parse_args()
     settings = MatchSettings(shape_tolerance=0.5) if args.whole_object else MatchSettings()
     tag = "recognition_shape" if args.whole_object else "recognition"
+    if args.plot_only:
+        saved = json.loads(result_path(tag).read_text())
+        c = saved["confusion"]
+        plot_confusion(np.array(c["counts"]), c["rows"], result_path(f"{tag}_confusion", "png"))
+        plot_top1(saved["rows"], c["rows"], result_path(f"{tag}_confusion_top1", "png"))
+        return
     import sqparts._compile
 
     sqparts._compile.enable_caches()
@@ -400,9 +411,18 @@ def main():
         },
     )
     plot_confusion(confusion, objects, result_path(f"{tag}_confusion", "png"))
+    plot_top1(rows, objects, result_path(f"{tag}_confusion_top1", "png"))
 
 
-def plot_confusion(confusion, objects, path):
+def plot_top1(rows, objects, path):
+    """The confusion of the top match, whatever its score (no rejection)."""
+    confusion = np.zeros((len(objects), len(objects) + 1), int)
+    for r in rows:
+        confusion[objects.index(r["object"]), objects.index(r["top"]) if r["top"] else len(objects)] += 1
+    plot_confusion(confusion, objects, path, xlabel="top match (no threshold)")
+
+
+def plot_confusion(confusion, objects, path, *, xlabel="recognised as (best)"):
     from sqparts._plot import _pyplot
 
     plt = _pyplot()
@@ -421,7 +441,7 @@ def plot_confusion(confusion, objects, path):
                 )
     ax.set_xticks(range(len(objects) + 1), objects + ["(rejected)"], rotation=60, ha="right")
     ax.set_yticks(range(len(objects)), objects)
-    ax.set_xlabel("recognised as (best)")
+    ax.set_xlabel(xlabel)
     ax.set_ylabel("true object")
     ax.set_title("sqparts recognize: unseen views, database of 12 objects")
     fig.savefig(path, bbox_inches="tight")
