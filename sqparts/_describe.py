@@ -100,17 +100,22 @@ def surface_samples(size, squareness, bend, taper, rotation, position, *, count:
     return q @ np.asarray(rotation).T + np.asarray(position)
 
 
+def _eq1(scaled, squareness):
+    """Eq. 1's inside-outside function F of part-frame coordinates already divided by the
+    semi-axes and made non-negative (|x|/a1, |y|/a2, |z|/a3), shape (..., 3)."""
+    e1, e2 = squareness
+    return (scaled[..., 0] ** (2 / e2) + scaled[..., 1] ** (2 / e2)) ** (e2 / e1) + scaled[..., 2] ** (2 / e1)
+
+
 def _radial_surface(theta, phi, size, squareness, bend, taper):
     """Part-frame points of a deformed superquadric in the directions (θ latitude, φ
     longitude): the direction d projected radially, r = F(d)^(-ε1/2) for the
     inside-outside function F of Eq. 1, then tapered and bent as :func:`surface_samples`."""
     d = np.stack([np.cos(theta) * np.cos(phi), np.cos(theta) * np.sin(phi), np.sin(theta)], -1)
-    e1, e2 = squareness
     a1, _, a3 = size
-    ad = np.abs(d) / np.asarray(size)
     with np.errstate(divide="ignore"):
-        f = (ad[..., 0] ** (2 / e2) + ad[..., 1] ** (2 / e2)) ** (e2 / e1) + ad[..., 2] ** (2 / e1)
-    q = d * (f ** (-e1 / 2))[..., None]
+        f = _eq1(np.abs(d) / np.asarray(size), squareness)
+    q = d * (f ** (-squareness[0] / 2))[..., None]
     x, y, z = q[..., 0], q[..., 1], q[..., 2]
     scale = 1.0 + taper * z / a3
     x, y = x * scale, y * scale
@@ -178,10 +183,7 @@ tolerance of each other, so that distances to them stand for distances to the su
 
 def _inside(points: np.ndarray, size, squareness, rotation, position) -> np.ndarray:
     """(n,) bool: ``points`` strictly inside the undeformed superquadric (F < 1, Eq. 1)."""
-    a = np.abs((points - position) @ rotation) / size + 1e-12
-    e1, e2 = squareness
-    f = (a[:, 0] ** (2 / e2) + a[:, 1] ** (2 / e2)) ** (e2 / e1) + a[:, 2] ** (2 / e1)
-    return f < 1.0 - 1e-6
+    return _eq1(np.abs((points - position) @ rotation) / size + 1e-12, squareness) < 1.0 - 1e-6
 
 
 def surface_cloud(parts: Part, *, samples: int = SURFACE_SAMPLES, count: int = 32) -> np.ndarray:

@@ -48,7 +48,7 @@ from ._describe import ATTRIBUTES, RELATIONS, SHAPE_BINS, SHAPE_RANGE, Descripti
 
 @dataclasses.dataclass(frozen=True)
 class MatchSettings:
-    """Tolerances of :func:`match_descriptions`.
+    """Tolerances of :func:`match_descriptions` and :func:`align_descriptions`.
 
     Attributes
     ----------
@@ -318,11 +318,11 @@ def _similarity(tree: KDTree, points: np.ndarray, sigma: float) -> np.ndarray:
 
 
 def _refine_pose(q, qtree, m, mtree, r, t, sigma):
-    """``q``, ``m``: the sparse points moved; ``qtree``, ``mtree``: all of each surface."""
     """Iterative closest points from (r, t): each step a weighted Kabsch on the nearest
     neighbours of both surfaces (model to query and query to model), weights falling
     with distance (exp(-d²/8σ²)), so that surface one solid has and the other lacks (an
-    occluded or extra part) pulls little."""
+    occluded or extra part) pulls little. ``q``, ``m``: the sparse points that move;
+    ``qtree``, ``mtree``: all of each surface."""
     for _ in range(_ICP_ITERATIONS):
         d1, i1 = qtree.query(m @ r.T + t)
         d2, i2 = mtree.query((q - t) @ r)

@@ -9,6 +9,7 @@ import json
 
 import numpy as np
 import pytest
+from scipy.spatial import KDTree
 from scipy.spatial.transform import Rotation
 
 import sqparts
@@ -142,6 +143,13 @@ def test_database_round_trips(tmp_path):
             np.testing.assert_allclose(t.description.attributes, s.description.attributes, rtol=1e-5, atol=1e-6)
             np.testing.assert_allclose(t.description.relations, s.description.relations, rtol=1e-5, atol=1e-5)
             np.testing.assert_allclose(np.asarray(t.parts.size), np.asarray(s.parts.size), rtol=1e-5)
+            assert t.description.surface is not None and s.description.surface is not None
+            # Made again from the parts as read back (to 6 digits): the same surface, though
+            # a draw may move to a neighbouring cell of the area grid (up to a few cm on a
+            # big flat face), well within the alignment's tolerance (8% of the scale).
+            a, b = s.description.surface, t.description.surface
+            for d in (KDTree(a).query(b)[0], KDTree(b).query(a)[0]):
+                assert np.mean(d) < 0.05 * s.description.scale and d.max() < 0.1 * s.description.scale
     text = (tmp_path / "db" / "chair.json").read_text()
     assert text.count("\n") > 100 and '"format": "sqparts-model/1"' in text  # readable, line by line
 
