@@ -160,11 +160,14 @@ def test_a_signal_between_writes_leaves_nothing(files, capsys, monkeypatch, sign
 
     monkeypatch.setattr(sqparts._mesh, "save_mesh", interrupted)
     out = files / "out"
+    # What the process had before (Python's default_int_handler, or SIG_IGN when started
+    # in the background by a shell without job control).
+    before = {s: signal.getsignal(s) for s in (signal.SIGINT, signal.SIGTERM)}
     code = main(["recover", str(files / "x.npy"), "--camera", str(files / "cam.json"), "--out", str(out), *FAST])
     assert code == 128 + signum
     assert "interrupted" in capsys.readouterr().err
     assert not out.exists() and no_staging_left(files)
-    assert signal.getsignal(signal.SIGINT) is signal.default_int_handler  # handlers restored
+    assert {s: signal.getsignal(s) for s in before} == before  # handlers restored
 
 
 def test_demo_with_a_bad_resolution_leaves_no_folder(tmp_path, capsys):
