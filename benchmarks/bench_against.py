@@ -5,8 +5,9 @@ recovered parts are bit-for-bit the same.
 Per scene and checkout: one process that recovers the scene once cold (compiling, and
 counting the XLA programs it builds) and ``--runs`` times warm with
 :func:`sqparts.recover`'s defaults; the warm runs' median is the figure. ``single`` is
-``bench_cli.py``'s 96x96 one-part image; the others are built-in scenes. Several ``--rounds`` repeat the whole interleaving (the machines are
-shared and noisy: compare medians taken in the same run).
+``bench_cli.py``'s 96x96 one-part image; the others are built-in scenes. Several
+``--rounds`` repeat the whole interleaving (the machines are shared and noisy: compare
+medians taken in the same run).
 
     git worktree add --detach /tmp/wt-base <commit>
     JAX_PLATFORMS=cpu python benchmarks/bench_against.py --base /tmp/wt-base [--scenes single human chair castings]

@@ -36,7 +36,6 @@ scores a stored view by the geometric mean of the two (``MatchSettings.alignment
 from __future__ import annotations
 
 import dataclasses
-import itertools
 
 import numpy as np
 from scipy.optimize import linear_sum_assignment
@@ -292,19 +291,9 @@ class Alignment:
     pose: np.ndarray
 
 
-def _proper_relabellings() -> np.ndarray:
-    """The 24 signed permutation matrices with determinant +1 (a box's rotations)."""
-    out = []
-    for perm in itertools.permutations(range(3)):
-        for signs in itertools.product((1.0, -1.0), repeat=3):
-            m = np.zeros((3, 3))
-            m[np.arange(3), perm] = signs
-            if np.linalg.det(m) > 0:
-                out.append(m)
-    return np.array(out)
-
-
-_RELABEL = _proper_relabellings()
+_RELABEL = np.round(Rotation.create_group("O").as_matrix())
+"""The 24 rotations of a box (the octahedral group): the signed permutation matrices with
+determinant +1, rounded to exact 0 and ±1."""
 _ICP_ITERATIONS = 15
 _SPARSE = 5
 """Moved points are every fifth of a surface's (itself an area-proportional draw, of 400
@@ -340,7 +329,7 @@ def align_descriptions(query: Description, model: Description, settings: MatchSe
     """Align the model's whole solid to the query's (see the module docstring).
 
     Poses are proposed by the ``settings.alignment_pairs`` pairs of parts with the
-    largest unary similarity times volume weight (as the part match weighs them): the
+    largest unary similarity times the geometric mean of their volume fractions: the
     model part's sorted axes put on the query part's in each of the 24 proper
     relabellings, its centre on the query part's centre and, separately, the model's
     volume-weighted centre on the query's. All proposals are scored by the mean
