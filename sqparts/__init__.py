@@ -73,7 +73,7 @@ _EXPORTS = {
         "grid_preset",
     ),
     "_polish": (
-        "grow_polish",
+        "grow_parts",
         "polish_part",
         "ray_penetration",
     ),
@@ -85,6 +85,7 @@ _EXPORTS = {
         "expanding_grid",
         "fit_image",
         "fit_region",
+        "fit_regions",
         "gamma_profile",
         "make_settings",
         "region_centers",

@@ -1,13 +1,18 @@
 """Polishing: optimistix Levenberg-Marquardt on the radial distances of measured points
 from a part's surface (footnote 6), while rays off the figure must miss the part.
 
-:func:`polish_part` fits one part; :func:`grow_polish` grows a hypothesis's support
-over its window by rounds of it (the search's polish); :func:`polish_parts` fits a
-batch of parts, each on its own points, ``PART_BUCKET`` parts per compiled call (the
-refinement's moves).
+:func:`polish_part` fits one part; :func:`polish_parts` fits a batch of parts, each on
+its own points, ``PART_BUCKET`` parts and :data:`POLISH_CALL_STEPS` steps per compiled
+call: the one program every stage polishes with. :func:`grow_parts` grows a batch of
+parts' supports over the image by rounds of it (the search's polish of every region's
+candidates at once); the refinement's moves build their own supports on the same
+:func:`figure_points` and :func:`background_rays`.
 """
 
 from __future__ import annotations
+
+import functools
+import math
 
 import jax
 import jax.numpy as jnp
@@ -15,7 +20,9 @@ import lineax as lx
 import numpy as np
 import optimistix as optx
 
+from ._camera import camera_points, camera_rays
 from ._compile import concurrently, persistent_jit
+from ._data import RangeData
 from ._encoding import PART_BUCKET, host_parts, pad_parts, part_vectors
 from ._part import Part, from_unconstrained, matmul, rotation_matrix, surface_distance, to_local, to_unconstrained
 from ._typing import ArrayLike, Float
@@ -71,47 +78,6 @@ def polish_part(part: Part, points, weights, *, rays=None, steps: int = 20) -> P
     return from_unconstrained(jnp.where(ok, sol.value, u0))
 
 
-def grow_polish(
-    part: Part, origins, directions, depth, figure, seed, *, scale, rounds: int, steps: int, grow: int = 2
-) -> Part:
-    """Polish a hypothesis on a window of the image by region growing (an ICP).
-
-    ``origins``, ``directions`` (H, W, 3) are the window's rays, ``depth`` (H, W) its
-    measured depth (NaN: no return), ``figure`` (H, W) its figure pixels and ``seed`` (H, W)
-    the pixels the hypothesis explains. Each round grows the support by ``grow`` pixels
-    into neighbours within ``3 scale`` of the surface and fits the support with Cauchy
-    weights of width ``scale`` (:func:`polish_part`), while rays off the figure must miss
-    the part in front of their return (all along when there is none: a part may hide
-    behind an occluding figure). So a coarse hypothesis walks onto its whole visible
-    surface without jumping to an occluder or a neighbouring part, or swelling past its
-    silhouette.
-    """
-    valid = figure & jnp.isfinite(depth)
-    flat = (origins + jnp.where(valid, depth, 0.0)[..., None] * directions).reshape(-1, 3)
-    # Every other off-figure ray is enough to keep the part inside its silhouette.
-    r = slice(0, None, 2)
-    far = jnp.where(jnp.isfinite(depth[r, r]), depth[r, r] - scale, jnp.inf).reshape(-1)
-    rays = (
-        origins[r, r].reshape(-1, 3),
-        directions[r, r].reshape(-1, 3),
-        (~figure[r, r]).reshape(-1).astype(flat.dtype),
-        far,
-    )
-    size = 2 * grow + 1
-
-    def one_round(carry, first):
-        p, support = carry
-        d = jnp.abs(jax.vmap(lambda x: surface_distance(p, x))(flat)).reshape(valid.shape)
-        grown = jax.lax.reduce_window(support.astype(jnp.float32), 0.0, jax.lax.max, (size, size), (1, 1), "SAME") > 0
-        support = jnp.where(first, support & valid, grown & valid & (d < 3 * scale))
-        w = jnp.where(support, jax.lax.rsqrt(1 + (d / scale) ** 2), 0.0)
-        return (polish_part(p, flat, w.reshape(-1), rays=rays, steps=steps), support), None
-
-    first = jnp.arange(rounds) == 0
-    (part, _), _ = jax.lax.scan(one_round, (part, seed), first)
-    return part
-
-
 # Points and background rays per part in one fit: a fixed random subset beyond these
 # fits 14 parameters about as well as all of them at half the cost (final E of the
 # human, chair and castings with 512 points: 5 468, 6 253, 9 441 bits; with 1 024:
@@ -120,6 +86,11 @@ _POINTS = 512
 
 
 _RAYS = 256
+
+POLISH_CALL_STEPS = 20
+"""Levenberg-Marquardt steps per compiled call of :func:`polish_parts`: the search's
+rounds of region growing and the refinement's moves take 20 each, so one program
+serves both."""
 
 
 @persistent_jit(static_argnames=("steps",))
@@ -134,15 +105,15 @@ def _polish_bucket(parts, points, weights, origins, directions, ray_weights, ste
 
 def _gather(weights: np.ndarray, size: int, seed: int = 0) -> tuple[np.ndarray, np.ndarray]:
     """Per row of ``weights`` (n, m): the indices of up to ``size`` of its non-zero
-    entries (a fixed random subset when there are more) and their weights, padded with
-    index 0 and weight 0."""
-    rng = np.random.default_rng(seed)
+    entries (a fixed random subset when there are more, drawn by the row alone: a part's
+    fit does not depend on what shares its batch) and their weights, padded with index 0
+    and weight 0."""
     index = np.zeros((len(weights), size), np.int64)
     out = np.zeros((len(weights), size), np.float32)
     for i, w in enumerate(weights):
         nz = np.flatnonzero(w)
         if len(nz) > size:
-            nz = np.sort(rng.choice(nz, size, replace=False))
+            nz = np.sort(np.random.default_rng((seed, len(nz))).choice(nz, size, replace=False))
         index[i, : len(nz)] = nz
         out[i, : len(nz)] = w[nz]
     return index, out
@@ -152,8 +123,10 @@ def polish_parts(parts: Part, points, weights, steps: int, rays, ray_weights) ->
     """Each part polished on its own points (non-zero ``weights[i]`` over ``points``,
     at most ``_POINTS`` of them) while missing its background rays (non-zero
     ``ray_weights[i]`` over ``rays`` = (origins, directions), at most ``_RAYS``);
-    ``PART_BUCKET`` parts per compiled call, so one compilation serves any number of parts
-    and any image."""
+    ``PART_BUCKET`` parts and :data:`POLISH_CALL_STEPS` solver steps per compiled call, so
+    one compilation serves any number of parts, any image and any ``steps`` (rounded up to
+    a multiple of :data:`POLISH_CALL_STEPS`; each call starts the solver afresh from where
+    the last one stopped)."""
     padded, n = pad_parts(parts)
     m = len(padded)
     pi, pw = _gather(np.asarray(weights)[:n], _POINTS)
@@ -166,14 +139,144 @@ def polish_parts(parts: Part, points, weights, steps: int, rays, ray_weights) ->
     d[rw == 0] = (0.0, 0.0, 1.0)  # padding rays stay finite
 
     def bucket(k):
-        return part_vectors(
-            _polish_bucket(
-                padded[k : k + PART_BUCKET], *(a[k : k + PART_BUCKET] for a in (x, pw, o, d, rw)), steps=steps
-            )
-        )
+        b = slice(k, k + PART_BUCKET)
+        out = part_vectors(padded[b])
+        for _ in range(-(-steps // POLISH_CALL_STEPS)):  # host arrays in: one program for every call
+            out = part_vectors(_polish_bucket(host_parts(out), x[b], pw[b], o[b], d[b], rw[b], steps=POLISH_CALL_STEPS))
+        return out
 
     return host_parts(np.concatenate(concurrently(bucket, range(0, m, PART_BUCKET)))[:n])
 
 
 def pad_rows(a: np.ndarray, m: int) -> np.ndarray:
     return np.concatenate([a, np.zeros((m - len(a),) + a.shape[1:], a.dtype)])
+
+
+# --- region growing over a whole image ------------------------------------------------
+
+
+POLISH_SCALE = 0.05
+"""Width of region growing's Cauchy weights, as a fraction of the part's largest
+semi-axis (never below σ)."""
+
+
+def once_per_image(fn):
+    """Compute ``fn(data)`` once per prepared image (kept in the instance's ``__dict__``;
+    :class:`RangeData` is frozen and its arrays are not hashable)."""
+
+    @functools.wraps(fn)
+    def wrapper(data):
+        cache = data.__dict__.setdefault("_polish_cache", {})
+        if fn.__name__ not in cache:
+            cache[fn.__name__] = fn(data)
+        return cache[fn.__name__]
+
+    return wrapper
+
+
+@once_per_image
+def figure_points(data: RangeData):
+    """Figure pixels' 3-D points and their flat indices (a fixed random 20 000 of them
+    when there are more), padded to a multiple of 1024 (index -1)."""
+    max_points, seed = 20000, 0
+    idx = np.flatnonzero(data.figure_mask)
+    if len(idx) > max_points:
+        idx = np.sort(np.random.default_rng(seed).choice(idx, max_points, replace=False))
+    pts = camera_points(data.camera, data.image).reshape(-1, 3)[idx]
+    m = int(math.ceil(len(idx) / 1024) * 1024)
+    return pad_rows(pts.astype(np.float32), m), np.concatenate([idx, np.full(m - len(idx), -1)])
+
+
+@once_per_image
+def background_rays(data: RangeData):
+    """Rays through background pixels (no return, off the figure) within 3 pixels of the
+    figure, where a part that swells past its silhouette shows first: (origins,
+    directions), flat pixel indices. Rays with a return off the figure (another figure,
+    an occluder) do not count: a part may hide behind them."""
+    from scipy.ndimage import binary_dilation
+
+    figure = data.figure_region
+    idx = np.flatnonzero(binary_dilation(figure, iterations=3) & ~figure & ~np.isfinite(data.image))
+    o, d = (np.asarray(a).reshape(-1, 3)[idx].astype(np.float32) for a in camera_rays(data.camera))
+    return (o, d), idx
+
+
+def rays_near(mask: np.ndarray, ray_index: np.ndarray, margin: int) -> np.ndarray:
+    """1 for each background ray within ``margin`` pixels of ``mask`` (H, W), else 0; a
+    stack of masks (n, H, W) gives (n, rays)."""
+    from scipy.ndimage import binary_dilation, generate_binary_structure
+
+    mask = np.asarray(mask, bool)
+    cross = generate_binary_structure(2, 1)
+    structure = cross if mask.ndim == 2 else np.stack([np.zeros_like(cross), cross, np.zeros_like(cross)])
+    near = binary_dilation(mask, structure, iterations=margin)
+    return near.reshape(*mask.shape[:-2], -1)[..., ray_index].astype(np.float32)
+
+
+@persistent_jit
+def _surface_distance(parts, points):
+    return jax.vmap(lambda p: jax.vmap(lambda x: surface_distance(p, x))(points))(parts)
+
+
+def surface_distances(parts: Part, points) -> np.ndarray:
+    """(n, m) radial distance (:func:`~sqparts.surface_distance`) of every point to every
+    part, ``PART_BUCKET`` parts per compiled call."""
+    padded, n = pad_parts(parts)
+    pts = np.asarray(points)
+    return np.concatenate(
+        concurrently(
+            lambda k: np.asarray(_surface_distance(padded[k : k + PART_BUCKET], pts)),
+            range(0, len(padded), PART_BUCKET),
+        )
+    )[:n]
+
+
+def polish_scale(parts: Part, sigma: float) -> np.ndarray:
+    """(n,) width of each part's Cauchy weights: :data:`POLISH_SCALE` of its largest
+    semi-axis, never below σ."""
+    return np.maximum(POLISH_SCALE * np.asarray(parts.size).reshape(-1, 3).max(1), sigma).astype(np.float32)
+
+
+def grow_parts(parts: Part, data: RangeData, seeds, *, rounds: int, steps: int, grow: int = 2) -> Part:
+    """Polish a batch of parts by region growing over the image (an ICP), all parts
+    together in each round.
+
+    ``seeds`` (n, H, W) are the figure pixels each part starts from (e.g. those its
+    hypothesis explains). The first round fits each part to its seed; each later one
+    grows the support by ``grow`` pixels into neighbours within 3 scale of the part's
+    surface (:func:`polish_scale`). Each round fits the support with Cauchy weights of
+    width scale (:func:`polish_parts`, ``steps`` Levenberg-Marquardt steps) while the
+    :func:`background_rays` within ``grow`` + 3 pixels of the support must miss the part.
+    So a coarse hypothesis walks onto its whole visible surface without jumping to an
+    occluder or a neighbouring part, or swelling past its silhouette; it may hide behind
+    an occluder.
+    """
+    from scipy.ndimage import binary_dilation
+
+    seeds = np.asarray(seeds, bool)
+    n = len(parts)
+    if seeds.shape != (n, data.camera.height, data.camera.width):
+        raise ValueError(f"seeds: got shape {seeds.shape}, expected {(n, data.camera.height, data.camera.width)}")
+    if n == 0 or rounds == 0:
+        return parts
+    pts, idx = figure_points(data)
+    rays, ray_index = background_rays(data)
+    valid = idx >= 0
+    at = np.maximum(idx, 0)
+    scale = polish_scale(parts, data.encoding.sigma)[:, None]
+    box = np.ones((1, 2 * grow + 1, 2 * grow + 1), bool)
+    support = seeds.reshape(n, -1)[:, at] & valid
+    vec = part_vectors(parts)
+    for r in range(rounds):
+        dist = np.abs(surface_distances(host_parts(vec), pts))
+        image = np.zeros(seeds.shape, bool)
+        image.reshape(n, -1)[:, at[valid]] = support[:, valid]
+        if r > 0:
+            near = np.asarray(binary_dilation(image, box), bool).reshape(n, -1)[:, at]
+            support = near & valid & (dist < 3 * scale)
+            image[:] = False
+            image.reshape(n, -1)[:, at[valid]] = support[:, valid]
+        weights = np.where(support, 1.0 / np.sqrt(1.0 + (dist / scale) ** 2), 0.0)
+        ray_weights = rays_near(image, ray_index, grow + 3)
+        vec = part_vectors(polish_parts(host_parts(vec), pts, weights, steps, rays, ray_weights))
+    return host_parts(vec)

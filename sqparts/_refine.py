@@ -26,18 +26,16 @@ re-render only the parts it changes.
 from __future__ import annotations
 
 import dataclasses
-import functools
 import math
 
 import jax
 import jax.numpy as jnp
 import numpy as np
 
-from ._camera import camera_points, camera_rays
-from ._compile import concurrently, persistent_jit
+from ._camera import camera_points
+from ._compile import persistent_jit
 from ._data import RangeData
 from ._encoding import (
-    PART_BUCKET,
     Composition,
     Costs,
     EncodingCost,
@@ -48,68 +46,26 @@ from ._encoding import (
     layers_cost,
     layers_of,
     least_pixels,
-    pad_parts,
     part_vectors,
     pixel_errors,
     render_layers,
 )
-from ._part import Part, from_unconstrained, surface_distance, to_unconstrained
-from ._polish import pad_rows, polish_parts
+from ._part import Part, from_unconstrained, to_unconstrained
+from ._polish import (
+    background_rays,
+    figure_points,
+    polish_parts,
+    polish_scale,
+    rays_near,
+    surface_distances,
+)
 from ._render import cast_part
-
-
-def _once(fn):
-    """Compute ``fn(data)`` once per prepared image (kept in the instance's ``__dict__``;
-    :class:`RangeData` is frozen and its arrays are not hashable)."""
-
-    @functools.wraps(fn)
-    def wrapper(data):
-        cache = data.__dict__.setdefault("_refine_cache", {})
-        if fn.__name__ not in cache:
-            cache[fn.__name__] = fn(data)
-        return cache[fn.__name__]
-
-    return wrapper
-
-
-@_once
-def _figure_points(data: RangeData):
-    """Figure pixels' 3-D points and their flat indices (a fixed random 20 000 of them
-    when there are more), padded to a multiple of 1024."""
-    max_points, seed = 20000, 0
-    figure = data.figure_mask
-    idx = np.flatnonzero(figure)
-    if len(idx) > max_points:
-        idx = np.sort(np.random.default_rng(seed).choice(idx, max_points, replace=False))
-    pts = camera_points(data.camera, data.image).reshape(-1, 3)[idx]
-    m = int(math.ceil(len(idx) / 1024) * 1024)
-    return pad_rows(pts.astype(np.float32), m), np.concatenate([idx, np.full(m - len(idx), -1)])
-
-
-@_once
-def _background_rays(data: RangeData):
-    """Rays through background pixels (no return, off the figure) within 3 pixels of the
-    figure, where a part that swells past its silhouette shows first: (origins,
-    directions, flat pixel indices)."""
-    from scipy.ndimage import binary_dilation
-
-    figure = data.figure_region
-    idx = np.flatnonzero(binary_dilation(figure, iterations=3) & ~figure & ~np.isfinite(data.image))
-    o, d = (np.asarray(a).reshape(-1, 3)[idx].astype(np.float32) for a in camera_rays(data.camera))
-    return (o, d), idx
-
-
-def _rays_near(mask: np.ndarray, ray_index: np.ndarray, margin: int) -> np.ndarray:
-    """1 for each background ray within ``margin`` pixels of ``mask``, else 0."""
-    from scipy.ndimage import binary_dilation
-
-    return binary_dilation(mask, iterations=margin).reshape(-1)[ray_index].astype(np.float32)
 
 
 def _grow_inputs(parts: Part, data: RangeData, cost: EncodingCost, which, *, tolerance: float = 2.0, grow: int = 2):
     """What one region-growing fit of the parts ``which`` (indices) needs, given their
     joint rendering ``cost``: their (k, 14) vectors, point weights and ray weights (for
-    :func:`polish_parts` with :func:`_figure_points` and :func:`_background_rays`).
+    :func:`polish_parts` with :func:`figure_points` and :func:`background_rays`).
 
     Each part takes the figure pixels where it is visible (within ``tolerance`` σ) and
     the unexplained figure pixels within ``grow`` pixels of them that lie within 3 scale
@@ -119,7 +75,7 @@ def _grow_inputs(parts: Part, data: RangeData, cost: EncodingCost, which, *, tol
     from scipy.ndimage import binary_dilation
 
     which = np.asarray(which, np.int64)
-    pts, idx = _figure_points(data)
+    pts, idx = figure_points(data)
     valid = idx >= 0
     at = np.maximum(idx, 0)
     flat_labels = cost.labels.reshape(-1)[at]
@@ -128,16 +84,16 @@ def _grow_inputs(parts: Part, data: RangeData, cost: EncodingCost, which, *, tol
     free = ~cost.explained_mask.reshape(-1)[at] & valid
     vec = part_vectors(parts)[which]
     chosen = host_parts(vec)
-    dist = np.abs(_distances(chosen, pts))
-    scale = np.maximum(0.05 * np.asarray(chosen.size).max(1), data.encoding.sigma)[:, None]
-    _, ray_index = _background_rays(data)
+    dist = np.abs(surface_distances(chosen, pts))
+    scale = polish_scale(chosen, data.encoding.sigma)[:, None]
+    _, ray_index = background_rays(data)
     weights, ray_weights = [], []
     for k, i in enumerate(which):
         mine = cost.labels == i
         near = binary_dilation(mine, iterations=grow).reshape(-1)[at]
         support = ((flat_labels == i) & close & valid) | (free & near & (dist[k] < 3 * scale[k]))  # pyright: ignore[reportOperatorIssue]  # scipy is untyped: binary_dilation's inferred return includes float arrays
         weights.append(np.where(support, 1.0 / np.sqrt(1.0 + (dist[k] / scale[k]) ** 2), 0.0))
-        ray_weights.append(_rays_near(mine, ray_index, grow + 3))
+        ray_weights.append(rays_near(mine, ray_index, grow + 3))
     return vec, np.stack(weights), np.stack(ray_weights)
 
 
@@ -145,8 +101,8 @@ def _grow(data: RangeData, inputs, *, steps: int) -> np.ndarray:
     """Fit every part of a list of :func:`_grow_inputs` results in one batch; returns
     their (Σk, 14) fitted vectors."""
     vec, weights, ray_weights = (np.concatenate(a) for a in zip(*inputs))
-    pts, _ = _figure_points(data)
-    rays, _ = _background_rays(data)
+    pts, _ = figure_points(data)
+    rays, _ = background_rays(data)
     return part_vectors(polish_parts(host_parts(vec), pts, weights, steps, rays, ray_weights))
 
 
@@ -295,7 +251,7 @@ def fill_gaps(
     """Search the figure's unexplained blobs for parts the first search missed (a hand, a
     foot, a teapot's lid: too small for the scales searched around the skeleton): the
     ``blobs`` largest :func:`omitted_blobs` that could pay for a part are searched again with
-    :func:`~sqparts._search.fit_region` at their innermost pixel, ``max_size`` 3/4 of
+    :func:`~sqparts._search.fit_regions` at their innermost pixel, ``max_size`` 3/4 of
     the blob's extent across the image (same window and grid: nothing is recompiled). A
     blob more than two of its widest discs long may hold several things (a lid's knob on
     the lid's rim seen edge-on), so it is also searched at up to ``seeds`` more of its
@@ -317,7 +273,7 @@ def fill_gaps(
     :func:`refine_parts` finishes each and keeps the shorter description."""
     from scipy.ndimage import distance_transform_edt
 
-    from ._search import fit_region, region_centers
+    from ._search import fit_regions, region_centers
 
     cost = encoding_cost(parts, data, costs) if cost is None else cost
     least = least_pixels(costs)
@@ -367,7 +323,7 @@ def fill_gaps(
         seed.extend([("thin", k)] * len(starts))
         innermost.add(("thin", k))
     # The searches are independent: run concurrently, their finds kept in this order.
-    fits = concurrently(lambda job: fit_region(data, dataclasses.replace(settings, max_size=job[1]), job[0]), searches)
+    fits = fit_regions(data, settings, [c for c, _ in searches], max_sizes=[s for _, s in searches]) if searches else []
     for (centre, _), fit in zip(searches, fits):
         good = part_vectors(fit.parts)[np.asarray(fit.gamma) > 0]
         additions.extend(good)
@@ -679,24 +635,6 @@ def _part_groups(adjacent: np.ndarray) -> list[tuple]:
     return sorted(g for g in groups if len(g) >= 2)
 
 
-@persistent_jit
-def _surface_distance(parts, points):
-    return jax.vmap(lambda p: jax.vmap(lambda x: surface_distance(p, x))(points))(parts)
-
-
-def _distances(parts: Part, points) -> np.ndarray:
-    """(n, m) radial distance (:func:`~sqparts.surface_distance`) of every point to every
-    part, ``PART_BUCKET`` parts per compiled call."""
-    padded, n = pad_parts(parts)
-    pts = np.asarray(points)
-    return np.concatenate(
-        concurrently(
-            lambda k: np.asarray(_surface_distance(padded[k : k + PART_BUCKET], pts)),
-            range(0, len(padded), PART_BUCKET),
-        )
-    )[:n]
-
-
 def merge_adjacent(
     parts: Part, data: RangeData, costs: Costs, *, steps: int = 20, tries: int = 3, cost: EncodingCost | None = None
 ):
@@ -719,8 +657,8 @@ def merge_adjacent(
     from scipy.ndimage import binary_dilation, distance_transform_edt
 
     cost = encoding_cost(parts, data, costs) if cost is None else cost
-    pts, idx = _figure_points(data)
-    rays, ray_index = _background_rays(data)
+    pts, idx = figure_points(data)
+    rays, ray_index = background_rays(data)
     at = np.maximum(idx, 0)
     merged, first = True, True
     while merged and len(parts) >= 1:
@@ -748,7 +686,7 @@ def merge_adjacent(
             w = np.where(idx >= 0, union.reshape(-1)[at], False).astype(np.float32)
             if w.sum() < 8:
                 return
-            wr = _rays_near(np.isin(cost.labels, group), ray_index, 5)
+            wr = rays_near(np.isin(cost.labels, group), ray_index, 5)
             for init in starts(w):
                 inits.append(init)
                 weights.append(w)
@@ -873,7 +811,8 @@ MAX_REFINE_ROUNDS = 100
 @dataclasses.dataclass(frozen=True)
 class RefineSettings:
     """Joint refinement after selection (:func:`refine_parts`): ``rounds`` of joint
-    polishing of ``steps`` solver steps each (0 = none), then ``split`` (a part split in
+    polishing of ``steps`` solver steps each (rounded up to a multiple of
+    :data:`~sqparts._polish.POLISH_CALL_STEPS`; 0 = none), then ``split`` (a part split in
     two along its axis), ``fill`` (the blobs still unexplained searched again at their own
     scale, for small parts: hands, feet), and ``merge`` (two adjacent parts merged into one
     bent part), each kept only when E falls. ``RefineSettings.none()``: no refinement."""

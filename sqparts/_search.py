@@ -13,9 +13,12 @@ region or per image.
 only the best ``survivors`` are scored again at full resolution. ``stride=1`` is the
 brute force.
 
-**Polishing**: the best candidates are refined with optimistix Levenberg-Marquardt on the
-inside-outside residuals (footnote 6) at the measured 3-D points each one explains,
-batched over candidates; a polished part is kept only if its Γ improves.
+**Candidates** (:func:`fit_regions`): every region's best distinct hypotheses are posed,
+scored at full resolution, polished and scored again together, ``PART_BUCKET`` per
+compiled call whatever their region: polishing is region growing with optimistix
+Levenberg-Marquardt on the radial distances (footnote 6) of the measured 3-D points each
+one explains (:func:`~sqparts._polish.grow_parts`, the program the refinement polishes
+with), and a polished part is kept only if it stays at its region and its Γ improves.
 """
 
 from __future__ import annotations
@@ -34,7 +37,7 @@ from jax.sharding import PartitionSpec as P
 from ._camera import Camera, camera_points
 from ._compile import concurrently, persistent_jit
 from ._data import RangeData, prepare
-from ._encoding import Encoding, commission_mask, gamma_terms
+from ._encoding import PART_BUCKET, Encoding, commission_mask, gamma_terms, host_parts, pad_parts, part_vectors
 from ._grid import Grid, grid_preset, lookup_preset
 from ._part import (
     Part,
@@ -42,7 +45,7 @@ from ._part import (
     matrix_to_rotation_vector,
     rotation_matrix,
 )
-from ._polish import grow_polish
+from ._polish import grow_parts, pad_rows
 from ._render import cast_part
 
 SEARCH_NEWTON_STEPS = 6
@@ -51,11 +54,6 @@ NUM_BINS = 1024
 """Histogram bins of width σ/2 (offsets of ±256 σ around the anchor pixel's own)."""
 CHUNK_RAYS = 2**16
 """Rays per chunk of hypotheses: ``batch_size`` is capped at CHUNK_RAYS / window pixels."""
-POLISH_SCALE = 0.05
-"""Width of the polishing's Cauchy weights, as a fraction of the hypothesis' largest
-semi-axis (never below σ)."""
-POLISH_STRIDE = 2
-"""Polishing fits every POLISH_STRIDE-th row and column of the window's points."""
 
 
 # --- the image as the search sees it --------------------------------------------------
@@ -81,7 +79,9 @@ class SearchSettings:
     :func:`~sqparts._preprocess.pruning_stride`) and the best ``survivors`` rescored at full resolution (``prune=False``: every hypothesis
     at full resolution); the ``polish_candidates`` best
     distinct survivors are polished (``polish_rounds`` of region growing ×
-    ``polish_steps`` Levenberg-Marquardt steps); the best polished part is restarted from
+    ``polish_steps`` Levenberg-Marquardt steps, rounded up to a multiple of
+    :data:`~sqparts._polish.POLISH_CALL_STEPS`: all regions' candidates together,
+    :func:`fit_regions`); the best polished part is restarted from
     3 · ``restarts``² starts (axis labellings × squareness values; 0: none) and polished
     again. Regions are centred on the figure's skeleton (``region_method``, see
     :func:`region_centers`) no two closer than ``spacing`` pixels (None: a seventh of the
@@ -96,7 +96,7 @@ class SearchSettings:
     survivors: int = 64
     batch_size: int = 256
     newton_steps: int = SEARCH_NEWTON_STEPS
-    polish_steps: int = 10
+    polish_steps: int = 20
     polish_rounds: int = 3
     polish_candidates: int = 3
     restarts: int = 0
@@ -164,7 +164,7 @@ SEARCH_PRESETS = {
     "fast": SearchSettings(),
     "paper": SearchSettings(grid="default"),
     "region": SearchSettings(
-        grid="default", top_k=4, polish_steps=15, polish_rounds=6, polish_candidates=24, restarts=3
+        grid="default", top_k=4, polish_steps=20, polish_rounds=6, polish_candidates=24, restarts=3
     ),
 }
 """Named search settings. ``"fast"`` (recovery's default): the coarse grid (3 168
@@ -440,29 +440,33 @@ def _restart_starts(part: Part, levels: int) -> Part:
     ``levels`` × ``levels`` grid of squareness values ((i + ½) · 2 / levels), with bend and
     taper reset to zero. Polishing converges to the nearest minimum; these starts reach
     the minima a near-symmetric part or a wrong squareness hides. Returns a batch of
-    ``3 levels²`` parts."""
-    plain = eqx.tree_at(lambda q: (q.bend, q.taper), part, (jnp.zeros_like(part.bend), jnp.zeros_like(part.taper)))
-    rot = rotation_matrix(part.orientation)
-    sq = (jnp.arange(levels) + 0.5) * 2.0 / levels
-    sq = jnp.stack(jnp.meshgrid(sq, sq, indexing="ij"), -1).reshape(-1, 2)
+    ``3 levels²`` parts (host arrays)."""
+    from scipy.spatial.transform import Rotation
+
+    v = part_vectors(part)[0]
+    rot = Rotation.from_rotvec(v[3:6].astype(np.float64)).as_matrix()  # = rotation_matrix, on the host
+    sq = (np.arange(levels) + 0.5) * 2.0 / levels
+    sq = np.stack(np.meshgrid(sq, sq, indexing="ij"), -1).reshape(-1, 2)
     starts = []
     for k in range(3):
-        idx = jnp.array([(k + i) % 3 for i in range(3)])
-        relabelled = eqx.tree_at(
-            lambda q: (q.size, q.orientation), plain, (part.size[idx], matrix_to_rotation_vector(rot[:, idx]))
+        idx = [(k + i) % 3 for i in range(3)]
+        relabelled = np.concatenate(
+            [v[:3], Rotation.from_matrix(rot[:, idx]).as_rotvec(), v[6:9][idx], [0, 0, 0, 0, 0]]
         )
-        starts.append(jax.vmap(lambda e: eqx.tree_at(lambda q: q.squareness, relabelled, e))(sq))
-    return jax.tree_util.tree_map(lambda *x: jnp.concatenate(x), *starts)
+        out = np.tile(relabelled, (len(sq), 1))
+        out[:, 9:11] = sq
+        starts.append(out)
+    return host_parts(np.concatenate(starts))
 
 
-@persistent_jit(
-    static_argnames=("camera", "pad", "window", "newton_steps", "polish_steps", "polish_rounds", "restarts")
-)
-def _finish(
+@persistent_jit(static_argnames=("camera", "pad", "window", "newton_steps"))
+def _score_candidates(
     arrays,
+    vectors,
     orientation_rel,
     shape,
     offsets,
+    posed,
     corner,
     centre,
     max_size,
@@ -471,82 +475,53 @@ def _finish(
     pad,
     window,
     newton_steps,
-    polish_steps,
-    polish_rounds,
-    restarts,
 ):
-    """Pose the chosen hypotheses, shift them by -p in depth, polish, restart the best
-    polished part (:func:`_restart_starts`) and score at full resolution over the window.
+    """Score a batch of candidates at full resolution, each over its own region's window
+    (``corner``, ``centre``: (n, 2)). Where ``posed``, candidate i is the hypothesis
+    (``orientation_rel``, ``shape``) posed at its region and moved by -``offsets`` in
+    depth along the region's centre ray (the peak of its Γ histogram); elsewhere it is
+    the part ``vectors[i]``.
 
-    Returns parts, Γ, explained/rendered window masks and ``anchored``: whether the part
-    explains a pixel within one of the region's centre. A part belongs to the region it
-    was posed at (the paper's hypotheses pass through the region's centre), so a polish
-    that walks onto a neighbour is not kept, and unanchored candidates rank last.
+    Returns the parts' vectors, Γ, the window masks explained/rendered/commission, and
+    ``anchored``: whether the part explains a pixel within one of the region's centre. A
+    part belongs to the region it was posed at (the paper's hypotheses pass through the
+    region's centre), so a polish that walks onto a neighbour is not kept, and
+    unanchored candidates rank last.
     """
     depth, fig, sigma, lam = arrays
-    measured, figure, origins, directions, c_o, c_d, surface_t = _region_inputs(
-        depth, fig, camera, pad, corner, centre, window
-    )
     c = window // 2
 
-    def shifted(part, p):  # move a part by -p in depth along the region's centre ray
-        return Part.from_vector(part.to_vector().at[:3].add(-p * c_d))
-
-    def posed(o, s, p):
-        return shifted(pose_hypothesis(o, s, max_size, c_o, c_d, surface_t), p)
-
-    def score(part):
+    def one(vector, o, s, p, posed, corner, centre, max_size):
+        measured, figure, origins, directions, c_o, c_d, surface_t = _region_inputs(
+            depth, fig, camera, pad, corner, centre, window
+        )
+        hypothesis = pose_hypothesis(o, s, max_size, c_o, c_d, surface_t).to_vector().at[:3].add(-p * c_d)
+        part = Part.from_vector(jnp.where(posed, hypothesis, vector))
         t, hit = cast_part(part, origins, directions, newton_steps)
         mu, eps, off, explained = gamma_terms(t, hit, measured, figure, sigma=sigma, num_bins=NUM_BINS)
         explained = explained.reshape(hit.shape)
         commission = commission_mask(hit, t, measured, figure, off + sigma / 2)
-        return mu - lam * eps, off, explained, hit, commission, jnp.any(explained[c - 1 : c + 2, c - 1 : c + 2])
+        anchored = jnp.any(explained[c - 1 : c + 2, c - 1 : c + 2])
+        return part.to_vector(), mu - lam * eps, explained, hit, commission, anchored
 
-    parts = jax.vmap(posed)(orientation_rel, shape, offsets)
-    scored = jax.vmap(score)(parts)
-    if polish_steps > 0 and polish_rounds > 0:
-        # Polish on every other row and column: a quarter of the rays, the same fit.
-        s = slice(0, None, POLISH_STRIDE)
-
-        def polish(part, p, seed):
-            scale = jnp.maximum(POLISH_SCALE * jnp.max(part.size), sigma)
-            return grow_polish(
-                shifted(part, p),
-                origins[s, s],
-                directions[s, s],
-                measured[s, s],
-                figure[s, s],
-                seed[s, s],
-                scale=scale,
-                rounds=polish_rounds,
-                steps=polish_steps,
-            )
-
-        gam, off, explained, _, _, anchored = scored
-        # lax.map, not vmap: see _refine._polish_bucket (a vmapped LM compiles twice as long).
-        polished = jax.lax.map(lambda args: polish(*args), (parts, off, explained))
-        new = jax.vmap(score)(polished)
-        new_gam, *_, new_anchored = new
-        # A polished part is kept only if it stays at the region and its Γ improves.
-        better = new_anchored & ((new_gam > gam) | ~anchored)
-        pick = lambda a, b: jnp.where(better.reshape((-1,) + (1,) * (a.ndim - 1)), a, b)  # noqa: E731
-        parts, scored = jax.tree_util.tree_map(pick, (polished, new), (parts, scored))
-        if restarts > 0:
-            gam, off, explained, _, _, anchored = scored
-            b = jnp.argmax(jnp.where(anchored, gam, -jnp.inf))
-            starts = _restart_starts(jax.tree_util.tree_map(lambda x: x[b], parts), restarts)
-            polished = jax.vmap(lambda q: polish(q, off[b], explained[b]))(starts)
-            cat = lambda a, b: jnp.concatenate([a, b])  # noqa: E731
-            parts, scored = jax.tree_util.tree_map(cat, (parts, scored), (polished, jax.vmap(score)(polished)))
-    gam, _, explained, hit, commission, anchored = scored
-    return parts, gam, explained, hit, commission, anchored
+    return jax.vmap(one)(vectors, orientation_rel, shape, offsets, posed, corner, centre, max_size)
 
 
-def fit_region(data: RangeData, settings: SearchSettings, centre) -> RegionFit:
-    """The best ``top_k`` parts at one region: score every hypothesis (on a subsample
-    when ``prune``), rescore the survivors at full resolution, polish the best."""
+class _Chosen(eqx.Module):
+    """A region's hypotheses worth a full-resolution look, best first (host arrays)."""
+
+    orientation: np.ndarray  # (k, 3) relative to the viewing ray
+    shape: np.ndarray  # (k, 8): the grid's shape columns
+    offset: np.ndarray  # (k,) Γ's peak offset p
+    ratio: float  # best Γ / runner-up Γ
+    max_size: float
+
+
+def _choose(data: RangeData, settings: SearchSettings, centre) -> _Chosen:
+    """Score every hypothesis at one region (on a subsample when ``prune``), rescore the
+    survivors at full resolution and keep the ``max(top_k, polish_candidates)`` best
+    distinct ones (:func:`_distinct`)."""
     hyp = _grid_arrays(settings.grid)
-    corner, centre_j = _corner(settings, centre)
     n = len(hyp["orientation"])
     if settings.prune and settings.lattice > 1 and settings.survivors < n:
         gam = np.empty(n, np.float32)
@@ -567,44 +542,180 @@ def fit_region(data: RangeData, settings: SearchSettings, centre) -> RegionFit:
     ranked = np.argsort(-gam_full, kind="stable")
     g_sorted = gam_full[ranked]
     ratio = float(g_sorted[0] / g_sorted[1]) if k > 1 and g_sorted[1] > 0 else float("inf")
-    best_i = _distinct(
-        hyp["orientation"][index[ranked]], hyp["shape"][index[ranked]], max(k, settings.polish_candidates)
-    )
-    best_i = ranked[best_i]
-    chosen = index[best_i]
-    parts, gam, explained, hit, commission, anchored = _finish(
-        data.arrays,
+    best = ranked[
+        _distinct(hyp["orientation"][index[ranked]], hyp["shape"][index[ranked]], max(k, settings.polish_candidates))
+    ]
+    chosen = index[best]
+    return _Chosen(
         hyp["orientation"][chosen],
         hyp["shape"][chosen],
-        np.asarray(off_full)[best_i],
-        corner,
-        centre_j,
-        np.float32(settings.max_size),
-        camera=data.compiled_camera,
-        pad=data.pad,
-        window=settings.window,
-        newton_steps=SEARCH_NEWTON_STEPS + 2,
-        polish_steps=settings.polish_steps,
-        polish_rounds=settings.polish_rounds,
-        restarts=settings.restarts,
+        np.asarray(off_full)[best],
+        ratio,
+        float(settings.max_size),  # pyright: ignore[reportArgumentType]  # resolved settings: a float
     )
-    order = np.lexsort((-np.asarray(gam), ~np.asarray(anchored)))[:k]  # anchored first, then by Γ
-    h, w = data.camera.height, data.camera.width
-    full_e = _to_image(np.asarray(explained)[order], corner, (h, w))
-    full_h = _to_image(np.asarray(hit)[order], corner, (h, w))
-    full_c = _to_image(np.asarray(commission)[order], corner, (h, w))
-    gam = np.asarray(gam)[order]
-    return RegionFit(
-        parts=parts[order],
-        gamma=jax.device_put(gam),
-        bits_saved=jax.device_put(np.asarray(data.encoding.bits_saved(gam))),
-        explained=jax.device_put(full_e),
-        rendered=jax.device_put(full_h),
-        commission=jax.device_put(full_c),
-        ratio=ratio,
-        centre=tuple(int(x) for x in np.asarray(centre)),
-        corner=tuple(int(x) for x in np.asarray(corner)),
+
+
+class _Scored(eqx.Module):
+    """Candidates scored over their regions' windows (host arrays, see
+    :func:`_score_candidates`); ``region`` (n,) indexes the regions."""
+
+    vectors: np.ndarray
+    gamma: np.ndarray
+    explained: np.ndarray
+    rendered: np.ndarray
+    commission: np.ndarray
+    anchored: np.ndarray
+    region: np.ndarray
+
+    def take(self, index) -> _Scored:
+        return jax.tree_util.tree_map(lambda a: a[index], self)
+
+    def where(self, better, other: _Scored) -> _Scored:
+        pick = lambda a, b: np.where(better.reshape((-1,) + (1,) * (a.ndim - 1)), a, b)  # noqa: E731
+        return jax.tree_util.tree_map(pick, self, other)
+
+    def seeds(self, corners, shape) -> np.ndarray:
+        """(n, H, W): each candidate's explained pixels in the image."""
+        return np.concatenate([_to_image(m[None], corners[r], shape) for m, r in zip(self.explained, self.region)])
+
+
+def _score(
+    data: RangeData, settings: SearchSettings, corners, centres, region, *, vectors=None, chosen=None
+) -> _Scored:
+    """:func:`_score_candidates` on the host: the parts ``vectors`` (n, 14), or the chosen
+    hypotheses (a list of :class:`_Chosen`, one per region), ``region`` (n,) giving each
+    candidate's region; ``PART_BUCKET`` candidates per compiled call, so one compilation
+    serves any number of regions and candidates."""
+    n = len(region)
+    m = -(-n // PART_BUCKET) * PART_BUCKET
+    rows = np.concatenate([region, np.full(m - n, region[0] if n else 0)]).astype(np.int64)
+    if chosen is not None:
+        hyp = [np.concatenate([getattr(c, name) for c in chosen]) for name in ("orientation", "shape", "offset")]
+        hyp = [pad_rows(a.astype(np.float32), m) for a in hyp]
+        hyp[1][n:] = hyp[1][0] if n else 1.0  # padding stays a valid hypothesis
+        vec, posed = np.zeros((m, 14), np.float32), np.ones(m, bool)
+        max_size = np.array([c.max_size for c in chosen], np.float32)[rows]
+    else:
+        vec = part_vectors(pad_parts(host_parts(vectors))[0])
+        hyp = [
+            np.zeros((m, 3), np.float32),
+            np.tile(_grid_arrays(settings.grid)["shape"][:1], (m, 1)),
+            np.zeros(m, np.float32),
+        ]
+        posed, max_size = np.zeros(m, bool), np.ones(m, np.float32)
+    corner, centre = np.asarray(corners, np.int32)[rows], np.asarray(centres, np.int32)[rows]
+
+    def bucket(k):
+        b = slice(k, k + PART_BUCKET)
+        orientation, shp, offset = (a[b] for a in hyp)
+        out = _score_candidates(
+            data.arrays,
+            vec[b],
+            orientation,
+            shp,
+            offset,
+            posed[b],
+            corner[b],
+            centre[b],
+            max_size[b],
+            camera=data.compiled_camera,
+            pad=data.pad,
+            window=settings.window,
+            newton_steps=SEARCH_NEWTON_STEPS + 2,
+        )
+        return [np.asarray(a) for a in out]
+
+    vectors, gam, explained, rendered, commission, anchored = (
+        np.concatenate(a)[:n] for a in zip(*concurrently(bucket, range(0, m, PART_BUCKET)))
     )
+    return _Scored(vectors, gam, explained, rendered, commission, anchored, np.asarray(region, np.int64))
+
+
+def fit_regions(
+    data: RangeData, settings: SearchSettings, centres, *, max_sizes=None, progress=None
+) -> list[RegionFit]:
+    """The best ``top_k`` parts at each region (``centres`` (n, 2) row, col), every
+    region's candidates batched together after the grid search.
+
+    At each region the grid is scored (:func:`_choose`); then all regions' chosen
+    hypotheses are posed and scored at full resolution together, polished together by
+    region growing (:func:`~sqparts._polish.grow_parts`, ``polish_rounds`` ×
+    ``polish_steps``), and each polished part is kept where it stays at its region and its
+    Γ improves; with ``restarts``, each region's best polished part is restarted
+    (:func:`_restart_starts`) and polished again. ``max_sizes`` (n,) replaces
+    ``settings.max_size`` per region (the window stays ``settings.window``); ``progress``
+    wraps the regions' grid searches (e.g. ``tqdm.tqdm``)."""
+    centres = np.asarray(centres, np.int32).reshape(-1, 2)
+    if max_sizes is None:
+        per_region = [settings] * len(centres)
+    else:
+        per_region = [dataclasses.replace(settings, max_size=check_max_size(float(s))) for s in max_sizes]
+    if len(per_region) != len(centres):
+        raise ValueError(f"max_sizes: got {len(per_region)} sizes, expected {len(centres)} (one per centre)")
+    corners = centres - np.int32(settings.side // 2)
+    chosen = concurrently(lambda job: _choose(data, job[1], job[0]), list(zip(centres, per_region)), progress=progress)
+    region = np.concatenate([np.full(len(c.offset), i) for i, c in enumerate(chosen)]).astype(np.int64)
+    shape = (data.camera.height, data.camera.width)
+    scored = _score(data, settings, corners, centres, region, chosen=chosen)
+    if settings.polish_steps > 0 and settings.polish_rounds > 0 and len(region):
+
+        def polished(candidates: _Scored) -> _Scored:
+            grown = grow_parts(
+                host_parts(candidates.vectors),
+                data,
+                candidates.seeds(corners, shape),
+                rounds=settings.polish_rounds,
+                steps=settings.polish_steps,
+            )
+            return _score(data, settings, corners, centres, candidates.region, vectors=part_vectors(grown))
+
+        new = polished(scored)
+        # A polished part is kept only if it stays at its region and its Γ improves.
+        better = new.anchored & ((new.gamma > scored.gamma) | ~scored.anchored)
+        scored = new.where(better, scored)
+        if settings.restarts > 0:
+            best = [
+                int(np.flatnonzero(scored.region == r)[np.argmax(np.where(a, g, -np.inf))])
+                for r, (a, g) in enumerate(_by_region(scored, len(centres)))
+            ]
+            starts = [_restart_starts(host_parts(scored.vectors[b : b + 1]), settings.restarts) for b in best]
+            seeds = scored.take(np.repeat(best, [len(s) for s in starts]))
+            seeds = dataclasses.replace(seeds, vectors=np.concatenate([part_vectors(s) for s in starts]))
+            more = polished(seeds)
+            scored = jax.tree_util.tree_map(lambda a, b: np.concatenate([a, b]), scored, more)
+    fits = []
+    for r, (centre, corner) in enumerate(zip(centres, corners)):
+        mine = scored.take(np.flatnonzero(scored.region == r))
+        k = min(settings.top_k, len(mine.gamma))
+        order = np.lexsort((-mine.gamma, ~mine.anchored))[:k]  # anchored first, then by Γ
+        mine = mine.take(order)
+        gam = mine.gamma
+        fits.append(
+            RegionFit(
+                parts=host_parts(mine.vectors),
+                gamma=jax.device_put(gam),
+                bits_saved=jax.device_put(np.asarray(data.encoding.bits_saved(gam))),
+                explained=jax.device_put(_to_image(mine.explained, corner, shape)),
+                rendered=jax.device_put(_to_image(mine.rendered, corner, shape)),
+                commission=jax.device_put(_to_image(mine.commission, corner, shape)),
+                ratio=chosen[r].ratio,
+                centre=tuple(int(x) for x in centre),
+                corner=tuple(int(x) for x in corner),
+            )
+        )
+    return fits
+
+
+def _by_region(scored: _Scored, regions: int):
+    """(anchored, Γ) of each region's candidates, region by region."""
+    for r in range(regions):
+        mine = scored.region == r
+        yield scored.anchored[mine], scored.gamma[mine]
+
+
+def fit_region(data: RangeData, settings: SearchSettings, centre) -> RegionFit:
+    """The best ``top_k`` parts at one region (:func:`fit_regions` of one centre)."""
+    return fit_regions(data, settings, [centre])[0]
 
 
 def _distinct(
@@ -673,9 +784,7 @@ def fit_image(
         px = settings.side / 2.2
         spacing = settings.spacing or max(3.0, px / 3)
         centres = region_centers(data.figure_region, spacing=spacing, method=settings.region_method)
-    centres = np.asarray(centres, np.int32).reshape(-1, 2)
-    # Regions are independent: fitted concurrently (one thread per core), the same fits.
-    return concurrently(lambda c: fit_region(data, settings, c), centres, progress=progress), data, settings
+    return fit_regions(data, settings, centres, progress=progress), data, settings
 
 
 # --- the expanding grid method (Appendix) ----------------------------------------------

@@ -122,6 +122,31 @@ def test_fit_image_runs_on_every_region(data):
     assert len(fits) >= 1 and all(f.parts.size.shape == (min(st.top_k, SMALL.size), 3) for f in fits)
 
 
+def test_fit_regions_batched_equals_one_region_at_a_time(data):
+    # Every region's candidates are posed, polished, restarted and scored in shared
+    # compiled calls; each region's fit is the one it gets alone.
+    search = dataclasses.replace(
+        sqparts.SEARCH_PRESETS["region"], grid=SMALL, max_size=0.25, polish_rounds=2, polish_candidates=3, restarts=1
+    )
+    st = search.resolve(data)
+    rows, cols = np.nonzero(data.figure_mask)
+    centres = np.array(
+        [_centre(data), (rows.min() + 2, cols[np.argmin(rows)]), (rows.max() - 2, cols[np.argmax(rows)])]
+    )
+    batched = sqparts.fit_regions(data, st, centres)
+    assert [f.centre for f in batched] == [tuple(c) for c in centres]
+    for fit, centre in zip(batched, centres):
+        alone = sqparts.fit_region(data, st, centre)
+        np.testing.assert_allclose(np.asarray(fit.parts.to_vector()), np.asarray(alone.parts.to_vector()), atol=1e-5)
+        np.testing.assert_array_equal(np.asarray(fit.gamma), np.asarray(alone.gamma))
+        np.testing.assert_array_equal(np.asarray(fit.explained), np.asarray(alone.explained))
+    # Per-region scales: a region given a smaller max_size poses smaller hypotheses.
+    small = sqparts.fit_regions(data, st, centres[:1], max_sizes=[0.1])[0]
+    assert np.asarray(small.parts.size).max() < np.asarray(batched[0].parts.size).max()
+    with pytest.raises(ValueError, match=r"max_sizes: got 2 sizes, expected 3"):
+        sqparts.fit_regions(data, st, centres, max_sizes=[0.1, 0.2])
+
+
 _SHARD_SCRIPT = r"""
 import json, sys, numpy as np, jax
 import sqparts
@@ -192,7 +217,7 @@ def test_ray_penetration_sphere():
         assert got == pytest.approx(np.linalg.norm(o + t * d - c) - 0.2, abs=1e-5)
 
 
-def test_grow_polish_ignores_an_occluder():
+def test_grow_parts_ignores_an_occluder():
     # A part half hidden by a plate in front: polishing a perturbed start fits the part's
     # visible surface and stays inside its silhouette, not on the plate.
     plate = sqparts.Part(size=[0.3, 0.3, 0.01], squareness=[0.2, 0.2], position=[-0.3, 0.0, 1.7])
@@ -208,18 +233,8 @@ def test_grow_polish_ignores_an_occluder():
         orientation=np.asarray(TRUTH.orientation) + 0.1,
     )
     seed = (labels == 0) & (np.abs(np.asarray(sqparts.render_range_image(start, CAM)) - depth) < 0.02)
-    o, d = CAM.rays()
-    polished = sqparts.grow_polish(
-        start,
-        o,
-        d,
-        jnp.asarray(depth),
-        jnp.asarray(np.isfinite(depth)),
-        jnp.asarray(seed),
-        scale=0.01,
-        rounds=6,
-        steps=15,
-    )
+    data = sqparts.prepare(depth, CAM)
+    polished = sqparts.grow_parts(sqparts.stack_parts([start]), data, seed[None], rounds=6, steps=15)[0]
     rendered = np.asarray(sqparts.render_range_image(polished, CAM))
     visible = labels == 0
     close = np.abs(rendered - depth) < 0.005
@@ -231,7 +246,7 @@ def test_grow_polish_ignores_an_occluder():
     np.testing.assert_allclose(np.asarray(polished.position), np.asarray(TRUTH.position), atol=0.01)
 
 
-def test_grow_polish_lets_a_part_hide_behind_another_figure():
+def test_grow_parts_lets_a_part_hide_behind_another_figure():
     # The plate in front is another figure (as figure/ground gives it): its rays must not
     # push the part out of the plate's outline, only rays with no return may.
     plate = sqparts.Part(size=[0.3, 0.3, 0.01], squareness=[0.2, 0.2], position=[-0.3, 0.0, 1.7])
@@ -240,15 +255,37 @@ def test_grow_polish_lets_a_part_hide_behind_another_figure():
     )
     whole = np.isfinite(np.asarray(sqparts.render_range_image(TRUTH, CAM)))
     seed = labels == 0
-    o, d = CAM.rays()
-    polished = sqparts.grow_polish(
-        TRUTH, o, d, jnp.asarray(depth), jnp.asarray(seed), jnp.asarray(seed), scale=0.01, rounds=3, steps=15
-    )
+    data = sqparts.prepare(depth, CAM, figure=seed)
+    polished = sqparts.grow_parts(sqparts.stack_parts([TRUTH]), data, seed[None], rounds=3, steps=15)[0]
     kept = np.isfinite(np.asarray(sqparts.render_range_image(polished, CAM)))
     hidden = whole & (labels == 1)
     assert hidden.sum() > 0.3 * whole.sum()
     assert (kept & hidden).sum() > 0.95 * hidden.sum()  # the hidden half stays
     assert (kept & ~whole).sum() <= 0.03 * whole.sum()
+
+
+def test_grow_parts_fits_each_part_as_if_alone():
+    # A batch is fitted part by part: each part's fit is what it gets alone, whatever
+    # else shares its compiled call (the search batches every region's candidates).
+    depth = np.asarray(sqparts.render_range_image(TRUTH, CAM))
+    data = sqparts.prepare(depth, CAM)
+    rng = np.random.default_rng(1)
+    starts = [
+        sqparts.Part(
+            size=np.asarray(TRUTH.size) * rng.uniform(0.8, 1.2, 3),
+            squareness=rng.uniform(0.5, 1.2, 2),
+            position=np.asarray(TRUTH.position) + rng.normal(0, 0.01, 3),
+            orientation=np.asarray(TRUTH.orientation) + rng.normal(0, 0.1, 3),
+        )
+        for _ in range(10)
+    ]
+    seeds = np.stack([np.isfinite(depth) & (np.arange(48)[:, None] < 24 + 2 * k) for k in range(10)])
+    batch = sqparts.grow_parts(sqparts.stack_parts(starts), data, seeds, rounds=2, steps=10)
+    for k in (0, 9):
+        alone = sqparts.grow_parts(sqparts.stack_parts([starts[k]]), data, seeds[k : k + 1], rounds=2, steps=10)
+        np.testing.assert_allclose(np.asarray(batch[k].to_vector()), np.asarray(alone[0].to_vector()), atol=1e-6)
+    with pytest.raises(ValueError, match=r"seeds: got shape \(3, 48, 48\), expected \(10, 48, 48\)"):
+        sqparts.grow_parts(sqparts.stack_parts(starts), data, seeds[:3], rounds=1, steps=10)
 
 
 def test_restart_starts_relabel_the_same_ellipsoid():
