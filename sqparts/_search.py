@@ -652,6 +652,8 @@ def fit_regions(
         per_region = [dataclasses.replace(settings, max_size=check_max_size(float(s))) for s in max_sizes]
     if len(per_region) != len(centres):
         raise ValueError(f"max_sizes: got {len(per_region)} sizes, expected {len(centres)} (one per centre)")
+    if not len(centres):
+        return []
     corners = centres - np.int32(settings.side // 2)
     chosen = concurrently(lambda job: _choose(data, job[1], job[0]), list(zip(centres, per_region)), progress=progress)
     region = np.concatenate([np.full(len(c.offset), i) for i, c in enumerate(chosen)]).astype(np.int64)

@@ -145,6 +145,7 @@ def test_fit_regions_batched_equals_one_region_at_a_time(data):
     assert np.asarray(small.parts.size).max() < np.asarray(batched[0].parts.size).max()
     with pytest.raises(ValueError, match=r"max_sizes: got 2 sizes, expected 3"):
         sqparts.fit_regions(data, st, centres, max_sizes=[0.1, 0.2])
+    assert sqparts.fit_regions(data, st, np.zeros((0, 2), int)) == []
 
 
 _SHARD_SCRIPT = r"""
