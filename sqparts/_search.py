@@ -676,9 +676,9 @@ def fit_regions(
         better = new.anchored & ((new.gamma > scored.gamma) | ~scored.anchored)
         scored = new.where(better, scored)
         if settings.restarts > 0:
+            key = np.where(scored.anchored, scored.gamma, -np.inf)  # each region's best anchored part
             best = [
-                int(np.flatnonzero(scored.region == r)[np.argmax(np.where(a, g, -np.inf))])
-                for r, (a, g) in enumerate(_by_region(scored, len(centres)))
+                int(i[np.argmax(key[i])]) for i in (np.flatnonzero(scored.region == r) for r in range(len(centres)))
             ]
             starts = [_restart_starts(host_parts(scored.vectors[b : b + 1]), settings.restarts) for b in best]
             seeds = scored.take(np.repeat(best, [len(s) for s in starts]))
@@ -706,13 +706,6 @@ def fit_regions(
             )
         )
     return fits
-
-
-def _by_region(scored: _Scored, regions: int):
-    """(anchored, Γ) of each region's candidates, region by region."""
-    for r in range(regions):
-        mine = scored.region == r
-        yield scored.anchored[mine], scored.gamma[mine]
 
 
 def fit_region(data: RangeData, settings: SearchSettings, centre) -> RegionFit:
