@@ -188,34 +188,57 @@ def _flush_c_stdio():
         pass
 
 
-def select_exact(problem: SelectionProblem, *, time_limit: float = 30.0) -> tuple[np.ndarray, bool]:
+NODE_LIMIT = 3000
+"""Default most branch-and-bound nodes per group of interacting candidates. A bound on
+work that, unlike seconds, stops HiGHS at the same incumbent on every machine."""
+
+
+def select_exact(
+    problem: SelectionProblem, *, time_limit: float = 30.0, node_limit: int | None = None
+) -> tuple[np.ndarray, bool]:
     """Globally optimal X by integer programming (HiGHS). Returns (selection, proven_optimal).
 
     E is a sum over the groups of candidates that interact (a nonzero pairwise term,
     directly or through others: :meth:`SelectionProblem.groups`), so each group is solved
-    alone, the smallest first, each with the time left of ``time_limit``; a lone candidate
-    is chosen when it lowers E by itself."""
+    alone, the smallest first, each with at most ``node_limit`` branch-and-bound nodes
+    (None: no limit) and the time left of ``time_limit``; a lone candidate is chosen when
+    it lowers E by itself. Stopped by the node limit, the selection is HiGHS's best so
+    far, the same on every machine; stopped by the time limit, it depends on the
+    machine's speed."""
+    x, status = _select_exact(problem, time_limit, node_limit)
+    return x, status == "exact"
+
+
+def _select_exact(problem: SelectionProblem, time_limit: float, node_limit: int | None) -> tuple[np.ndarray, str]:
+    """:func:`select_exact`, with how it ended: ``"exact"`` (proven optimal), ``"exact
+    (node limit)"`` or ``"exact (time limit)"`` (the first limit any group reached)."""
     x = np.zeros(problem.size, bool)
-    proven = True
+    status = "exact"
     deadline = time.monotonic() + float(time_limit)
     for group in problem.groups():
         if len(group) == 1:
             x[group] = problem.linear[group] < 0.0
             continue
-        chosen, optimal = _select_exact_group(problem.subproblem(group), max(deadline - time.monotonic(), 0.05))
+        chosen, ended = _select_exact_group(
+            problem.subproblem(group), max(deadline - time.monotonic(), 0.05), node_limit
+        )
         x[group] = chosen
-        proven &= optimal
-    return x, proven
+        if status == "exact":
+            status = ended
+    return x, status
 
 
-def _select_exact_group(problem: SelectionProblem, time_limit: float) -> tuple[np.ndarray, bool]:
+def _select_exact_group(
+    problem: SelectionProblem, time_limit: float, node_limit: int | None = None
+) -> tuple[np.ndarray, str]:
     """One group by HiGHS: E = linear·x + Σ_{i<j} 2 Q_ij y_ij + const with y_ij = x_i x_j
-    enforced by y ≥ x_i + x_j - 1 where Q_ij > 0 and y ≤ x_i, y ≤ x_j where Q_ij < 0."""
+    enforced by y ≥ x_i + x_j - 1 where Q_ij > 0 and y ≤ x_i, y ≤ x_j where Q_ij < 0.
+    Returns (selection, how it ended, as :func:`_select_exact`)."""
     import highspy
 
     n = problem.size
     if n == 0:
-        return np.zeros(0, bool), True
+        return np.zeros(0, bool), "exact"
     q = problem.pairwise
     pairs = [(i, j) for i, j in zip(*np.triu_indices(n, 1)) if abs(q[i, j]) > 1e-12]
 
@@ -224,6 +247,8 @@ def _select_exact_group(problem: SelectionProblem, time_limit: float) -> tuple[n
             h = highspy.Highs()
         h.setOptionValue("output_flag", False)
         h.setOptionValue("time_limit", float(time_limit))
+        if node_limit is not None:
+            h.setOptionValue("mip_max_nodes", int(node_limit))
         m = n + len(pairs)
         inf = highspy.kHighsInf
         h.addVars(m, np.zeros(m), np.ones(m))
@@ -244,23 +269,30 @@ def _select_exact_group(problem: SelectionProblem, time_limit: float) -> tuple[n
         h.run()
         values = np.asarray(h.getSolution().col_value[:n])
         if values.size != n:
-            return None, False, False
+            return None, "exact (time limit)", False
         x = values > 0.5
-        optimal = h.getModelStatus() == highspy.HighsModelStatus.kOptimal
+        model = h.getModelStatus()
+        ended = (
+            "exact"
+            if model == highspy.HighsModelStatus.kOptimal
+            else "exact (time limit)"
+            if model == highspy.HighsModelStatus.kTimeLimit
+            else "exact (node limit)"
+        )
         # The returned columns must have the objective HiGHS reports: highspy 1.16
         # returns the start instead of its optimum after presolve.
         objective = h.getInfo().objective_function_value
         consistent = abs(problem.energy(x) - problem.constant - objective) <= 1e-6 * (1.0 + abs(objective))
-        return x, optimal, consistent
+        return x, ended, consistent
 
     # Start from the best-first selection: its E bounds the branch and bound at once.
     greedy = select_best_first(problem)
-    x, optimal, consistent = solve(greedy.astype(np.float64))
+    x, ended, consistent = solve(greedy.astype(np.float64))
     if x is not None and not consistent:
-        x, optimal, consistent = solve(None)
+        x, ended, consistent = solve(None)
     if x is None or not consistent:
-        return greedy, False
-    return x, optimal
+        return greedy, ended if ended != "exact" else "exact (time limit)"
+    return x, ended
 
 
 def select_brute_force(problem: SelectionProblem) -> np.ndarray:
@@ -277,34 +309,44 @@ def select_brute_force(problem: SelectionProblem) -> np.ndarray:
 
 
 def select_parts(
-    problem: SelectionProblem, *, method: str = "auto", exact_limit: int = 200, time_limit: float = 5.0
+    problem: SelectionProblem,
+    *,
+    method: str = "auto",
+    exact_limit: int = 200,
+    time_limit: float = 15.0,
+    node_limit: int | None = NODE_LIMIT,
 ) -> tuple[np.ndarray, str]:
     """Choose parts: ``"exact"``, ``"best-first"`` or ``"auto"`` (exact when the
     candidate count is at most ``exact_limit``; HiGHS starts from the best-first
-    selection and stops after ``time_limit`` seconds with the best selection it has
-    found, reported as ``"exact (time limit)"``, never worse than best-first). Returns
-    (selection, method used)."""
+    selection and stops after ``node_limit`` branch-and-bound nodes per group, or
+    ``time_limit`` seconds in all, with the best selection it has found, reported as
+    ``"exact (node limit)"`` or ``"exact (time limit)"``, never worse than best-first).
+    Returns (selection, method used)."""
     if method not in ("auto", "exact", "best-first"):
         raise ValueError(f"method: got {method!r}, expected 'auto', 'exact' or 'best-first'")
     if method == "best-first" or (method == "auto" and problem.size > exact_limit):
         return select_best_first(problem), "best-first"
-    x, optimal = select_exact(problem, time_limit=time_limit)
-    if optimal:
-        return x, "exact"
+    x, status = _select_exact(problem, time_limit, node_limit)
+    if status == "exact":
+        return x, status
     greedy = select_best_first(problem)
-    return (greedy, "best-first") if problem.energy(greedy) < problem.energy(x) else (x, "exact (time limit)")
+    return (greedy, "best-first") if problem.energy(greedy) < problem.energy(x) else (x, status)
 
 
 @dataclasses.dataclass(frozen=True)
 class SelectSettings:
     """How :func:`~sqparts.recover` chooses among the candidates (Eq. 7): ``method``
-    ``"auto"``, ``"exact"`` or ``"best-first"``, with ``exact_limit`` and ``time_limit`` as
-    for :func:`select_parts`. The choice is then corrected on E counted in the
-    candidates' joint rendering (:func:`~sqparts.select_rendered`)."""
+    ``"auto"``, ``"exact"`` or ``"best-first"``, with ``exact_limit``, ``node_limit`` and
+    ``time_limit`` as for :func:`select_parts`: the node limit (None: none) bounds the
+    integer program's work the same on every machine, so that a recovery's result does not
+    depend on the machine's speed; the time limit only caps the wall time. The choice is
+    then corrected on E counted in the candidates' joint rendering
+    (:func:`~sqparts.select_rendered`)."""
 
     method: str = "auto"
     exact_limit: int = 200
-    time_limit: float = 5.0
+    time_limit: float = 15.0
+    node_limit: int | None = NODE_LIMIT
 
     def __post_init__(self):
         if self.method not in ("auto", "exact", "best-first"):
@@ -313,10 +355,19 @@ class SelectSettings:
             raise ValueError(f"exact_limit: got {self.exact_limit!r}, expected an integer >= 0")
         if not (isinstance(self.time_limit, (int, float)) and 0 < self.time_limit < float("inf")):
             raise ValueError(f"time_limit: got {self.time_limit!r}, expected a finite number of seconds > 0")
+        n = self.node_limit
+        if n is not None and (isinstance(n, bool) or not isinstance(n, (int, np.integer)) or n < 1):
+            raise ValueError(f"node_limit: got {n!r}, expected None or an integer >= 1")
 
     def select(self, problem: SelectionProblem) -> tuple[np.ndarray, str]:
         """:func:`select_parts` with these settings."""
-        return select_parts(problem, method=self.method, exact_limit=self.exact_limit, time_limit=self.time_limit)
+        return select_parts(
+            problem,
+            method=self.method,
+            exact_limit=self.exact_limit,
+            time_limit=self.time_limit,
+            node_limit=self.node_limit,
+        )
 
 
 def select_rendered(layers: np.ndarray, data: RangeData, costs: Costs, *, start=None, chunk: int = 32) -> np.ndarray:

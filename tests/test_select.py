@@ -112,3 +112,21 @@ def test_select_parts_time_limit_keeps_the_best_selection_found():
     assert method in ("exact", "exact (time limit)", "best-first") and p.energy(x) <= greedy + 1e-9
     x_full, optimal = sqparts.select_exact(p)
     assert optimal and p.energy(x_full) <= p.energy(x) + 1e-9
+
+
+def test_select_parts_node_limit_is_a_machine_independent_bound():
+    # Stopped after a few branch-and-bound nodes, HiGHS's best so far: reported as such,
+    # never worse than best-first, and the same selection each time (a bound in nodes,
+    # unlike seconds, does not depend on the machine's speed).
+    rng = np.random.default_rng(3)
+    e, c = _random_masks(rng, 60)
+    p = SelectionProblem.from_masks(e, c, COSTS)
+    greedy = p.energy(sqparts.select_best_first(p))
+    runs = [sqparts.select_parts(p, node_limit=2, time_limit=60.0) for _ in range(2)]
+    (x, method), (x2, method2) = runs
+    assert method == method2 and method in ("exact (node limit)", "best-first")
+    assert np.array_equal(x, x2) and p.energy(x) <= greedy + 1e-9
+    x_full, optimal = sqparts.select_exact(p, node_limit=None)
+    assert optimal and p.energy(x_full) <= p.energy(x) + 1e-9
+    with pytest.raises(ValueError, match=r"node_limit: got 0, expected None or an integer >= 1"):
+        sqparts.SelectSettings(node_limit=0)
