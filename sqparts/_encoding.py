@@ -447,19 +447,61 @@ class Composition:
         return _count(m + 1, *visible, data, costs, np.concatenate([self.layers, layer[None]]))
 
 
-def costs_adding(cost: EncodingCost, extra, data: RangeData, costs: Costs) -> list[EncodingCost]:
-    """E of the parts behind ``cost`` plus each one of the (k, 14) vectors ``extra`` in
-    turn; only the extra parts are rendered (:func:`render_layers`), and the others'
-    nearest hit is composed once (:class:`Composition`)."""
-    base = Composition(layers_of(cost))
-    return [base.adding(t, data, costs) for t in render_layers(extra, data.camera)]
+@dataclasses.dataclass(frozen=True, eq=False)
+class Edit:
+    """A change to a set of parts: the parts at indices ``remove`` replaced by the parts
+    with (k, 14) vectors ``add``. A one-for-one replacement keeps its place; otherwise the
+    other parts keep their order and the new ones follow them. ``layers``: the new parts'
+    depth (k, H, W; :func:`render_layers`), once rendered (:func:`render_edits`)."""
+
+    remove: tuple[int, ...] = ()
+    add: np.ndarray = dataclasses.field(default_factory=lambda: np.zeros((0, 14), np.float32))
+    layers: np.ndarray | None = dataclasses.field(default=None, repr=False)
+
+    def apply(self, rows: np.ndarray, new: np.ndarray) -> np.ndarray:
+        """``rows`` (one per current part: vectors or depth layers) with the edit made,
+        ``new`` the added parts' rows."""
+        remove = list(self.remove)
+        if len(remove) == len(new) and remove:
+            out = rows.copy()
+            out[remove] = new
+            return out
+        return np.concatenate([np.delete(rows, remove, 0), np.asarray(new, rows.dtype)])
 
 
-def costs_removing(cost: EncodingCost, which, data: RangeData, costs: Costs) -> list[EncodingCost]:
-    """E of the parts behind ``cost`` less each part in ``which`` in turn (nothing is
-    rendered: the remaining layers are composed again)."""
-    n = len(layers_of(cost))
-    return [layers_cost(layers_of(cost)[np.arange(n) != i], data, costs) for i in which]
+def render_edits(edits, camera) -> list[Edit]:
+    """The edits with their new parts' depth layers, all of them rendered together (one
+    :func:`render_layers` call, ``PART_BUCKET`` parts a compiled call)."""
+    edits = list(edits)
+    todo = [e for e in edits if e.layers is None]
+    if todo:
+        vectors = np.concatenate([np.asarray(e.add, np.float32).reshape(-1, 14) for e in todo])
+        layers = render_layers(vectors, camera)
+        ends = np.cumsum([0] + [len(e.add) for e in todo])
+        done = {id(e): layers[a:b] for e, a, b in zip(todo, ends[:-1], ends[1:])}
+        edits = [e if e.layers is not None else dataclasses.replace(e, layers=done[id(e)]) for e in edits]
+    return edits
+
+
+def edit_costs(cost: EncodingCost, edits, data: RangeData, costs: Costs) -> list[EncodingCost]:
+    """E of the parts behind ``cost`` after each of ``edits`` in turn (Eq. 6 on the joint
+    rendering): the one evaluator of every change refinement and post-processing try. Only
+    the new parts are rendered, all edits' together (:func:`render_edits`); an edit that
+    adds one part on top of others composes the others' nearest hit once for all edits
+    that remove the same parts (:class:`Composition`)."""
+    layers = layers_of(cost)
+    rests: dict[tuple[int, ...], Composition] = {}
+    out = []
+    for e in render_edits(edits, data.camera):
+        new = e.layers
+        assert new is not None  # rendered above
+        if len(new) == 1 and len(e.remove) != 1:
+            if e.remove not in rests:
+                rests[e.remove] = Composition(np.delete(layers, list(e.remove), 0))
+            out.append(rests[e.remove].adding(new[0], data, costs))
+        else:
+            out.append(layers_cost(e.apply(layers, new), data, costs))
+    return out
 
 
 def least_pixels(costs: Costs) -> float:

@@ -97,7 +97,7 @@ def prettify(parts: Part, data, costs: Costs, *, up, max_angle: float = 15.0, ma
     ``angle_deg``), the change in E (``delta_bits``), whether it was ``kept`` and, if
     not, ``why``. A snapped part that is bent or tapered is also tried straight
     (``straightened``: the cheaper of the two is the one judged)."""
-    from ._encoding import costs_removing, encoding_cost
+    from ._encoding import Edit, edit_costs, encoding_cost
 
     if not (isinstance(max_bits, (int, float)) and math.isfinite(max_bits) and max_bits >= 0):
         raise ValueError(f"max_bits: got {max_bits!r}, expected a finite number >= 0")
@@ -106,7 +106,7 @@ def prettify(parts: Part, data, costs: Costs, *, up, max_angle: float = 15.0, ma
     every = range(len(parts))
 
     def paying(c):  # which parts lower E by their presence
-        return np.array([r.total > c.total for r in costs_removing(c, every, data, costs)])
+        return np.array([r.total > c.total for r in edit_costs(c, [Edit((i,)) for i in every], data, costs)])
 
     current, pays = parts, paying(cost)
     for i, entry in enumerate(report):

@@ -1,32 +1,43 @@
-"""Joint refinement of the chosen parts (paper sections 3.5 and 4.1).
+"""Joint refinement of the chosen parts (paper sections 3.5 and 4.1): one loop over moves.
 
 All chosen parts are rendered together (so occlusion is fully accounted for) and the
 encoding cost of the whole image is computed by direct pixel count,
 
     E = κ0 n + κ1 |explained| + κ2 |commission| + κ3 (N - |explained|),
 
-with the costs of :class:`~sqparts._encoding.Costs`. Each round is one step of region
-growing over all parts at once: every part takes the figure pixels where it is visible
-plus the unexplained pixels next to them that lie near its surface, and is polished on
-them (optimistix Levenberg-Marquardt on radial surface distances, batched over parts)
-while the background rays around it must miss it; a change is kept only if E falls, like
-the paper's accept-if-improved descent. Then a part that spans two (a torso with its
-pelvis) is split in two along its axis, blobs of unexplained pixels are searched again
-at their own scale for the parts the first search missed (a long blob also at its
-skeleton points; a member too thin for a blob, a gate's two-pixel brace, started from
-its pixels' moments; each new small part settled by a pattern search on E itself), a part
-that no longer pays for its bits is dropped, and adjacent parts are merged when one part
-encodes them more cheaply: two into one bent part (section 4.1), or a group into one part
-started from its pixels' moments (a flat box for a laptop seen as patches), after which
-parts the merge made redundant are dropped again; each only when E falls. Every stage takes and returns the
-joint rendering's :class:`EncodingCost`, whose per-part depth layers let a trial
-re-render only the parts it changes.
+with the costs of :class:`~sqparts._encoding.Costs`. Refinement is the paper's
+accept-if-improved descent on E, built from small moves (frozen dataclasses whose fields
+are their knobs). Each pass of a move proposes a batch of :class:`~sqparts._encoding.Edit`
+s (parts removed, parts added); their joint E is evaluated together by the package's one
+evaluator, :func:`~sqparts._encoding.edit_costs` (every edit's new parts rendered in one
+batched call, the other parts' depth layers reused); and one accept rule,
+:func:`accept_edits`, keeps the best improving edit, then each next best that still
+lowers E once the edits kept before it are made. A move runs its passes while they lower
+E. The moves, in :meth:`RefineSettings.moves`'s order:
+
+- :class:`GrowParts`: region growing over all parts at once: every part takes the figure
+  pixels where it is visible plus the unexplained pixels next to them that lie near its
+  surface, and is polished on them (optimistix Levenberg-Marquardt on radial surface
+  distances, batched over parts) while the background rays around it must miss it;
+- :class:`SplitParts`: a part that spans two (a torso with its pelvis) split in two along
+  its axis;
+- :class:`FillGaps`: blobs of unexplained pixels searched again at their own scale for the
+  parts the first search missed (a long blob also at its skeleton points; a member too
+  thin for a blob, a gate's two-pixel brace, started from its pixels' moments; each new
+  small part settled by a pattern search on E itself). It proposes two alternative
+  batches, and the rest of the moves finish each: the shorter description is kept;
+- :class:`DropParts`: a part that no longer pays for its bits dropped;
+- :class:`MergeParts`: adjacent parts merged when one part encodes them more cheaply: two
+  into one bent part (section 4.1), or a group into one part started from its pixels'
+  moments (a flat box for a laptop seen as patches); :class:`OnGain` then grows the parts
+  again and drops those the merge made redundant.
 """
 
 from __future__ import annotations
 
 import dataclasses
 import math
+from typing import ClassVar
 
 import jax
 import jax.numpy as jnp
@@ -36,19 +47,17 @@ from ._camera import camera_points
 from ._compile import persistent_jit
 from ._data import RangeData
 from ._encoding import (
-    Composition,
     Costs,
+    Edit,
     EncodingCost,
-    costs_adding,
-    costs_removing,
+    edit_costs,
     encoding_cost,
     host_parts,
-    layers_cost,
     layers_of,
     least_pixels,
     part_vectors,
     pixel_errors,
-    render_layers,
+    render_edits,
 )
 from ._part import Part, from_unconstrained, to_unconstrained
 from ._polish import (
@@ -106,81 +115,127 @@ def _grow(data: RangeData, inputs, *, steps: int) -> np.ndarray:
     return part_vectors(polish_parts(host_parts(vec), pts, weights, steps, rays, ray_weights))
 
 
-def polish_jointly(parts: Part, data: RangeData, costs: Costs, *, steps: int = 20, cost: EncodingCost | None = None):
-    """One round of region growing over all parts at once (:func:`_grow`); each part's
-    change is accepted only if the joint E falls, largest parts first. ``cost``: the
-    parts' :func:`encoding_cost`, if known. Returns (parts, cost)."""
-    cost = encoding_cost(parts, data, costs) if cost is None else cost
-    current = part_vectors(parts)
-    new = _grow(data, [_grow_inputs(parts, data, cost, np.arange(len(parts)))], steps=steps)
-    new_layers = render_layers(new, data.camera)
-    order = np.argsort([-(cost.labels == i).sum() for i in range(len(parts))])
-    for i in order:
-        layers = layers_of(cost).copy()
-        layers[i] = new_layers[i]
-        c = layers_cost(layers, data, costs)
-        if c.total < cost.total - 1e-9:
-            current, cost = current.copy(), c
-            current[i] = new[i]
-    return host_parts(current), cost
+def accept_edits(vectors: np.ndarray, cost: EncodingCost, edits, data: RangeData, costs: Costs):
+    """The accept rule of every move: of the ``edits`` to the parts with (n, 14)
+    ``vectors`` and joint cost ``cost``, evaluated together
+    (:func:`~sqparts._encoding.edit_costs`), the best improving edit is kept; then each
+    next best that improved on its own is tried again on the parts as they now are, and
+    kept if it still lowers E; an edit of a part that a kept edit changed is skipped.
+    Returns (vectors, cost), unchanged if no edit lowers E."""
+    edits = render_edits(edits, data.camera)
+    scored = edit_costs(cost, edits, data, costs)
+    order = sorted((k for k, c in enumerate(scored) if c.total < cost.total - 1e-9), key=lambda k: scored[k].total)
+    where = np.arange(len(vectors))  # each part's index now; -1 = changed by a kept edit
+    kept = False
+    for k in order:
+        e = edits[k]
+        if (where[list(e.remove)] < 0).any():
+            continue
+        now = dataclasses.replace(e, remove=tuple(int(where[i]) for i in e.remove))
+        c = edit_costs(cost, [now], data, costs)[0] if kept else scored[k]
+        if c.total >= cost.total - 1e-9:
+            continue
+        vectors, cost, kept = now.apply(vectors, np.asarray(e.add, np.float32)), c, True
+        in_place = len(e.remove) == len(e.add)
+        where[list(e.remove)] = -1
+        if not in_place and e.remove:
+            alive = where >= 0
+            where[alive] -= np.searchsorted(np.sort(now.remove), where[alive])
+    return vectors, cost
 
 
-def split_parts(
-    parts: Part,
-    data: RangeData,
-    costs: Costs,
-    *,
-    steps: int = 20,
-    rounds: int = 4,
-    tries: int = 3,
-    cost: EncodingCost | None = None,
-):
-    """Replace a part by two, its halves along its longest axis grown by ``rounds`` of
-    region growing (:func:`_grow_inputs`), when that lowers E: the inverse of
-    :func:`merge_adjacent`, for a part that spans two (a torso with its pelvis). Tried,
-    all in one batch, on the ``tries`` parts with the most unexplained figure pixels
-    beside them, if those could pay for one more part; the best split is kept."""
-    from scipy.ndimage import binary_dilation
+@dataclasses.dataclass(frozen=True, kw_only=True)
+class Move:
+    """A refinement move: each of at most ``passes`` passes proposes batches of edits
+    (:meth:`propose`), accepted by :func:`accept_edits`; the move stops at the first pass
+    that keeps nothing. ``name``: its stage in a recovery's history (with the pass number
+    when ``numbered``)."""
 
-    from ._part import rotation_matrix
+    name: ClassVar[str] = "move"
+    numbered: ClassVar[bool] = False
+    passes: int = 1
 
-    cost = encoding_cost(parts, data, costs) if cost is None else cost
-    least = least_pixels(costs)
-    omitted = data.figure_mask & ~cost.explained_mask
-    beside = np.array([(binary_dilation(cost.labels == i, iterations=2) & omitted).sum() for i in range(len(parts))])  # pyright: ignore[reportOperatorIssue]  # scipy is untyped: binary_dilation returns a bool array
-    vec = part_vectors(parts)
-    trials, kept = [], []
-    for i in [int(i) for i in np.argsort(-beside)[:tries] if beside[i] >= least]:
-        v = vec[i].astype(np.float64)
-        axis = np.asarray(rotation_matrix(v[3:6]))[:, 2] * v[8] / 2
-        halves = np.stack([v, v])
-        halves[:, 0:3] = [v[0:3] - axis, v[0:3] + axis]
-        halves[:, 8] = v[8] / 2
-        halves[:, 11:14] = 0.0
-        trials.append(np.concatenate([np.delete(vec, i, 0), halves]).astype(np.float32))
-        kept.append(np.delete(layers_of(cost), i, 0))
-    if not trials:
-        return parts, cost
-    n = len(parts) + 1
+    def __post_init__(self):
+        p = self.passes
+        if isinstance(p, bool) or not isinstance(p, (int, np.integer)) or not 1 <= p <= MAX_PASSES:
+            raise ValueError(f"passes: got {p!r}, expected an integer in [1, {MAX_PASSES}]")
 
-    def score(halves):
-        layers = render_layers(halves, data.camera)
-        return [
-            layers_cost(np.concatenate([rest, layers[2 * k : 2 * k + 2]]), data, costs) for k, rest in enumerate(kept)
-        ]
+    def propose(
+        self, vectors: np.ndarray, cost: EncodingCost, data: RangeData, costs: Costs, step: int
+    ) -> list[list[Edit]]:
+        """Pass ``step`` (from 0): a list of alternative batches of edits (usually one).
+        With several, the rest of the moves finish each and the shorter description is
+        kept."""
+        raise NotImplementedError
 
-    scores = score(np.concatenate([t[-2:] for t in trials]))
-    for _ in range(rounds):
-        new = _grow(
-            data, [_grow_inputs(host_parts(t), data, c, [n - 2, n - 1]) for t, c in zip(trials, scores)], steps=steps
-        )
-        for k, t in enumerate(trials):
-            t[-2:] = new[2 * k : 2 * k + 2]
-        scores = score(new)
-    best = int(np.argmin([c.total for c in scores]))
-    if scores[best].total < cost.total - 1e-9:
-        return host_parts(trials[best]), scores[best]
-    return parts, cost
+
+MAX_PASSES = 1000
+"""Most passes of one move (a bound on its work; a pass that keeps nothing ends it)."""
+
+
+@dataclasses.dataclass(frozen=True, kw_only=True)
+class GrowParts(Move):
+    """Region growing over all parts at once (:func:`_grow_inputs`, :func:`_grow`:
+    ``steps`` solver steps on each part's support, which takes the unexplained pixels
+    within ``grow`` pixels and ``tolerance`` σ); each part's new fit is an edit."""
+
+    name: ClassVar[str] = "polish"
+    numbered: ClassVar[bool] = True
+    passes: int = 2
+    steps: int = 20
+    tolerance: float = 2.0
+    grow: int = 2
+
+    def propose(self, vectors, cost, data, costs, step):
+        n = len(vectors)
+        if n == 0:
+            return [[]]
+        inputs = _grow_inputs(host_parts(vectors), data, cost, np.arange(n), tolerance=self.tolerance, grow=self.grow)
+        new = _grow(data, [inputs], steps=self.steps)
+        return [[Edit((i,), new[i : i + 1]) for i in range(n)]]
+
+
+@dataclasses.dataclass(frozen=True, kw_only=True)
+class SplitParts(Move):
+    """A part replaced by two, its halves along its longest axis grown by ``rounds`` of
+    region growing (``steps`` solver steps each): the inverse of :class:`MergeParts`,
+    for a part that spans two (a torso with its pelvis). Proposed, all in one batch, for
+    the ``tries`` parts with the most unexplained figure pixels beside them, if those
+    could pay for one more part."""
+
+    name: ClassVar[str] = "split"
+    steps: int = 20
+    rounds: int = 4
+    tries: int = 3
+
+    def propose(self, vectors, cost, data, costs, step):
+        from scipy.ndimage import binary_dilation
+
+        from ._part import rotation_matrix
+
+        omitted = data.figure_mask & ~cost.explained_mask
+        beside = np.array(
+            [(binary_dilation(cost.labels == i, iterations=2) & omitted).sum() for i in range(len(vectors))]
+        )  # pyright: ignore[reportOperatorIssue]  # scipy is untyped: binary_dilation returns a bool array
+        trials = []
+        for i in [int(i) for i in np.argsort(-beside)[: self.tries] if beside[i] >= least_pixels(costs)]:
+            v = vectors[i].astype(np.float64)
+            axis = np.asarray(rotation_matrix(v[3:6]))[:, 2] * v[8] / 2
+            halves = np.stack([v, v])
+            halves[:, 0:3] = [v[0:3] - axis, v[0:3] + axis]
+            halves[:, 8] = v[8] / 2
+            halves[:, 11:14] = 0.0
+            trials.append(Edit((i,), halves.astype(np.float32)))
+        n = len(vectors) + 1  # the halves are the last two parts of a trial
+        for _ in range(self.rounds if trials else 0):
+            scores = edit_costs(cost, trials := render_edits(trials, data.camera), data, costs)
+            inputs = [
+                _grow_inputs(host_parts(e.apply(vectors, e.add)), data, c, [n - 2, n - 1])
+                for e, c in zip(trials, scores)
+            ]
+            new = _grow(data, inputs, steps=self.steps)
+            trials = [Edit(e.remove, new[2 * k : 2 * k + 2]) for k, e in enumerate(trials)]
+        return [trials]
 
 
 def omitted_blobs(omitted: np.ndarray) -> tuple[np.ndarray, int]:
@@ -236,132 +291,147 @@ def thin_members(omitted: np.ndarray, shown: np.ndarray, blob_labels: np.ndarray
     return sorted(masks, key=lambda m: -int(m.sum()))
 
 
-def fill_gaps(
-    parts: Part,
-    data: RangeData,
-    costs: Costs,
-    settings,
-    *,
-    steps: int = 20,
-    rounds: int = 3,
-    blobs: int = 4,
-    seeds: int = 3,
-    cost: EncodingCost | None = None,
-):
-    """Search the figure's unexplained blobs for parts the first search missed (a hand, a
-    foot, a teapot's lid: too small for the scales searched around the skeleton): the
-    ``blobs`` largest :func:`omitted_blobs` that could pay for a part are searched again with
-    :func:`~sqparts._search.fit_regions` at their innermost pixel, ``max_size`` 3/4 of
+@dataclasses.dataclass(frozen=True, kw_only=True)
+class FillGaps(Move):
+    """The figure's unexplained blobs searched again for parts the first search missed (a
+    hand, a foot, a teapot's lid: too small for the scales searched around the skeleton),
+    with ``search``, the first search's :class:`~sqparts.SearchSettings` (None: no search).
+
+    The ``blobs`` largest :func:`omitted_blobs` that could pay for a part are searched
+    with :func:`~sqparts._search.fit_regions` at their innermost pixel, ``max_size`` 3/4 of
     the blob's extent across the image (same window and grid: nothing is recompiled). A
     blob more than two of its widest discs long may hold several things (a lid's knob on
     the lid's rim seen edge-on), so it is also searched at up to ``seeds`` more of its
     skeleton points (:func:`~sqparts._search.region_centers`, thickest first, spaced by
-    the blob's inscribed radius), each at a scale of four times its own inscribed
-    radius. Members too thin for a blob (:func:`thin_members`: a gate's two-pixel brace,
-    cut into pieces by the rails it crosses) get the moment starts of their pixels
+    the blob's inscribed radius), each at a scale of four times its own inscribed radius.
+    Members too thin for a blob (:func:`thin_members`: a gate's two-pixel brace, cut into
+    pieces by the rails it crosses) get the moment starts of their pixels
     (:func:`_moment_candidates`), ``blobs`` of them at most, largest first: a window
     search on a fixed grid of directions meets a two-pixel bar at a slant only where it
-    crosses the window. Each candidate is grown by ``rounds`` of region growing beside the current
-    parts, the best one per search is settled on E itself (:func:`settle_part`: a pixel of
-    commission outweighs the few a hand explains), and they are added, largest gain
-    first, when E falls. ``settings`` are the first search's
-    :class:`~sqparts.SearchSettings`.
+    crosses the window. Each candidate is grown by ``rounds`` of region growing beside the
+    current parts (``steps`` solver steps), and the best one per search is settled on E
+    itself (:func:`settle_part`: a pixel of commission outweighs the few a hand explains).
 
-    Returns a list of (parts, cost): the parts with the innermost searches' additions,
-    then, if the skeleton points' searches change them, with all additions. A part that
-    pays here can still stop a merge that would have paid more, so
-    :func:`refine_parts` finishes each and keeps the shorter description."""
-    from scipy.ndimage import distance_transform_edt
+    Proposes the innermost searches' additions and, if the skeleton points' searches add
+    to them, all additions, as alternatives: a part that pays here can still stop a
+    merge that would have paid more."""
 
-    from ._search import fit_regions, region_centers
+    name: ClassVar[str] = "fill gaps"
+    search: object = None
+    steps: int = 20
+    rounds: int = 3
+    blobs: int = 4
+    seeds: int = 3
 
-    cost = encoding_cost(parts, data, costs) if cost is None else cost
-    least = least_pixels(costs)
-    omitted = data.figure_mask & ~cost.explained_mask
-    blob_labels, count = omitted_blobs(omitted)
-    sizes = np.bincount(blob_labels.ravel(), minlength=count + 1)[1:]
-    inner = distance_transform_edt(omitted)
-    vec = part_vectors(parts)
-    additions, seed, innermost, searches = [], [], set(), []
+    def propose(self, vectors, cost, data, costs, step):
+        from scipy.ndimage import distance_transform_edt
 
-    def search(centre, max_size):
-        searches.append((centre, float(np.clip(max_size, 1e-6, settings.max_size))))
+        from ._search import fit_regions, region_centers
 
-    for b in np.argsort(-sizes, kind="stable")[:blobs]:
-        blob = blob_labels == b + 1
-        if sizes[b] < least:
-            continue
-        radius = np.where(blob, inner, 0.0)  # pyright: ignore[reportCallIssue, reportArgumentType]  # scipy is untyped: distance_transform_edt returns the distances array here
-        centre = tuple(int(i) for i in np.unravel_index(int(np.argmax(radius)), blob.shape))
-        rows, cols = np.nonzero(blob)
-        pixel = float(data.camera.pixel_size_at(float(np.nanmedian(data.image[blob]))))
-        length = max(np.ptp(rows), np.ptp(cols)) + 1  # across the image, not in depth
-        search(centre, 0.75 * pixel * length)
-        innermost.add(centre)
-        if length > 4 * radius[centre]:
-            spacing = max(float(radius[centre]), 1.0)
-            points = [
-                (int(r), int(c))
-                for r, c in region_centers(blob, spacing=spacing)
-                if (r - centre[0]) ** 2 + (c - centre[1]) ** 2 >= spacing**2
-            ]
-            for r, c in points[:seeds]:
-                search((r, c), 4 * pixel * float(radius[r, c]))
-    # Members too thin for a blob start from their pixels' moments: a window search
-    # along a fixed grid of directions meets a two-pixel bar at a slant only where it
-    # crosses the window.
-    points = camera_points(data.camera, data.image)
-    pixel = float(data.camera.pixel_size_at(float(np.nanmedian(data.image[data.figure_mask]))))
-    thin = [
-        m
-        for m in thin_members(omitted, cost.labels >= 0, blob_labels, points, 2 * pixel + data.encoding.sigma)
-        if m.sum() >= least
-    ]
-    for k, member in enumerate(thin[:blobs]):
-        starts = _moment_candidates(points[member], data.encoding.sigma)
-        additions.extend(starts)
-        seed.extend([("thin", k)] * len(starts))
-        innermost.add(("thin", k))
-    # The searches are independent: run concurrently, their finds kept in this order.
-    fits = fit_regions(data, settings, [c for c, _ in searches], max_sizes=[s for _, s in searches]) if searches else []
-    for (centre, _), fit in zip(searches, fits):
-        good = part_vectors(fit.parts)[np.asarray(fit.gamma) > 0]
-        additions.extend(good)
-        seed.extend([centre] * len(good))
-    if not additions:
-        return [(parts, cost)]
-    n = len(parts)
-    found = np.stack(additions)
-    scores = costs_adding(cost, found, data, costs)
-    for _ in range(rounds):
-        trials = [host_parts(np.concatenate([vec, f[None]])) for f in found]
-        new = _grow(data, [_grow_inputs(t, data, c, [n]) for t, c in zip(trials, scores)], steps=steps)
-        for k, (v, c) in enumerate(zip(new, costs_adding(cost, new, data, costs))):
-            if c.total < scores[k].total:
-                found[k], scores[k] = v, c
-    best = {}
-    for k, (s, c) in enumerate(zip(seed, scores)):
-        if s not in best or c.total < scores[best[s]].total:
-            best[s] = k
-    rest = layers_of(cost).min(0) if n else np.full(data.image.shape, np.inf, np.float32)
-    for k in best.values():
-        found[k] = settle_part(found[k], layers_of(scores[k])[n], rest, data, costs)
-    settled = dict(zip(best.values(), costs_adding(cost, found[list(best.values())], data, costs)))
+        settings = self.search
+        if settings is None:
+            return [[]]
+        least = least_pixels(costs)
+        omitted = data.figure_mask & ~cost.explained_mask
+        blob_labels, count = omitted_blobs(omitted)
+        sizes = np.bincount(blob_labels.ravel(), minlength=count + 1)[1:]
+        inner = distance_transform_edt(omitted)
+        additions, seed, innermost, searches = [], [], set(), []
 
-    def add(keys):
-        v, e = vec, cost
-        for k in sorted(keys, key=lambda k: settled[k].total):
-            c = layers_cost(np.concatenate([layers_of(e), layers_of(settled[k])[n:]]), data, costs)
-            if c.total < e.total - 1e-9:
-                v, e = np.concatenate([v, found[k : k + 1]]), c
-        return v, e
+        def search(centre, max_size):
+            searches.append((centre, float(np.clip(max_size, 1e-6, settings.max_size))))  # pyright: ignore[reportAttributeAccessIssue]  # a SearchSettings
 
-    fills = [add([k for s, k in best.items() if s in innermost])]
-    if any(s not in innermost for s in best):
-        more = add(list(best.values()))
-        if not np.array_equal(more[0], fills[0][0]):  # False for different part counts too
-            fills.append(more)
-    return [(host_parts(v), e) for v, e in fills]
+        for b in np.argsort(-sizes, kind="stable")[: self.blobs]:
+            blob = blob_labels == b + 1
+            if sizes[b] < least:
+                continue
+            radius = np.where(blob, inner, 0.0)  # pyright: ignore[reportCallIssue, reportArgumentType]  # scipy is untyped: distance_transform_edt returns the distances array here
+            centre = tuple(int(i) for i in np.unravel_index(int(np.argmax(radius)), blob.shape))
+            rows, cols = np.nonzero(blob)
+            pixel = float(data.camera.pixel_size_at(float(np.nanmedian(data.image[blob]))))
+            length = max(np.ptp(rows), np.ptp(cols)) + 1  # across the image, not in depth
+            search(centre, 0.75 * pixel * length)
+            innermost.add(centre)
+            if length > 4 * radius[centre]:
+                spacing = max(float(radius[centre]), 1.0)
+                points = [
+                    (int(r), int(c))
+                    for r, c in region_centers(blob, spacing=spacing)
+                    if (r - centre[0]) ** 2 + (c - centre[1]) ** 2 >= spacing**2
+                ]
+                for r, c in points[: self.seeds]:
+                    search((r, c), 4 * pixel * float(radius[r, c]))
+        # Members too thin for a blob start from their pixels' moments: a window search
+        # along a fixed grid of directions meets a two-pixel bar at a slant only where it
+        # crosses the window.
+        points = camera_points(data.camera, data.image)
+        pixel = float(data.camera.pixel_size_at(float(np.nanmedian(data.image[data.figure_mask]))))
+        thin = [
+            m
+            for m in thin_members(omitted, cost.labels >= 0, blob_labels, points, 2 * pixel + data.encoding.sigma)
+            if m.sum() >= least
+        ]
+        for k, member in enumerate(thin[: self.blobs]):
+            starts = _moment_candidates(points[member], data.encoding.sigma)
+            additions.extend(starts)
+            seed.extend([("thin", k)] * len(starts))
+            innermost.add(("thin", k))
+        # The searches are independent: run together, their finds kept in this order.
+        fits = (
+            fit_regions(data, settings, [c for c, _ in searches], max_sizes=[s for _, s in searches])
+            if searches
+            else []
+        )  # pyright: ignore[reportArgumentType]  # a SearchSettings
+        for (centre, _), fit in zip(searches, fits):
+            good = part_vectors(fit.parts)[np.asarray(fit.gamma) > 0]
+            additions.extend(good)
+            seed.extend([centre] * len(good))
+        if not additions:
+            return [[]]
+        n = len(vectors)
+        found = render_edits([Edit((), a[None]) for a in np.asarray(additions, np.float32)], data.camera)
+        scores = edit_costs(cost, found, data, costs)
+        for _ in range(self.rounds):
+            trials = [host_parts(e.apply(vectors, e.add)) for e in found]
+            new = _grow(data, [_grow_inputs(t, data, c, [n]) for t, c in zip(trials, scores)], steps=self.steps)
+            grown = render_edits([Edit((), v[None]) for v in new], data.camera)
+            for k, c in enumerate(edit_costs(cost, grown, data, costs)):
+                if c.total < scores[k].total:
+                    found[k], scores[k] = grown[k], c
+        best = {}
+        for k, (s, c) in enumerate(zip(seed, scores)):
+            if s not in best or c.total < scores[best[s]].total:
+                best[s] = k
+        rest = layers_of(cost).min(0) if n else np.full(data.image.shape, np.inf, np.float32)
+        settled = {
+            s: Edit((), settle_part(found[k].add[0], found[k].layers[0], rest, data, costs)[None])  # pyright: ignore[reportOptionalSubscript]  # rendered above
+            for s, k in best.items()
+        }
+        alternatives = [[e for s, e in settled.items() if s in innermost]]
+        if any(s not in innermost for s in settled):
+            alternatives.append(list(settled.values()))
+        return alternatives
+
+
+@dataclasses.dataclass(frozen=True, kw_only=True)
+class DropParts(Move):
+    """A part dropped when that lowers E; only parts whose own explained pixels could not
+    pay for two part descriptions are tried (the others are not re-rendered), and the
+    last part is never dropped."""
+
+    name: ClassVar[str] = "drop"
+    passes: int = MAX_PASSES
+
+    def propose(self, vectors, cost, data, costs, step):
+        n = len(vectors)
+        if n <= 1:
+            return [[]]
+        own = np.array([(cost.labels == i)[cost.explained_mask].sum() for i in range(n)])
+        gain = own * (costs.omission - costs.explained)
+        which = np.flatnonzero(gain < 2 * costs.part + costs.commission * cost.commission)
+        if len(which) == n:  # one part stays: the one that explains most
+            which = which[which != int(np.argmax(own))]
+        return [[Edit((int(i),)) for i in which]]
 
 
 _CROP = 32
@@ -448,28 +518,6 @@ def settle_part(vector, layer, rest, data: RangeData, costs: Costs, *, iteration
                 if scale < 0.05:
                     break
     return vector if current is None else current
-
-
-def drop_unprofitable(parts: Part, data: RangeData, costs: Costs, *, cost: EncodingCost | None = None):
-    """Remove parts, one at a time, while removing one lowers E."""
-    cost = encoding_cost(parts, data, costs) if cost is None else cost
-    improved = True
-    while improved and len(parts) > 1:
-        improved = False
-        best = None
-        # Only parts whose own explained pixels could not pay for two part descriptions
-        # can be worth dropping; the others are not re-rendered.
-        own = np.array([(cost.labels == i)[cost.explained_mask].sum() for i in range(len(parts))])
-        gain = own * (costs.omission - costs.explained)
-        which = np.flatnonzero(gain < 2 * costs.part + costs.commission * cost.commission)
-        for i, c in zip(which, costs_removing(cost, which, data, costs)):
-            if c.total < cost.total - 1e-9 and (best is None or c.total < best[1].total):
-                keep = np.delete(np.arange(len(parts)), i)
-                best = (jax.tree_util.tree_map(lambda x: x[keep], parts), c)
-        if best is not None:
-            parts, cost = best
-            improved = True
-    return parts, cost
 
 
 def _merge_candidates(a: np.ndarray, b: np.ndarray) -> np.ndarray:
@@ -635,10 +683,9 @@ def _part_groups(adjacent: np.ndarray) -> list[tuple]:
     return sorted(g for g in groups if len(g) >= 2)
 
 
-def merge_adjacent(
-    parts: Part, data: RangeData, costs: Costs, *, steps: int = 20, tries: int = 3, cost: EncodingCost | None = None
-):
-    """Replace adjacent parts by one part when that lowers E (section 4.1).
+@dataclasses.dataclass(frozen=True, kw_only=True)
+class MergeParts(Move):
+    """Adjacent parts replaced by one part (section 4.1).
 
     Every adjacent pair gets bent single-part starts (:func:`_merge_candidates`), and
     every group of adjacent parts (:func:`_part_groups`: a part with its neighbours, a
@@ -646,28 +693,30 @@ def merge_adjacent(
     a laptop seen as five rounded patches is one flat box; a bent, tapered limb seen as
     two or three pieces is one bent, tapered part). On the first pass the ``tries`` single
     parts with the most bits to win back (unexplained and commission pixels they answer
-    for) get the same starts from their own pixels: one part's description replaced by
-    a shorter one (a polish that settled on the wrong squareness or depth, a straight fit
-    of a bent part). All are
-    fitted by batched LM calls to their parts' explained pixels (the moment starts,
-    farther from their answer, twice over); every start, as it is and fitted, is tried
-    in the joint rendering (the radial distances that the fits minimise thicken a thin
-    plate, and lengthen a bar whose ends meet other parts), and the lowest E is kept if
-    it is below the current one."""
-    from scipy.ndimage import binary_dilation, distance_transform_edt
+    for) get the same starts from their own pixels: one part's description replaced by a
+    shorter one (a polish that settled on the wrong squareness or depth, a straight fit
+    of a bent part). All are fitted by batched LM calls of ``steps`` steps to their
+    parts' explained pixels (the moment starts, farther from their answer, twice over);
+    every start, as it is and fitted, is an edit (the radial distances that the fits
+    minimise thicken a thin plate, and lengthen a bar whose ends meet other parts)."""
 
-    cost = encoding_cost(parts, data, costs) if cost is None else cost
-    pts, idx = figure_points(data)
-    rays, ray_index = background_rays(data)
-    at = np.maximum(idx, 0)
-    merged, first = True, True
-    while merged and len(parts) >= 1:
-        merged = False
-        n = len(parts)
+    name: ClassVar[str] = "merge"
+    passes: int = MAX_PASSES
+    steps: int = 20
+    tries: int = 3
+
+    def propose(self, vectors, cost, data, costs, step):
+        from scipy.ndimage import binary_dilation, distance_transform_edt
+
+        n = len(vectors)
+        if n == 0:
+            return [[]]
+        pts, idx = figure_points(data)
+        rays, ray_index = background_rays(data)
+        at = np.maximum(idx, 0)
         grown = [binary_dilation(cost.labels == i, iterations=2) for i in range(n)]
         adjacent = np.array([[i != j and (grown[i] & (cost.labels == j)).any() for j in range(n)] for i in range(n)])
         adjacent |= adjacent.T
-        vec = part_vectors(parts)
         inits, weights, ray_weights, members = [], [], [], []
         # Each figure pixel no part explains goes to the part whose visible pixels are
         # nearest: the pixels a part (or a group) summarising its parts answers for.
@@ -679,7 +728,6 @@ def merge_adjacent(
             owner = np.full(cost.labels.shape, -1)
 
         def add(group, starts, *, whole=False):
-            assert cost is not None  # set above; pyright does not narrow it in this closure
             union = np.isin(cost.labels, group) & cost.explained_mask
             if whole:
                 union = union | np.isin(owner, group)
@@ -691,10 +739,10 @@ def merge_adjacent(
                 inits.append(init)
                 weights.append(w)
                 ray_weights.append(wr)
-                members.append(tuple(group))
+                members.append(tuple(int(g) for g in group))
 
         for i, j in zip(*np.nonzero(np.triu(adjacent))):
-            add((i, j), lambda w: _merge_candidates(vec[i], vec[j]))
+            add((i, j), lambda w: _merge_candidates(vectors[i], vectors[j]))
         n_pairs = len(inits)
         # Single parts, on the first pass: the ``tries`` that could gain most, i.e. with
         # the most bits to win back from the pixels they answer for (unexplained: κ3 - κ1
@@ -706,36 +754,82 @@ def merge_adjacent(
                 for i in range(n)
             ]
         )
-        singles = [(int(i),) for i in np.argsort(-gain, kind="stable")[:tries] if first and gain[i] > 0]
-        first = False
+        singles = [(int(i),) for i in np.argsort(-gain, kind="stable")[: self.tries] if step == 0 and gain[i] > 0]
         for group in _part_groups(adjacent) + singles:
             add(group, lambda w: _moment_candidates(pts[w > 0], data.encoding.sigma), whole=True)
         if not inits:
-            break
+            return [[]]
         w_all, wr_all, start = np.stack(weights), np.stack(ray_weights), np.stack(inits)
 
         def fit(rows, calls):
             # ``calls`` solves of ``steps`` each, not one longer one: the same compiled program.
             out = start[rows]
             for _ in range(calls if len(out) else 0):
-                out = part_vectors(polish_parts(host_parts(out), pts, w_all[rows], steps, rays, wr_all[rows]))
+                out = part_vectors(polish_parts(host_parts(out), pts, w_all[rows], self.steps, rays, wr_all[rows]))
             return out
 
-        fitted_vec = np.concatenate([fit(slice(0, n_pairs), 1), fit(slice(n_pairs, len(inits)), 2)])
-        # Every start is tried as it is and fitted: the radial distances that the fits
-        # minimise thicken a thin plate, and lengthen a bar whose ends meet other parts.
-        trials = np.concatenate([fitted_vec, start])
-        groups = members * 2
-        base = cost
-        rests: dict[tuple, Composition] = {}  # the other parts' nearest hit, composed once per group
-        for vector, group, layer in zip(trials, groups, render_layers(trials, data.camera)):
-            keep = [q for q in range(n) if q not in group]
-            if group not in rests:
-                rests[group] = Composition(layers_of(base)[keep])
-            c = rests[group].adding(layer, data, costs)
-            if c.total < cost.total - 1e-9:
-                parts, cost, merged = host_parts(np.concatenate([vec[keep], vector[None]])), c, True
-    return parts, cost
+        fitted = np.concatenate([fit(slice(0, n_pairs), 1), fit(slice(n_pairs, len(inits)), 2)])
+        return [
+            [Edit(group, v[None].astype(np.float32)) for v, group in zip(np.concatenate([fitted, start]), members * 2)]
+        ]
+
+
+@dataclasses.dataclass(frozen=True)
+class OnGain:
+    """Run ``move``, then the moves ``then`` only if it lowered E (after a merge: the
+    merged part grows onto its neighbourhood as the others did, and parts the merge made
+    redundant are dropped)."""
+
+    move: Move
+    then: tuple = ()
+
+
+def run_moves(moves, vectors: np.ndarray, cost: EncodingCost, data: RangeData, costs: Costs):
+    """The refinement loop: each of ``moves`` (:class:`Move` or :class:`OnGain`) in turn,
+    pass after pass while its passes lower E, each pass's edits accepted by
+    :func:`accept_edits`. A pass that proposes alternatives has the rest of the moves
+    finish each, and the shorter description is kept. Returns (vectors, cost, history of
+    (stage, E))."""
+    history = []
+    for m, move in enumerate(moves):
+        if isinstance(move, OnGain):
+            before = cost.total
+            vectors, cost, stages = run_moves((move.move,), vectors, cost, data, costs)
+            history += stages
+            if cost.total < before:
+                vectors, cost, stages = run_moves(move.then, vectors, cost, data, costs)
+                history += [(f"{stage} after {move.move.name}", e) for stage, e in stages]
+            continue
+        for step in range(move.passes):
+            ends = []
+            for edits in move.propose(vectors, cost, data, costs, step):
+                end = accept_edits(vectors, cost, edits, data, costs)
+                if not any(np.array_equal(end[0], v) for v, _ in ends):  # False for different part counts too
+                    ends.append(end)
+            if len(ends) > 1:
+                finished = [run_moves(moves[m + 1 :], v, c, data, costs) for v, c in ends]
+                k = min(range(len(ends)), key=lambda k: finished[k][1].total)
+                vectors, cost, stages = finished[k]
+                return vectors, cost, [*history, (move.name, ends[k][1].total), *stages]
+            improved = ends[0][1].total < cost.total
+            vectors, cost = ends[0]
+            if move.numbered:
+                history.append((f"{move.name} {step + 1}", cost.total))
+            if not improved:
+                break
+        if not move.numbered:
+            history.append((move.name, cost.total))
+    return vectors, cost, history
+
+
+def refine_moves(parts: Part, data: RangeData, costs: Costs, moves):
+    """Refine ``parts`` by the loop over ``moves`` (:func:`run_moves`; e.g.
+    :meth:`RefineSettings.moves`). Returns (parts, final cost, history of (stage, E) from
+    ``"initial"``)."""
+    vectors = part_vectors(parts)
+    cost = encoding_cost(host_parts(vectors), data, costs)
+    vectors, final, history = run_moves(tuple(moves), vectors, cost, data, costs)
+    return Part.from_vector(vectors), final, [("initial", cost.total), *history]
 
 
 MERGE_POLISH_ROUNDS = 4
@@ -753,55 +847,14 @@ def refine_parts(
     merge: bool = True,
     search=None,
 ):
-    """Joint refinement: ``rounds`` of :func:`polish_jointly` (``steps`` solver steps
-    each), then :func:`split_parts` (when ``split``), :func:`fill_gaps` (when ``search``,
-    the first search's :class:`~sqparts.SearchSettings`, is given),
-    :func:`drop_unprofitable` and :func:`merge_adjacent` (when ``merge``; then
-    :func:`drop_unprofitable` again if a merge was made: the merged part may explain
-    what a neighbour paid for). The gap search may offer two sets of additions (its
-    innermost searches' and all of them, see :func:`fill_gaps`): a small part that pays
-    for itself can still stop a merge that would have paid more, so dropping and
-    merging run after each, and the shorter description is kept. Returns (parts, final
-    cost, history of E after each stage)."""
-    parts = host_parts(part_vectors(parts))
-    cost = encoding_cost(parts, data, costs)
-    history = [("initial", cost.total)]
-    for r in range(rounds):
-        parts, cost = polish_jointly(parts, data, costs, steps=steps, cost=cost)
-        history.append((f"polish {r + 1}", cost.total))
-    if split:
-        parts, cost = split_parts(parts, data, costs, steps=steps, cost=cost)
-        history.append(("split", cost.total))
-
-    def finish(parts, cost):
-        stages = []
-        parts, cost = drop_unprofitable(parts, data, costs, cost=cost)
-        stages.append(("drop", cost.total))
-        if merge:
-            before = cost.total
-            parts, cost = merge_adjacent(parts, data, costs, steps=steps, cost=cost)
-            stages.append(("merge", cost.total))
-            if cost.total < before:
-                # The merged part grows onto its neighbourhood as the others did,
-                # while that lowers E (at most ``MERGE_POLISH_ROUNDS`` rounds).
-                for _ in range(MERGE_POLISH_ROUNDS):
-                    e = cost.total
-                    parts, cost = polish_jointly(parts, data, costs, steps=steps, cost=cost)
-                    if cost.total >= e:
-                        break
-                parts, cost = drop_unprofitable(parts, data, costs, cost=cost)
-                stages.append(("drop after merge", cost.total))
-        return parts, cost, stages
-
-    if search is None:
-        parts, cost, stages = finish(parts, cost)
-    else:
-        fills = fill_gaps(parts, data, costs, search, steps=steps, cost=cost)
-        ends = [finish(*fill) for fill in fills]
-        k = min(range(len(ends)), key=lambda k: ends[k][1].total)
-        parts, cost, stages = ends[k]
-        history.append(("fill gaps", fills[k][1].total))
-    return Part.from_vector(part_vectors(parts)), cost, history + stages
+    """Joint refinement with :class:`RefineSettings`' moves: ``rounds`` passes of
+    :class:`GrowParts` (``steps`` solver steps each), then :class:`SplitParts` (when
+    ``split``), :class:`FillGaps` (when ``search``, the first search's
+    :class:`~sqparts.SearchSettings`, is given), :class:`DropParts` and
+    :class:`MergeParts` (when ``merge``; then growing and dropping again if a merge was
+    made). Returns (parts, final cost, history of E after each stage)."""
+    settings = RefineSettings(rounds=rounds, steps=steps, split=split, fill=search is not None, merge=merge)
+    return refine_moves(parts, data, costs, settings.moves(search))
 
 
 MAX_REFINE_ROUNDS = 100
@@ -810,12 +863,13 @@ MAX_REFINE_ROUNDS = 100
 
 @dataclasses.dataclass(frozen=True)
 class RefineSettings:
-    """Joint refinement after selection (:func:`refine_parts`): ``rounds`` of joint
-    polishing of ``steps`` solver steps each (rounded up to a multiple of
-    :data:`~sqparts._polish.POLISH_CALL_STEPS`; 0 = none), then ``split`` (a part split in
-    two along its axis), ``fill`` (the blobs still unexplained searched again at their own
-    scale, for small parts: hands, feet), and ``merge`` (two adjacent parts merged into one
-    bent part), each kept only when E falls. ``RefineSettings.none()``: no refinement."""
+    """Joint refinement after selection (:func:`refine_moves` with :meth:`moves`):
+    ``rounds`` passes of :class:`GrowParts` of ``steps`` solver steps each (rounded up to
+    a multiple of :data:`~sqparts._polish.POLISH_CALL_STEPS`; 0 = none), then ``split``
+    (:class:`SplitParts`), ``fill`` (:class:`FillGaps`: the blobs still unexplained
+    searched again at their own scale, for small parts: hands, feet), dropping parts that
+    do not pay (:class:`DropParts`), and ``merge`` (:class:`MergeParts`), each kept only
+    when E falls. ``RefineSettings.none()``: no refinement."""
 
     rounds: int = 2
     steps: int = 20
@@ -841,16 +895,20 @@ class RefineSettings:
     def active(self) -> bool:
         return self.rounds > 0 or self.split or self.fill or self.merge
 
+    def moves(self, search=None) -> tuple:
+        """The moves these settings ask for, in order; ``search`` (the first search's
+        resolved :class:`~sqparts.SearchSettings`) is used for filling gaps."""
+        moves: list = [GrowParts(passes=self.rounds, steps=self.steps)] if self.rounds else []
+        if self.split:
+            moves.append(SplitParts(steps=self.steps))
+        if self.fill and search is not None:
+            moves.append(FillGaps(search=search, steps=self.steps))
+        moves.append(DropParts())
+        if self.merge:
+            again = (GrowParts(passes=MERGE_POLISH_ROUNDS, steps=self.steps), DropParts())
+            moves.append(OnGain(MergeParts(steps=self.steps), then=again))
+        return tuple(moves)
+
     def refine(self, parts: Part, data: RangeData, costs: Costs, search=None):
-        """:func:`refine_parts` with these settings; ``search`` (the first search's
-        resolved settings) is used for filling gaps."""
-        return refine_parts(
-            parts,
-            data,
-            costs,
-            rounds=self.rounds,
-            steps=self.steps,
-            split=self.split,
-            merge=self.merge,
-            search=search if self.fill else None,
-        )
+        """:func:`refine_moves` with :meth:`moves`."""
+        return refine_moves(parts, data, costs, self.moves(search))

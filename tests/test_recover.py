@@ -116,19 +116,32 @@ def test_refinement_splits_a_part_that_spans_two():
     assert split_cost.total < kept_cost.total and split_cost.commission <= 0.02 * data.figure_mask.sum()
 
 
-def test_adding_a_part_by_merging_renderings_matches_rendering_the_scene(depth):
-    from sqparts._encoding import costs_adding
-
+def test_edit_costs_match_rendering_the_edited_scene(depth):
+    # Every shape of edit (add one, add two, remove, replace in place, replace two by
+    # one), all evaluated together, against rendering the edited scene from scratch.
     data = sqparts.prepare(depth, CAM)
     costs = sqparts.Costs.from_encoding(data.encoding, int(data.figure_mask.sum()))
+    vec = np.stack([np.asarray(SCENE[i].to_vector()) for i in range(len(SCENE))]).astype(np.float32)
     base = sqparts.encoding_cost(SCENE[:1], data, costs)
-    extra = np.stack([np.asarray(SCENE[1].to_vector()), np.asarray(SCENE[1].to_vector()) + np.r_[0.03, np.zeros(13)]])
-    for vec, merged in zip(extra, costs_adding(base, extra, data, costs)):
-        full = sqparts.encoding_cost(sqparts.stack_parts([SCENE[0], sqparts.Part.from_vector(vec)]), data, costs)
-        assert (
-            merged.total == full.total and merged.explained == full.explained and merged.commission == full.commission
-        )
-        assert np.array_equal(merged.labels, full.labels)
+    moved = vec[1] + np.r_[0.03, np.zeros(13)].astype(np.float32)
+    edits = [
+        sqparts.Edit((), vec[1:2]),
+        sqparts.Edit((), moved[None]),
+        sqparts.Edit((), np.stack([vec[1], moved])),
+        sqparts.Edit((0,), vec[1:2]),
+    ]
+    two = sqparts.encoding_cost(SCENE, data, costs)
+    both = [sqparts.Edit((0,)), sqparts.Edit((1,), moved[None]), sqparts.Edit((0, 1), moved[None])]
+    for start, start_vec, batch in ((base, vec[:1], edits), (two, vec, both)):
+        for edit, cost in zip(batch, sqparts.edit_costs(start, batch, data, costs)):
+            edited = edit.apply(start_vec, edit.add)
+            full = sqparts.encoding_cost(sqparts.Part.from_vector(edited), data, costs)
+            assert cost.total == full.total and cost.explained == full.explained and cost.commission == full.commission
+            assert np.array_equal(cost.labels, full.labels)
+    # A one-for-one replacement keeps its place; otherwise the new parts follow the rest.
+    assert np.array_equal(both[1].apply(vec, moved[None])[1], moved)
+    assert np.array_equal(both[2].apply(vec, moved[None]), moved[None])
+    assert np.array_equal(sqparts.Edit((0,), np.stack([moved, moved])).apply(vec, np.stack([moved, moved]))[0], vec[1])
 
 
 def test_composing_one_layer_onto_the_rest_matches_a_brute_force_nearest_hit(depth):
@@ -594,7 +607,7 @@ def test_refinement_merges_the_halves_of_a_box_bar_between_its_neighbours():
     # The gate's top rail (a box: squareness 0.2) started as two overlapping halves, each
     # adjacent to a post and the brace, so no group of adjacent parts is the two alone:
     # the pair's own starts (a straight bar of the halves' squareness) merge them.
-    from sqparts._refine import _merge_candidates, merge_adjacent
+    from sqparts._refine import _merge_candidates
     from sqparts._scenes import limb
 
     scene, data, costs, start = _gate_without([2])
@@ -615,7 +628,7 @@ def test_refinement_merges_the_halves_of_a_box_bar_between_its_neighbours():
     assert abs(axis[0]) > 0.9999
     parts = sqparts.stack_parts([start[i] for i in range(len(start))] + halves)
     before = sqparts.encoding_cost(parts, data, costs)
-    merged, cost = merge_adjacent(parts, data, costs, cost=before)
+    merged, cost, _ = sqparts.refine_moves(parts, data, costs, [sqparts.MergeParts()])
     assert len(merged) == 6 and cost.total < before.total - 0.5 * costs.part
     _, labels = (np.asarray(a) for a in sqparts.render_range_image(scene.parts, scene.camera, return_labels=True))
     pixels = labels == 2
