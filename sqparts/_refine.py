@@ -37,7 +37,7 @@ from __future__ import annotations
 
 import dataclasses
 import math
-from typing import ClassVar
+from typing import TYPE_CHECKING, ClassVar
 
 import jax
 import jax.numpy as jnp
@@ -69,6 +69,9 @@ from ._polish import (
     surface_distances,
 )
 from ._render import cast_part
+
+if TYPE_CHECKING:
+    from ._search import SearchSettings
 
 
 def _grow_inputs(parts: Part, data: RangeData, cost: EncodingCost, which, *, tolerance: float = 2.0, grow: int = 2):
@@ -214,9 +217,8 @@ class SplitParts(Move):
         from ._part import rotation_matrix
 
         omitted = data.figure_mask & ~cost.explained_mask
-        beside = np.array(
-            [(binary_dilation(cost.labels == i, iterations=2) & omitted).sum() for i in range(len(vectors))]
-        )  # pyright: ignore[reportOperatorIssue]  # scipy is untyped: binary_dilation returns a bool array
+        grown = [np.asarray(binary_dilation(cost.labels == i, iterations=2), bool) for i in range(len(vectors))]
+        beside = np.array([(g & omitted).sum() for g in grown])
         trials = []
         for i in [int(i) for i in np.argsort(-beside)[: self.tries] if beside[i] >= least_pixels(costs)]:
             v = vectors[i].astype(np.float64)
@@ -317,7 +319,7 @@ class FillGaps(Move):
     merge that would have paid more."""
 
     name: ClassVar[str] = "fill gaps"
-    search: object = None
+    search: SearchSettings | None = None
     steps: int = 20
     rounds: int = 3
     blobs: int = 4
@@ -339,7 +341,7 @@ class FillGaps(Move):
         additions, seed, innermost, searches = [], [], set(), []
 
         def search(centre, max_size):
-            searches.append((centre, float(np.clip(max_size, 1e-6, settings.max_size))))  # pyright: ignore[reportAttributeAccessIssue]  # a SearchSettings
+            searches.append((centre, float(np.clip(max_size, 1e-6, settings.max_size))))
 
         for b in np.argsort(-sizes, kind="stable")[: self.blobs]:
             blob = blob_labels == b + 1
@@ -381,7 +383,7 @@ class FillGaps(Move):
             fit_regions(data, settings, [c for c, _ in searches], max_sizes=[s for _, s in searches])
             if searches
             else []
-        )  # pyright: ignore[reportArgumentType]  # a SearchSettings
+        )
         for (centre, _), fit in zip(searches, fits):
             good = part_vectors(fit.parts)[np.asarray(fit.gamma) > 0]
             additions.extend(good)

@@ -1,0 +1,147 @@
+"""Refinement's loop over moves: the accept rule, the loop, and moves alone, each against
+the encoding cost of the edited scene rendered from scratch or the scene's truth."""
+
+import dataclasses
+from typing import ClassVar
+
+import numpy as np
+import pytest
+
+import sqparts
+from sqparts._encoding import part_vectors
+
+CAM = sqparts.PinholeCamera(64, 64, 280.0, 280.0, 31.5, 31.5)
+SCENE = sqparts.stack_parts(
+    [
+        sqparts.Part(
+            size=[0.06, 0.06, 0.2], squareness=[0.5, 1.0], position=[-0.08, 0.0, 2.0], orientation=[0.0, 0.0, 0.3]
+        ),
+        sqparts.Part(
+            size=[0.05, 0.05, 0.16], squareness=[1.0, 1.0], position=[0.1, -0.02, 2.05], orientation=[1.57, 0.0, 0.0]
+        ),
+    ]
+)
+TRUTH = part_vectors(SCENE)
+SHIFT = np.r_[0.02, 0.01, 0.0, np.zeros(11)].astype(np.float32)
+
+
+@pytest.fixture(scope="module")
+def image():
+    depth = np.asarray(sqparts.render_range_image(SCENE, CAM))
+    data = sqparts.prepare(depth, CAM)
+    return data, sqparts.Costs.from_encoding(data.encoding, int(data.figure_mask.sum()))
+
+
+def _cost(vectors, data, costs):
+    return sqparts.encoding_cost(sqparts.Part.from_vector(vectors), data, costs)
+
+
+def test_accept_keeps_the_best_edit_of_each_part_and_every_compatible_improvement(image):
+    data, costs = image
+    start = TRUTH + SHIFT
+    cost = _cost(start, data, costs)
+    half = TRUTH + SHIFT / 2
+    edits = [
+        sqparts.Edit((0,), half[0:1]),  # better, not best, for part 0
+        sqparts.Edit((0,), TRUTH[0:1]),  # best for part 0
+        sqparts.Edit((1,), TRUTH[1:2]),  # best for part 1
+        sqparts.Edit((1,), (TRUTH[1] + 3 * SHIFT)[None]),  # worse for part 1
+        sqparts.Edit((), TRUTH[0:1]),  # a duplicate: explains nothing new
+        sqparts.Edit((0, 1), TRUTH[0:1]),  # part 1 lost
+    ]
+    vectors, final = sqparts.accept_edits(start, cost, edits, data, costs)
+    np.testing.assert_array_equal(vectors, TRUTH)
+    truth = _cost(TRUTH, data, costs)
+    assert final.total == truth.total and np.array_equal(final.labels, truth.labels)
+    # Nothing that lowers E: nothing changes.
+    same, same_cost = sqparts.accept_edits(TRUTH, truth, edits[3:], data, costs)
+    assert same is TRUTH and same_cost is truth
+
+
+def test_accept_reindexes_edits_after_a_removal(image):
+    # A stray third part is dropped first (the best edit); the edit of part 2's
+    # neighbour, proposed with the old indices, then applies to the right part.
+    data, costs = image
+    stray = TRUTH[0] + np.r_[0.0, 0.15, 0.0, np.zeros(11)].astype(np.float32)
+    start = np.stack([stray, TRUTH[0], TRUTH[1] + SHIFT])
+    cost = _cost(start, data, costs)
+    edits = [sqparts.Edit((0,)), sqparts.Edit((2,), TRUTH[1:2])]
+    vectors, final = sqparts.accept_edits(start, cost, edits, data, costs)
+    np.testing.assert_array_equal(vectors, TRUTH)
+    assert final.total == _cost(TRUTH, data, costs).total
+
+
+def test_drop_parts_alone_drops_the_stray_part(image):
+    data, costs = image
+    stray = TRUTH[0] + np.r_[0.0, 0.15, 0.0, np.zeros(11)].astype(np.float32)
+    start = sqparts.Part.from_vector(np.concatenate([TRUTH, stray[None]]))
+    parts, cost, history = sqparts.refine_moves(start, data, costs, [sqparts.DropParts()])
+    np.testing.assert_array_equal(part_vectors(parts), TRUTH)
+    assert [s for s, _ in history] == ["initial", "drop"] and history[-1][1] < history[0][1]
+    assert cost.total == _cost(TRUTH, data, costs).total
+
+
+def test_grow_parts_alone_pulls_shifted_parts_back(image):
+    data, costs = image
+    start = TRUTH + SHIFT / 4
+    parts, cost, history = sqparts.refine_moves(
+        sqparts.Part.from_vector(start), data, costs, [sqparts.GrowParts(passes=3)]
+    )
+    assert [s for s, _ in history][:2] == ["initial", "polish 1"]
+    assert cost.total < history[0][1]
+    moved = np.abs(part_vectors(parts)[:, :3] - TRUTH[:, :3]).max()
+    assert moved < 0.1 * np.abs(SHIFT[:3]).max() / 4  # from 5 mm off to within 0.5 mm
+    # The pass that keeps nothing ends the move: 2 of the 3 passes asked for.
+    assert [s for s, _ in history] == ["initial", "polish 1", "polish 2"]
+
+
+@dataclasses.dataclass(frozen=True, kw_only=True)
+class _Alternatives(sqparts.Move):
+    """Two alternative batches: part 1 replaced by the truth, or by a shifted copy."""
+
+    name: ClassVar[str] = "alternatives"
+
+    def propose(self, vectors, cost, data, costs, step):
+        return [[sqparts.Edit((1,), (TRUTH[1] + SHIFT)[None])], [sqparts.Edit((1,), TRUTH[1:2])]]
+
+
+@dataclasses.dataclass(frozen=True, kw_only=True)
+class _Count(sqparts.Move):
+    """Records each pass it is asked for; proposes nothing."""
+
+    name: ClassVar[str] = "count"
+    calls: list = dataclasses.field(default_factory=list)
+
+    def propose(self, vectors, cost, data, costs, step):
+        self.calls.append(len(vectors))
+        return [[]]
+
+
+def test_the_loop_finishes_each_alternative_and_keeps_the_shorter(image):
+    data, costs = image
+    start = TRUTH + np.stack([np.zeros(14, np.float32), 2 * SHIFT])
+    count = _Count(passes=5)
+    parts, cost, history = sqparts.refine_moves(sqparts.Part.from_vector(start), data, costs, [_Alternatives(), count])
+    np.testing.assert_array_equal(part_vectors(parts), TRUTH)
+    assert cost.total == _cost(TRUTH, data, costs).total
+    # Both ends were finished by the rest (one pass each: it keeps nothing).
+    assert count.calls == [2, 2]
+    assert [s for s, _ in history] == ["initial", "alternatives", "count"]
+
+
+def test_on_gain_runs_its_moves_only_after_a_gain(image):
+    data, costs = image
+    stray = TRUTH[0] + np.r_[0.0, 0.15, 0.0, np.zeros(11)].astype(np.float32)
+    after, never = _Count(), _Count()
+    moves = [sqparts.OnGain(sqparts.DropParts(), then=(after,)), sqparts.OnGain(sqparts.DropParts(), then=(never,))]
+    start = sqparts.Part.from_vector(np.concatenate([TRUTH, stray[None]]))
+    _, _, history = sqparts.refine_moves(start, data, costs, moves)
+    assert after.calls == [2] and never.calls == []
+    assert [s for s, _ in history] == ["initial", "drop", "count after drop", "drop"]
+
+
+def test_move_settings_are_checked():
+    with pytest.raises(ValueError, match=r"passes: got 0, expected an integer in \[1, 1000\]"):
+        sqparts.GrowParts(passes=0)
+    moves = sqparts.RefineSettings(rounds=2, split=False, fill=True, merge=True).moves(search=None)
+    assert [type(m).__name__ for m in moves] == ["GrowParts", "DropParts", "OnGain"]
