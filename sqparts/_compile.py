@@ -29,6 +29,7 @@ is not stable across processes.
 
 from __future__ import annotations
 
+import collections
 import contextlib
 import functools
 import gc
@@ -45,6 +46,7 @@ from pathlib import Path
 
 import jax
 import jax.core
+import numpy as np
 
 __all__ = [
     "persistent_jit",
@@ -129,6 +131,91 @@ def _cores() -> int:
 
 _pools: dict[int, ThreadPoolExecutor] = {}  # by thread count (SQPARTS_THREADS may change)
 _pools_lock = threading.Lock()
+
+
+class RowMemo:
+    """Results of a deterministic per-row computation, by a digest of the row's inputs
+    (least recently used first out, at most ``max_bytes`` of results), kept while a
+    :func:`memo_scope` is open (one recovery): refinement asks again for what it has
+    computed before (the merges of parts a pass left alone, the same start fitted on
+    the same pixels), and a row's result does not depend on what shares its batch, so a
+    repeat is looked up instead of computed. Outside every scope nothing is kept.
+    Thread-safe."""
+
+    def __init__(self, max_bytes: int):
+        self.max_bytes = max_bytes
+        self._rows: collections.OrderedDict[bytes, np.ndarray] = collections.OrderedDict()
+        self._bytes = 0
+        self._lock = threading.Lock()
+        self.hits = 0
+        _memos.append(self)
+
+    @staticmethod
+    def key(*parts) -> bytes:
+        """Digest of the row's inputs: arrays (by dtype, shape and bytes) and reprs."""
+        h = hashlib.blake2b(digest_size=20)
+        for x in parts:
+            if isinstance(x, np.ndarray):
+                h.update(f"{x.dtype}{x.shape}".encode())
+                h.update(np.ascontiguousarray(x).tobytes())
+            else:
+                h.update(repr(x).encode())
+        return h.digest()
+
+    def get(self, key: bytes) -> np.ndarray | None:
+        if not _scopes:
+            return None
+        with self._lock:
+            row = self._rows.get(key)
+            if row is not None:
+                self._rows.move_to_end(key)
+                self.hits += 1
+            return row
+
+    def put(self, key: bytes, row: np.ndarray) -> None:
+        if not _scopes:
+            return
+        row = np.array(row)  # an owned copy: callers may write into theirs
+        with self._lock:
+            if key in self._rows:
+                return
+            self._rows[key] = row
+            self._bytes += row.nbytes
+            while self._bytes > self.max_bytes and self._rows:
+                self._bytes -= self._rows.popitem(last=False)[1].nbytes
+
+    def clear(self) -> None:
+        with self._lock:
+            self._rows.clear()
+            self._bytes = 0
+
+
+_memos: list[RowMemo] = []
+_scopes = 0
+_scopes_lock = threading.Lock()
+
+
+def clear_memos() -> None:
+    """Forget every :class:`RowMemo`'s results."""
+    for memo in _memos:
+        memo.clear()
+
+
+@contextlib.contextmanager
+def memo_scope():
+    """Keep :class:`RowMemo` results while inside (scopes nest, and may be open in several
+    threads at once); when the last one closes, they are forgotten: a recovery looks up
+    its own repeats, never another call's."""
+    global _scopes
+    with _scopes_lock:
+        _scopes += 1
+    try:
+        yield
+    finally:
+        with _scopes_lock:
+            _scopes -= 1
+            if not _scopes:
+                clear_memos()
 
 
 def concurrently(fn: Callable, items, *, progress=None) -> list:

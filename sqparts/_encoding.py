@@ -43,7 +43,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from ._camera import bucket_camera
-from ._compile import concurrently, persistent_jit
+from ._compile import RowMemo, concurrently, persistent_jit
 from ._part import Part
 from ._render import DEFAULT_NEWTON_STEPS, cast_part
 from ._typing import Array, Bool, Float
@@ -351,23 +351,43 @@ def _render_layers(parts, camera, newton_steps=DEFAULT_NEWTON_STEPS):
     return jnp.where(hit, t, jnp.inf)
 
 
+_LAYERS = RowMemo(256 << 20)
+"""Rendered depth layers by part and camera (see :class:`~sqparts._compile.RowMemo`)."""
+
+
 def render_layers(vectors, camera) -> np.ndarray:
     """(k, H, W) depth of each of the (k, 14) part vectors rendered on its own (inf =
-    miss), ``PART_BUCKET`` parts per compiled call. A scene's rendering is their nearest hit
+    miss), ``PART_BUCKET`` parts per compiled call; a part this camera has rendered before
+    is looked up (:data:`_LAYERS`). A scene's rendering is their nearest hit
     (:func:`_compose`), so a trial that adds, replaces or removes parts re-renders only
     the parts it changes."""
-    padded, k = pad_parts(host_parts(vectors))
+    vectors = part_vectors(host_parts(vectors))
     h, w = camera.height, camera.width
-    if k == 0:
-        return np.full((0, h, w), np.inf, np.float32)
-    # Rendered on the bucketed image (the same rays, a few more of them), then cropped.
+    out = np.full((len(vectors), h, w), np.inf, np.float32)
+    if len(vectors) == 0:
+        return out
     big = bucket_camera(camera)
-    return np.concatenate(
-        concurrently(
-            lambda j: np.asarray(_render_layers(padded[j : j + PART_BUCKET], big))[:, :h, :w],
-            range(0, len(padded), PART_BUCKET),
-        )
-    )[:k]
+    keys = [RowMemo.key(big, v) for v in vectors]
+    todo = []
+    for i, k in enumerate(keys):
+        row = _LAYERS.get(k)
+        if row is None:
+            todo.append(i)
+        else:
+            out[i] = row
+    if todo:
+        # Rendered on the bucketed image (the same rays, a few more of them), then cropped.
+        padded, k = pad_parts(host_parts(vectors[todo]))
+        new = np.concatenate(
+            concurrently(
+                lambda j: np.asarray(_render_layers(padded[j : j + PART_BUCKET], big))[:, :h, :w],
+                range(0, len(padded), PART_BUCKET),
+            )
+        )[:k]
+        for i, layer in zip(todo, new):
+            out[i] = layer
+            _LAYERS.put(keys[i], layer)
+    return out
 
 
 def _nearest(layers: np.ndarray) -> tuple[np.ndarray, np.ndarray]:

@@ -21,7 +21,7 @@ import numpy as np
 import optimistix as optx
 
 from ._camera import camera_points, camera_rays
-from ._compile import concurrently, persistent_jit
+from ._compile import RowMemo, concurrently, persistent_jit
 from ._data import RangeData
 from ._encoding import PART_BUCKET, host_parts, pad_parts, part_vectors
 from ._part import Part, from_unconstrained, matmul, rotation_matrix, surface_distance, to_local, to_unconstrained
@@ -119,6 +119,10 @@ def _gather(weights: np.ndarray, size: int, seed: int = 0) -> tuple[np.ndarray, 
     return index, out
 
 
+_POLISHED = RowMemo(16 << 20)
+"""Polished part vectors by their inputs (see :class:`~sqparts._compile.RowMemo`)."""
+
+
 def polish_parts(parts: Part, points, weights, steps: int, rays, ray_weights) -> Part:
     """Each part polished on its own points (non-zero ``weights[i]`` over ``points``,
     at most ``_POINTS`` of them) while missing its background rays (non-zero
@@ -126,26 +130,45 @@ def polish_parts(parts: Part, points, weights, steps: int, rays, ray_weights) ->
     ``PART_BUCKET`` parts and :data:`POLISH_CALL_STEPS` solver steps per compiled call, so
     one compilation serves any number of parts, any image and any ``steps`` (rounded up to
     a multiple of :data:`POLISH_CALL_STEPS`; each call starts the solver afresh from where
-    the last one stopped)."""
-    padded, n = pad_parts(parts)
-    m = len(padded)
+    the last one stopped). A part polished before on the same points and rays is looked
+    up (:data:`_POLISHED`)."""
+    vectors = part_vectors(parts)
+    n = len(vectors)
     pi, pw = _gather(np.asarray(weights)[:n], _POINTS)
     ri, rw = _gather(np.asarray(ray_weights)[:n], _RAYS)
-    pi, pw, ri, rw = (np.concatenate([a, np.zeros((m - n,) + a.shape[1:], a.dtype)]) for a in (pi, pw, ri, rw))
     x = np.asarray(points, np.float32)[pi]
     if len(rays[0]) == 0:  # no background in view: nothing to miss
         rays = (np.zeros((1, 3), np.float32), np.array([[0.0, 0.0, 1.0]], np.float32))
     o, d = (np.asarray(a, np.float32)[ri] for a in rays)
+    calls = -(-steps // POLISH_CALL_STEPS)
+    keys = [RowMemo.key(calls, vectors[i], x[i], pw[i], o[i], d[i], rw[i]) for i in range(n)]
+    out = vectors.copy()
+    todo = []
+    for i, k in enumerate(keys):
+        row = _POLISHED.get(k)
+        if row is None:
+            todo.append(i)
+        else:
+            out[i] = row
+    if not todo:
+        return host_parts(out)
+    padded, k = pad_parts(host_parts(vectors[todo]))
+    m = len(padded)
+    x, pw, o, d, rw = (pad_rows(a[todo], m) for a in (x, pw, o, d, rw))
     d[rw == 0] = (0.0, 0.0, 1.0)  # padding rays stay finite
 
-    def bucket(k):
-        b = slice(k, k + PART_BUCKET)
-        out = part_vectors(padded[b])
-        for _ in range(-(-steps // POLISH_CALL_STEPS)):  # host arrays in: one program for every call
-            out = part_vectors(_polish_bucket(host_parts(out), x[b], pw[b], o[b], d[b], rw[b], steps=POLISH_CALL_STEPS))
-        return out
+    def bucket(j):
+        b = slice(j, j + PART_BUCKET)
+        row = part_vectors(padded[b])
+        for _ in range(calls):  # host arrays in: one program for every call
+            row = part_vectors(_polish_bucket(host_parts(row), x[b], pw[b], o[b], d[b], rw[b], steps=POLISH_CALL_STEPS))
+        return row
 
-    return host_parts(np.concatenate(concurrently(bucket, range(0, m, PART_BUCKET)))[:n])
+    new = np.concatenate(concurrently(bucket, range(0, m, PART_BUCKET)))[:k]
+    for i, v in zip(todo, new):
+        out[i] = v
+        _POLISHED.put(keys[i], v)
+    return host_parts(out)
 
 
 def pad_rows(a: np.ndarray, m: int) -> np.ndarray:

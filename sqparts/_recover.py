@@ -23,6 +23,7 @@ import jax
 import numpy as np
 
 from ._camera import Camera, camera_points
+from ._compile import memo_scope
 from ._data import RangeData
 from ._encoding import Costs, Encoding, EncodingCost, encoding_cost, layer_errors, part_statistics, render_layers
 from ._grid import lookup_preset
@@ -198,6 +199,7 @@ def _settings(value, kind, name: str):
     return value
 
 
+@memo_scope()  # a recovery looks up its own repeated renderings and fits
 def recover(
     depth,
     camera: Camera,

@@ -30,7 +30,8 @@ E. The moves, in :meth:`RefineSettings.moves`'s order:
 - :class:`MergeParts`: adjacent parts merged when one part encodes them more cheaply: two
   into one bent part (section 4.1), or a group into one part started from its pixels'
   moments (a flat box for a laptop seen as patches); :class:`OnGain` then grows the parts
-  again and drops those the merge made redundant.
+  again, drops those the merge made redundant, and merges again, until merging no
+  longer lowers E: the descent runs to its fixed point.
 """
 
 from __future__ import annotations
@@ -778,12 +779,19 @@ class MergeParts(Move):
 
 @dataclasses.dataclass(frozen=True)
 class OnGain:
-    """Run ``move``, then the moves ``then`` only if it lowered E (after a merge: the
-    merged part grows onto its neighbourhood as the others did, and parts the merge made
-    redundant are dropped)."""
+    """Run ``move``, then the moves ``then`` only if it lowered E; all of it up to
+    ``repeat`` times while ``move`` lowers E (after a merge: the merged part grows onto
+    its neighbourhood as the others did, parts the merge made redundant are dropped,
+    and the parts as they now are may merge again)."""
 
     move: Move
     then: tuple = ()
+    repeat: int = 1
+
+    def __post_init__(self):
+        r = self.repeat
+        if isinstance(r, bool) or not isinstance(r, (int, np.integer)) or not 1 <= r <= MAX_PASSES:
+            raise ValueError(f"repeat: got {r!r}, expected an integer in [1, {MAX_PASSES}]")
 
 
 def run_moves(moves, vectors: np.ndarray, cost: EncodingCost, data: RangeData, costs: Costs):
@@ -795,10 +803,12 @@ def run_moves(moves, vectors: np.ndarray, cost: EncodingCost, data: RangeData, c
     history = []
     for m, move in enumerate(moves):
         if isinstance(move, OnGain):
-            before = cost.total
-            vectors, cost, stages = run_moves((move.move,), vectors, cost, data, costs)
-            history += stages
-            if cost.total < before:
+            for _ in range(move.repeat):
+                before = cost.total
+                vectors, cost, stages = run_moves((move.move,), vectors, cost, data, costs)
+                history += stages
+                if cost.total >= before:
+                    break
                 vectors, cost, stages = run_moves(move.then, vectors, cost, data, costs)
                 history += [(f"{stage} after {move.move.name}", e) for stage, e in stages]
             continue
@@ -854,7 +864,7 @@ def refine_parts(
     ``split``), :class:`FillGaps` (when ``search``, the first search's
     :class:`~sqparts.SearchSettings`, is given), :class:`DropParts` and
     :class:`MergeParts` (when ``merge``; then growing and dropping again if a merge was
-    made). Returns (parts, final cost, history of E after each stage)."""
+    made, and merging again, until a merge no longer lowers E). Returns (parts, final cost, history of E after each stage)."""
     settings = RefineSettings(rounds=rounds, steps=steps, split=split, fill=search is not None, merge=merge)
     return refine_moves(parts, data, costs, settings.moves(search))
 
@@ -870,8 +880,9 @@ class RefineSettings:
     a multiple of :data:`~sqparts._polish.POLISH_CALL_STEPS`; 0 = none), then ``split``
     (:class:`SplitParts`), ``fill`` (:class:`FillGaps`: the blobs still unexplained
     searched again at their own scale, for small parts: hands, feet), dropping parts that
-    do not pay (:class:`DropParts`), and ``merge`` (:class:`MergeParts`), each kept only
-    when E falls. ``RefineSettings.none()``: no refinement."""
+    do not pay (:class:`DropParts`), and ``merge`` (:class:`MergeParts`, each merge
+    followed by growing and dropping again, until merging no longer lowers E), each kept
+    only when E falls. ``RefineSettings.none()``: no refinement."""
 
     rounds: int = 2
     steps: int = 20
@@ -908,7 +919,7 @@ class RefineSettings:
         moves.append(DropParts())
         if self.merge:
             again = (GrowParts(passes=MERGE_POLISH_ROUNDS, steps=self.steps), DropParts())
-            moves.append(OnGain(MergeParts(steps=self.steps), then=again))
+            moves.append(OnGain(MergeParts(steps=self.steps), then=again, repeat=MAX_PASSES))
         return tuple(moves)
 
     def refine(self, parts: Part, data: RangeData, costs: Costs, search=None):

@@ -321,6 +321,72 @@ def test_bucketed_polishing_on_threads_equals_one_after_another(monkeypatch):
     assert not np.array_equal(out["1"], np.asarray(parts.to_vector()))  # it did polish
 
 
+def test_row_memo_looks_up_what_it_computed_and_forgets_the_oldest():
+    memo = _compile.RowMemo(max_bytes=3 * 8)
+    memo.put(b"outside", np.float64([0]))
+    assert memo.get(b"outside") is None  # outside every scope nothing is kept
+    with _compile.memo_scope():
+        _row_memo_inside(memo)
+    assert memo.get(b"k") is None and memo._bytes == 0  # forgotten when the scope closes
+
+
+def _row_memo_inside(memo):
+    keys = [_compile.RowMemo.key("f", np.float32([i]), i) for i in range(4)]
+    assert len(set(keys)) == 4 and keys[0] == _compile.RowMemo.key("f", np.float32([0]), 0)
+    assert _compile.RowMemo.key(np.float32([1, 2])) != _compile.RowMemo.key(np.float32([[1, 2]]))
+    for i, k in enumerate(keys):
+        memo.put(k, np.float64([i]))
+    assert memo.get(keys[0]) is None  # the oldest went out: 4 rows of 8 bytes over 24
+    assert [float(memo.get(k)[0]) for k in keys[1:]] == [1.0, 2.0, 3.0]
+    assert memo.hits == 3
+    memo.put(b"k", np.float64([5]))
+
+
+def test_rendering_and_polishing_look_up_repeats_bit_for_bit():
+    """Within a recovery's memo scope a part rendered or polished before is looked up: the
+    same bits as computing it afresh, and the lookups happen."""
+    rng = np.random.default_rng(6)
+    cam = sqparts.PinholeCamera(40, 40, 160.0, 160.0, 19.5, 19.5)
+    vectors = np.stack(
+        [
+            np.asarray(
+                sqparts.Part(
+                    size=rng.uniform(0.1, 0.3, 3), position=[0, 0, 2.0], orientation=rng.normal(size=3)
+                ).to_vector()
+            )
+            for _ in range(5)
+        ]
+    ).astype(np.float32)
+    points = (rng.normal(size=(300, 3)) * 0.2 + [0, 0, 2.0]).astype(np.float32)
+    weights = (rng.random((5, 300)) < 0.3).astype(np.float32)
+    rays = (np.zeros((50, 3), np.float32), np.tile(np.float32([[0, 0, 1]]), (50, 1)))
+    ray_weights = (rng.random((5, 50)) < 0.5).astype(np.float32)
+    with _compile.memo_scope():
+        _repeats_inside(vectors, cam, points, weights, rays, ray_weights)
+
+
+def _repeats_inside(vectors, cam, points, weights, rays, ray_weights):
+    from sqparts._encoding import _LAYERS, render_layers
+    from sqparts._polish import _POLISHED, polish_parts
+
+    fresh_layers = render_layers(vectors, cam)
+    fresh = np.asarray(
+        polish_parts(sqparts.Part.from_vector(vectors), points, weights, 20, rays, ray_weights).to_vector()
+    )
+    hits = _LAYERS.hits, _POLISHED.hits
+    order = [3, 0, 3, 4]
+    again_layers = render_layers(vectors[order], cam)
+    again = polish_parts(sqparts.Part.from_vector(vectors[order]), points, weights[order], 20, rays, ray_weights[order])
+    assert _LAYERS.hits - hits[0] == 4 and _POLISHED.hits - hits[1] == 4
+    np.testing.assert_array_equal(again_layers, fresh_layers[order])
+    np.testing.assert_array_equal(np.asarray(again.to_vector()), fresh[order])
+    # Other inputs are not confused with them: other steps, other weights.
+    longer = polish_parts(sqparts.Part.from_vector(vectors[:1]), points, weights[:1], 40, rays, ray_weights[:1])
+    other = polish_parts(sqparts.Part.from_vector(vectors[:1]), points, weights[1:2], 20, rays, ray_weights[:1])
+    assert not np.array_equal(np.asarray(longer.to_vector())[0], fresh[0])
+    assert not np.array_equal(np.asarray(other.to_vector())[0], fresh[0])
+
+
 def test_best_first_selection_builds_one_program_for_problems_up_to_64_candidates():
     """Selection by groups solves problems of several sizes in one recovery: every size up
     to 64 candidates shares one compiled best-first program, and each answer is the same

@@ -138,10 +138,18 @@ def test_on_gain_runs_its_moves_only_after_a_gain(image):
     _, _, history = sqparts.refine_moves(start, data, costs, moves)
     assert after.calls == [2] and never.calls == []
     assert [s for s, _ in history] == ["initial", "drop", "count after drop", "drop"]
+    # Repeated: again after each gain, until the move no longer gains.
+    again = _Count()
+    _, _, history = sqparts.refine_moves(
+        start, data, costs, [sqparts.OnGain(sqparts.DropParts(), then=(again,), repeat=5)]
+    )
+    assert again.calls == [2] and [s for s, _ in history] == ["initial", "drop", "count after drop", "drop"]
 
 
 def test_move_settings_are_checked():
     with pytest.raises(ValueError, match=r"passes: got 0, expected an integer in \[1, 1000\]"):
         sqparts.GrowParts(passes=0)
+    with pytest.raises(ValueError, match=r"repeat: got 0, expected an integer in \[1, 1000\]"):
+        sqparts.OnGain(sqparts.DropParts(), repeat=0)
     moves = sqparts.RefineSettings(rounds=2, split=False, fill=True, merge=True).moves(search=None)
     assert [type(m).__name__ for m in moves] == ["GrowParts", "DropParts", "OnGain"]
