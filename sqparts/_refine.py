@@ -919,7 +919,7 @@ class RefineSettings:
         moves.append(DropParts())
         if self.merge:
             again = (GrowParts(passes=MERGE_POLISH_ROUNDS, steps=self.steps), DropParts())
-            moves.append(OnGain(MergeParts(steps=self.steps), then=again, repeat=MAX_PASSES))
+            moves.append(OnGain(MergeParts(passes=1, steps=self.steps), then=again, repeat=MAX_PASSES))
         return tuple(moves)
 
     def refine(self, parts: Part, data: RangeData, costs: Costs, search=None):
