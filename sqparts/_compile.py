@@ -184,6 +184,18 @@ class RowMemo:
             while self._bytes > self.max_bytes and self._rows:
                 self._bytes -= self._rows.popitem(last=False)[1].nbytes
 
+    def fill(self, keys, out: np.ndarray) -> list[int]:
+        """Put the results known for ``keys`` into the rows of ``out``; returns the indices
+        of the rows still to compute."""
+        todo = []
+        for i, k in enumerate(keys):
+            row = self.get(k)
+            if row is None:
+                todo.append(i)
+            else:
+                out[i] = row
+        return todo
+
     def clear(self) -> None:
         with self._lock:
             self._rows.clear()

@@ -368,13 +368,7 @@ def render_layers(vectors, camera) -> np.ndarray:
         return out
     big = bucket_camera(camera)
     keys = [RowMemo.key(big, v) for v in vectors]
-    todo = []
-    for i, k in enumerate(keys):
-        row = _LAYERS.get(k)
-        if row is None:
-            todo.append(i)
-        else:
-            out[i] = row
+    todo = _LAYERS.fill(keys, out)
     if todo:
         # Rendered on the bucketed image (the same rays, a few more of them), then cropped.
         padded, k = pad_parts(host_parts(vectors[todo]))

@@ -143,13 +143,7 @@ def polish_parts(parts: Part, points, weights, steps: int, rays, ray_weights) ->
     calls = -(-steps // POLISH_CALL_STEPS)
     keys = [RowMemo.key(calls, vectors[i], x[i], pw[i], o[i], d[i], rw[i]) for i in range(n)]
     out = vectors.copy()
-    todo = []
-    for i, k in enumerate(keys):
-        row = _POLISHED.get(k)
-        if row is None:
-            todo.append(i)
-        else:
-            out[i] = row
+    todo = _POLISHED.fill(keys, out)
     if not todo:
         return host_parts(out)
     padded, k = pad_parts(host_parts(vectors[todo]))

@@ -6,21 +6,11 @@ from typing import ClassVar
 
 import numpy as np
 import pytest
+from test_recover import CAM, SCENE  # two parts side by side, 64 x 64
 
 import sqparts
 from sqparts._encoding import part_vectors
 
-CAM = sqparts.PinholeCamera(64, 64, 280.0, 280.0, 31.5, 31.5)
-SCENE = sqparts.stack_parts(
-    [
-        sqparts.Part(
-            size=[0.06, 0.06, 0.2], squareness=[0.5, 1.0], position=[-0.08, 0.0, 2.0], orientation=[0.0, 0.0, 0.3]
-        ),
-        sqparts.Part(
-            size=[0.05, 0.05, 0.16], squareness=[1.0, 1.0], position=[0.1, -0.02, 2.05], orientation=[1.57, 0.0, 0.0]
-        ),
-    ]
-)
 TRUTH = part_vectors(SCENE)
 SHIFT = np.r_[0.02, 0.01, 0.0, np.zeros(11)].astype(np.float32)
 
