@@ -3,8 +3,9 @@
 *Local* (sections 3.2-3.3): the goodness of fit Γ = μ - λε (Eq. 4) and bits saved (Eq. 5)
 of one hypothesis over a window. *Global* (section 3.5): the costs κ0..κ3 (:class:`Costs`),
 the area matrices and E(X) of Eq. (6), and E counted by direct pixel count in the chosen
-parts' joint rendering (:func:`encoding_cost`, :class:`EncodingCost`): the one evaluator
-of E that selection, refinement and post-processing share.
+parts' joint rendering (:func:`encoding_cost`, :class:`EncodingCost`), and after each of a
+batch of changes to them (:class:`Edit`, :func:`edit_costs`): the one evaluator of E that
+selection, refinement and post-processing share.
 
 Local encoding:
 
