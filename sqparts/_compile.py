@@ -184,9 +184,9 @@ class RowMemo:
             while self._bytes > self.max_bytes and self._rows:
                 self._bytes -= self._rows.popitem(last=False)[1].nbytes
 
-    def fill(self, keys, out: np.ndarray) -> list[int]:
-        """Put the results known for ``keys`` into the rows of ``out``; returns the indices
-        of the rows still to compute."""
+    def rows(self, keys, out: np.ndarray, compute) -> np.ndarray:
+        """``out`` with the row of each of ``keys`` looked up, or, for the rows not known,
+        computed by ``compute(indices)`` (their rows, in that order) and kept."""
         todo = []
         for i, k in enumerate(keys):
             row = self.get(k)
@@ -194,7 +194,11 @@ class RowMemo:
                 todo.append(i)
             else:
                 out[i] = row
-        return todo
+        if todo:
+            for i, row in zip(todo, compute(todo)):
+                out[i] = row
+                self.put(keys[i], row)
+        return out
 
     def clear(self) -> None:
         with self._lock:

@@ -365,24 +365,19 @@ def render_layers(vectors, camera) -> np.ndarray:
     vectors = part_vectors(host_parts(vectors))
     h, w = camera.height, camera.width
     out = np.full((len(vectors), h, w), np.inf, np.float32)
-    if len(vectors) == 0:
-        return out
     big = bucket_camera(camera)
-    keys = [RowMemo.key(big, v) for v in vectors]
-    todo = _LAYERS.fill(keys, out)
-    if todo:
+
+    def render(todo):
         # Rendered on the bucketed image (the same rays, a few more of them), then cropped.
         padded, k = pad_parts(host_parts(vectors[todo]))
-        new = np.concatenate(
+        return np.concatenate(
             concurrently(
                 lambda j: np.asarray(_render_layers(padded[j : j + PART_BUCKET], big))[:, :h, :w],
                 range(0, len(padded), PART_BUCKET),
             )
         )[:k]
-        for i, layer in zip(todo, new):
-            out[i] = layer
-            _LAYERS.put(keys[i], layer)
-    return out
+
+    return _LAYERS.rows([RowMemo.key(big, v) for v in vectors], out, render)
 
 
 def _nearest(layers: np.ndarray) -> tuple[np.ndarray, np.ndarray]:

@@ -142,27 +142,25 @@ def polish_parts(parts: Part, points, weights, steps: int, rays, ray_weights) ->
     o, d = (np.asarray(a, np.float32)[ri] for a in rays)
     calls = -(-steps // POLISH_CALL_STEPS)
     keys = [RowMemo.key(calls, vectors[i], x[i], pw[i], o[i], d[i], rw[i]) for i in range(n)]
-    out = vectors.copy()
-    todo = _POLISHED.fill(keys, out)
-    if not todo:
-        return host_parts(out)
-    padded, k = pad_parts(host_parts(vectors[todo]))
-    m = len(padded)
-    x, pw, o, d, rw = (pad_rows(a[todo], m) for a in (x, pw, o, d, rw))
-    d[rw == 0] = (0.0, 0.0, 1.0)  # padding rays stay finite
 
-    def bucket(j):
-        b = slice(j, j + PART_BUCKET)
-        row = part_vectors(padded[b])
-        for _ in range(calls):  # host arrays in: one program for every call
-            row = part_vectors(_polish_bucket(host_parts(row), x[b], pw[b], o[b], d[b], rw[b], steps=POLISH_CALL_STEPS))
-        return row
+    def polish(todo):
+        padded, k = pad_parts(host_parts(vectors[todo]))
+        m = len(padded)
+        xs, pws, os_, ds, rws = (pad_rows(a[todo], m) for a in (x, pw, o, d, rw))
+        ds[rws == 0] = (0.0, 0.0, 1.0)  # padding rays stay finite
 
-    new = np.concatenate(concurrently(bucket, range(0, m, PART_BUCKET)))[:k]
-    for i, v in zip(todo, new):
-        out[i] = v
-        _POLISHED.put(keys[i], v)
-    return host_parts(out)
+        def bucket(j):
+            b = slice(j, j + PART_BUCKET)
+            row = part_vectors(padded[b])
+            for _ in range(calls):  # host arrays in: one program for every call
+                row = part_vectors(
+                    _polish_bucket(host_parts(row), xs[b], pws[b], os_[b], ds[b], rws[b], steps=POLISH_CALL_STEPS)
+                )
+            return row
+
+        return np.concatenate(concurrently(bucket, range(0, m, PART_BUCKET)))[:k]
+
+    return host_parts(_POLISHED.rows(keys, vectors.copy(), polish))
 
 
 def pad_rows(a: np.ndarray, m: int) -> np.ndarray:

@@ -148,6 +148,10 @@ def accept_edits(vectors: np.ndarray, cost: EncodingCost, edits, data: RangeData
     return vectors, cost
 
 
+MAX_PASSES = 1000
+"""Most passes of one move (a bound on its work; a pass that keeps nothing ends it)."""
+
+
 @dataclasses.dataclass(frozen=True, kw_only=True)
 class Move:
     """A refinement move: each of at most ``passes`` passes proposes batches of edits
@@ -171,10 +175,6 @@ class Move:
         With several, the rest of the moves finish each and the shorter description is
         kept."""
         raise NotImplementedError
-
-
-MAX_PASSES = 1000
-"""Most passes of one move (a bound on its work; a pass that keeps nothing ends it)."""
 
 
 @dataclasses.dataclass(frozen=True, kw_only=True)
