@@ -1,0 +1,206 @@
+"""Prototype (session 28, not part of the package): verify recognition candidates by
+rendering the stored parts into the query's camera and comparing with its depth.
+
+For every test view of ``bench_recognition.py`` (from its cached recoveries) and every
+stored view of every object: the best part-match score, and the alignment's refined
+starts (each a pose of the stored main solid in the query's camera). Each pose's stored
+parts are rendered into the query camera (``render_layers``) and scored against the
+observed depth D (all finite pixels; the plate is not masked): agreement
+exp(-(R - D)² / 2τ²), τ = k x the object's scale; explained = agreement summed over D's
+pixels / their count; precision = agreement summed over R's pixels / those not hidden
+behind a nearer observed surface. An object's score is its best over views and poses.
+
+    JAX_PLATFORMS=cpu python benchmarks/proto_verify_recognition.py candidates  # ~18 min
+    JAX_PLATFORMS=cpu python benchmarks/proto_verify_recognition.py render      # ~4 min
+    JAX_PLATFORMS=cpu python benchmarks/proto_verify_recognition.py analyse
+
+Intermediate pickles go to ``$SQPARTS_VERIFY_WORK`` (default /tmp/sqparts-verify).
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import pickle
+import sys
+import tempfile
+import time
+from multiprocessing import Pool
+from pathlib import Path
+
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+
+import bench_recognition as B
+import numpy as np
+from scipy.spatial import KDTree
+
+from sqparts._database import ModelDatabase, transform_parts, view_from_parts
+from sqparts._describe import describe
+from sqparts._encoding import part_vectors, render_layers
+from sqparts._part import stack_parts
+from sqparts._recognize import (
+    _RELABEL,
+    _SPARSE,
+    MatchSettings,
+    _refine_pose,
+    _similarity,
+    match_descriptions,
+    unary_similarity,
+)
+
+WORK = Path(os.environ.get("SQPARTS_VERIFY_WORK", "/tmp/sqparts-verify"))
+
+
+def align_all(query, model, settings, starts_n=4):
+    """``align_descriptions`` returning every refined start: [(score, 4x4 pose)]."""
+    qtree, mtree = KDTree(query.surface), KDTree(model.surface)
+    q, m = query.surface[::_SPARSE], model.surface[::_SPARSE]
+    sigma = settings.alignment_tolerance * max(query.scale, model.scale)
+    unary = unary_similarity(query, model, settings)
+    benefit = unary * np.sqrt(query.volumes[:, None] * model.volumes[None, :])
+    pairs = np.argsort(-benefit, axis=None, kind="stable")[: settings.alignment_pairs]
+    qi, mj = np.unravel_index(pairs, benefit.shape)
+    rq, rm = query.rotations[qi].copy(), model.rotations[mj].copy()
+    for r in (rq, rm):
+        r[np.linalg.det(r) < 0, :, 2] *= -1
+    rot = np.einsum("pab,sbc,pdc->psad", rq, _RELABEL, rm).reshape(-1, 3, 3)
+    cq = np.average(query.positions, 0, query.volumes)
+    cm = np.average(model.positions, 0, model.volumes)
+    anchors_q = np.concatenate([np.repeat(query.positions[qi], len(_RELABEL), 0), np.repeat(cq[None], len(rot), 0)])
+    anchors_m = np.concatenate([np.repeat(model.positions[mj], len(_RELABEL), 0), np.repeat(cm[None], len(rot), 0)])
+    rot = np.concatenate([rot, rot])
+    trans = anchors_q - np.einsum("sab,sb->sa", rot, anchors_m)
+    moved = np.einsum("sab,nb->sna", rot, m) + trans[:, None]
+    rank = _similarity(qtree, moved.reshape(-1, 3), sigma).reshape(len(rot), -1).mean(1)
+    starts: list[int] = []
+    for s in np.argsort(-rank, kind="stable"):
+        if all(np.linalg.norm(rot[s] - rot[o]) > 0.3 or np.linalg.norm(trans[s] - trans[o]) > sigma for o in starts):
+            starts.append(int(s))
+        if len(starts) == starts_n:
+            break
+    out = []
+    for s in starts:
+        r, t = _refine_pose(q, qtree, m, mtree, rot[s], trans[s], sigma)
+        score = 0.5 * (_similarity(qtree, m @ r.T + t, sigma).mean() + _similarity(mtree, (q - t) @ r, sigma).mean())
+        pose = np.eye(4)
+        pose[:3, :3], pose[:3, 3] = r, t
+        out.append((float(score), pose))
+    return out
+
+
+def build_db():
+    views = B.plan()
+    cache = json.loads(B.CACHE.read_text())
+    db = ModelDatabase(tempfile.mkdtemp())
+    for key, name, role, _ in views:
+        if role == "learn":
+            e = cache[key]
+            others = [p for f in e["figures"][1:] for p in B._parts(f)]
+            view = view_from_parts(
+                stack_parts([p for f in e["figures"] for p in B._parts(f)]),
+                source=key,
+                initial=stack_parts([*B._parts(e["initial"]), *others]),
+                levels=[stack_parts([*B._parts(p), *others]) for p in e["levels"]],
+            )
+            db.add_view(name, view, calibrate=False)
+    return views, cache, db
+
+
+_DB = None
+
+
+def _work(args):
+    key, figs = args
+    settings = MatchSettings()
+    figures = [B._parts(f) for f in figs]
+    queries = list(enumerate(figures))
+    if len(figures) > 1:
+        queries.append((-1, stack_parts([p for f in figures for p in f])))
+    res = []
+    for f, parts in queries:
+        query = describe(parts)
+        for name, stored_views in _DB.objects.items():
+            for k, view in enumerate(stored_views):
+                pm = max(match_descriptions(query, s.description, settings).score for s in view.descriptions)
+                res.append(
+                    dict(figure=f, name=name, view=k, part=pm, align=align_all(query, view.main.description, settings))
+                )
+    return key, res
+
+
+def candidates():
+    global _DB
+    views, cache, _DB = build_db()
+    jobs = [(k, cache[k]["figures"]) for k, _n, r, _s in views if r == "test" and cache[k]["figures"]]
+    t0 = time.time()
+    with Pool(2) as pool:
+        out = dict(pool.map(_work, jobs, chunksize=1))
+    pickle.dump(out, open(WORK / "candidates.pkl", "wb"))
+    print(len(out), f"{time.time() - t0:.0f} s")
+
+
+def render():
+    views, _cache, db = build_db()
+    meshes = {name: B.normalised_mesh(B.DATA / "models" / f"{name}.obj") for name in B.MESHES}
+    meshes["teapot"] = B.normalised_mesh(B.DATA / "teapot.obj")
+    cands = pickle.load(open(WORK / "candidates.pkl", "rb"))
+    out = {}
+    for key, name, _r, spec in views:
+        if key not in cands:
+            continue
+        depth, cam = B.render(name, spec, meshes)
+        vecs, owners = [], []
+        for ci, c in enumerate(cands[key]):
+            stored = db.objects[c["name"]][c["view"]].main.parts
+            for j, (_a, pose) in enumerate(c["align"]):
+                v = part_vectors(transform_parts(stored, pose))
+                owners.append((ci, j, len(v)))
+                vecs.append(v)
+        layers = render_layers(np.concatenate(vecs), cam)
+        bounds = np.cumsum([0] + [n for *_, n in owners])
+        renders = np.stack([np.min(layers[a:b], 0) for a, b in zip(bounds[:-1], bounds[1:])])
+        meta = [(c["figure"], c["name"], c["view"], c["part"], [a for a, _ in c["align"]]) for c in cands[key]]
+        out[key] = dict(depth=depth, renders=renders.astype(np.float32), owners=owners, meta=meta)
+        print(key, len(owners), flush=True)
+    pickle.dump(out, open(WORK / "renders.pkl", "wb"))
+
+
+def _verify(depth, rendered, tau):
+    seen, model = np.isfinite(depth), np.isfinite(rendered)
+    both = seen & model
+    agree = np.zeros(depth.shape)
+    agree[both] = np.exp(-0.5 * ((rendered[both] - depth[both]) / tau) ** 2)
+    hidden = both & (depth < rendered - 2 * tau)
+    return agree[seen].sum() / max(seen.sum(), 1), agree[model].sum() / max((model & ~hidden).sum(), 1)
+
+
+COMBINE = {
+    "part match x alignment (today)": lambda ex, pr, p, a: np.sqrt(p * a),
+    "verification": lambda ex, pr, p, a: np.sqrt(ex * pr),
+    "verification F1": lambda ex, pr, p, a: 2 * ex * pr / (ex + pr + 1e-9),
+    "verification x part match": lambda ex, pr, p, a: (ex * pr * p) ** (1 / 3),
+    "verification x part match x alignment": lambda ex, pr, p, a: (ex * pr * p * a) ** (1 / 4),
+    "verification x alignment": lambda ex, pr, p, a: (ex * pr * a) ** (1 / 3),
+}
+
+
+def analyse():
+    _views, _cache, db = build_db()
+    rendered = pickle.load(open(WORK / "renders.pkl", "rb"))
+    scale = {n: np.mean([v.main.description.scale for v in vs]) for n, vs in db.objects.items()}
+    for k in (0.05, 0.1, 0.2):
+        for label, combine in COMBINE.items():
+            correct = 0
+            for key, e in rendered.items():
+                best: dict[str, float] = {}
+                for (ci, j, _n), r in zip(e["owners"], e["renders"]):
+                    _f, name, _view, part, align = e["meta"][ci]
+                    s = combine(*_verify(e["depth"], r, k * scale[name]), part, align[j])
+                    best[name] = max(best.get(name, -1.0), s)
+                correct += max(best, key=best.__getitem__) == key.split("/")[0]
+            print(f"tau {k:.2f} x scale  {label:40s} top-1 {correct} / {len(rendered)}")
+
+
+if __name__ == "__main__":
+    WORK.mkdir(parents=True, exist_ok=True)
+    {"candidates": candidates, "render": render, "analyse": analyse}[sys.argv[1]]()
