@@ -27,6 +27,7 @@ from __future__ import annotations
 import argparse
 import dataclasses
 import json
+import multiprocessing
 import sys
 import time
 from pathlib import Path
@@ -43,7 +44,7 @@ from sqparts._describe import describe
 from sqparts._io import scene_from_dict, scene_to_dict
 from sqparts._mesh import render_mesh
 from sqparts._part import Part, matrix_to_rotation_vector, stack_parts
-from sqparts._recognize import MatchSettings, match_descriptions
+from sqparts._recognize import MatchSettings, Observation, match_descriptions
 
 ROOT = Path(__file__).resolve().parents[1]
 DATA = ROOT.parent / "shared" / "data"
@@ -206,7 +207,7 @@ def _parts(data):
 
 def recover_all(views, meshes, cache: dict) -> dict:
     for i, (key, name, role, spec) in enumerate(views):
-        if key in cache:
+        if key in cache and (role != "test" or "labels" in cache[key]):  # test views verify on their figures
             continue
         depth, cam = render(name, spec, meshes)
         t0 = time.perf_counter()
@@ -222,10 +223,14 @@ def recover_all(views, meshes, cache: dict) -> dict:
             print(f"[{i + 1}/{len(views)}] {key}: recovery failed: {e}", flush=True)
             continue
         seconds = time.perf_counter() - t0
+        labels = np.full(depth.shape, -1, np.int64)
+        for k, r in enumerate(rec.figures):
+            labels[np.asarray(r.figure, bool)] = k
         entry = {
             "figures": [_parts_json(r.parts) for r in rec.figures],
             "seconds": seconds,
             "pixels": int(np.isfinite(depth).sum()),
+            "labels": labels.ravel().tolist(),  # figure of each pixel (-1: none), to verify poses on
         }
         if role == "learn":
             entry["initial"] = _parts_json(rec.figures[0].initial_parts)
@@ -236,6 +241,81 @@ def recover_all(views, meshes, cache: dict) -> dict:
         print(f"[{i + 1}/{len(views)}] {key}: {[len(f) for f in entry['figures']]} parts, {seconds:.1f} s", flush=True)
         CACHE.write_text(json.dumps(cache) + "\n")
     return cache
+
+
+_WORKER_DB: dict = {}
+
+
+def recognise_view(job) -> dict:
+    """One test view matched by one matcher (run in a worker process): the database read
+    from its folder, the view rendered again (the same seed), its figures' cached parts
+    and masks, the poses verified on that range image."""
+    folder, threshold, settings, key, name, spec, e = job
+    if folder not in _WORKER_DB:
+        import sqparts._compile
+
+        sqparts._compile.enable_caches()
+        _WORKER_DB[folder] = ModelDatabase(folder)
+        meshes = {n: normalised_mesh(DATA / "models" / f"{n}.obj") for n in MESHES}
+        meshes["teapot"] = normalised_mesh(DATA / "teapot.obj")
+        _WORKER_DB["meshes"] = meshes
+    db = _WORKER_DB[folder]
+    db.threshold = threshold
+    figures = [_parts(f) for f in e["figures"]]
+    observation = None
+    if figures:
+        depth, cam = render(name, spec, _WORKER_DB["meshes"])
+        labels = np.asarray(e["labels"]).reshape(depth.shape)
+        observation = Observation(depth, cam, np.stack([labels == k for k in range(len(figures))]))
+    t0 = time.perf_counter()
+    best, matches = match_figures(figures, database=db, settings=settings, observation=observation)
+    match_s = time.perf_counter() - t0
+    # The database without this object gives the same matches less its own (each
+    # object's best is found on its own): the unknown case needs no second match.
+    unknown = [m for m in matches if m.name != name]
+    names = [m.name for m in matches]
+    row = {
+        "view": key,
+        "object": name,
+        "spec": spec,
+        "parts": [len(f) for f in figures],
+        "best": best,
+        "top": names[0] if names else None,
+        "top_score": matches[0].score if matches else 0.0,
+        "true_score": next((m.score for m in matches if m.name == name), 0.0),
+        "rank": names.index(name) + 1 if name in names else None,
+        "recovery_s": e["seconds"],
+        "matching_s": match_s,
+        "recovery_error": e.get("error"),
+        "unknown_best": unknown[0].name if unknown and unknown[0].score >= threshold else None,
+        "unknown_top_score": unknown[0].score if unknown else 0.0,
+    }
+    print(
+        f"{key}: best {best} ({row['top_score']:.2f}; true {row['true_score']:.2f}), without it: {row['unknown_best']}"
+    )
+    return row
+
+
+def summarise(rows, threshold, calibrate_s, calibration) -> dict:
+    seconds = [r["recovery_s"] + r["matching_s"] for r in rows]
+    return {
+        "summary": {
+            "objects": len({r["object"] for r in rows}),
+            "test_views": len(rows),
+            "top1": float(np.mean([r["top"] == r["object"] for r in rows])),
+            "top3": float(np.mean([r["rank"] is not None and r["rank"] <= 3 for r in rows])),
+            "plate_views_top1": int(sum(r["top"] == r["object"] for r in rows if r["spec"].get("plate"))),
+            "accepted_and_correct": float(np.mean([r["best"] == r["object"] for r in rows])),
+            "known_wrongly_rejected": float(np.mean([r["best"] is None for r in rows])),
+            "unknown_rejected": float(np.mean([r["unknown_best"] is None for r in rows])),
+            "threshold": threshold,
+            "seconds_per_recognition_median": float(np.median(seconds)),
+            "seconds_per_recognition_mean": float(np.mean(seconds)),
+            "matching_seconds_median": float(np.median([r["matching_s"] for r in rows])),
+            "calibration_s": calibrate_s,
+        },
+        "calibration": calibration,
+    }
 
 
 def main():
@@ -254,6 +334,10 @@ def main():
     )
     args = ap.parse_args()
     settings = MatchSettings(shape_tolerance=0.5) if args.whole_object else MatchSettings()
+    # The matcher before verification (run 4) is measured in the same run, on the same recoveries.
+    matchers = {"verified": settings}
+    if settings.verification_tolerance is not None:
+        matchers = {"parts and alignment": dataclasses.replace(settings, verification_tolerance=None), **matchers}
     tag = "recognition_shape" if args.whole_object else "recognition"
     if args.plot_only:
         saved = json.loads(result_path(tag).read_text())
@@ -295,54 +379,29 @@ def main():
                 levels=[stack_parts([*_parts(p), *others]) for p in e["levels"]],
             )
             db.add_view(name, view, calibrate=False)
-    t0 = time.perf_counter()
-    threshold = db.calibrate(settings=settings)
-    calibrate_s = time.perf_counter() - t0
-    print(
-        f"threshold {threshold:.3f} from {len(db.calibration['genuine'])} genuine and "
-        f"{len(db.calibration['impostor'])} impostor scores"
-    )
-
-    # --- recognition ------------------------------------------------------------------
-    rows, confusion = [], np.zeros((len(objects), len(objects) + 1), int)
-    for key, name, role, spec in views:
-        if role != "test":
-            continue
-        e = cache[key]
-        figures = [_parts(f) for f in e["figures"]]
+    # --- recognition, by each matcher in the same run ----------------------------------
+    tests = [(key, name, spec, cache[key]) for key, name, role, spec in views if role == "test"]
+    runs = {}
+    for label, ms in matchers.items():
         t0 = time.perf_counter()
-        best, matches = match_figures(figures, database=db, settings=settings)
-        match_s = time.perf_counter() - t0
-        # The database without this object gives the same matches less its own (each
-        # object's best is found on its own): the unknown case needs no second match.
-        unknown_matches = [m for m in matches if m.name != name]
-        unknown_best = unknown_matches[0].name if unknown_matches and unknown_matches[0].score >= db.threshold else None
-        names = [m.name for m in matches]
-        row = {
-            "view": key,
-            "object": name,
-            "spec": spec,
-            "parts": [len(f) for f in figures],
-            "best": best,
-            "top": names[0] if names else None,
-            "top_score": matches[0].score if matches else 0.0,
-            "true_score": next((m.score for m in matches if m.name == name), 0.0),
-            "rank": names.index(name) + 1 if name in names else None,
-            "recovery_s": e["seconds"],
-            "matching_s": match_s,
-            "recovery_error": e.get("error"),
-            "unknown_best": unknown_best,
-            "unknown_top_score": unknown_matches[0].score if unknown_matches else 0.0,
-        }
-        rows.append(row)
-        confusion[objects.index(name), objects.index(best) if best else len(objects)] += 1
-        print(f"{key}: best {best} ({row['top_score']:.2f}; true {row['true_score']:.2f}), without it: {unknown_best}")
-    n = len(rows)
-    top1 = np.mean([r["top"] == r["object"] for r in rows])
-    accepted_correct = np.mean([r["best"] == r["object"] for r in rows])
-    wrongly_rejected = np.mean([r["best"] is None for r in rows])
-    unknown_rejected = np.mean([r["unknown_best"] is None for r in rows])
-    seconds = [r["recovery_s"] + r["matching_s"] for r in rows]
+        threshold = db.calibrate(settings=ms)
+        calibrate_s = time.perf_counter() - t0
+        print(
+            f"{label}: threshold {threshold:.3f} from {len(db.calibration['genuine'])} genuine and "
+            f"{len(db.calibration['impostor'])} impostor scores ({calibrate_s:.0f} s)",
+            flush=True,
+        )
+        jobs = [(str(folder), threshold, ms, key, name, spec, e) for key, name, spec, e in tests]
+        with multiprocessing.get_context("spawn").Pool(2) as pool:  # matching is numpy on one core
+            rows = pool.map(recognise_view, jobs, chunksize=1)
+        confusion = np.zeros((len(objects), len(objects) + 1), int)
+        for row in rows:
+            confusion[objects.index(row["object"]), objects.index(row["best"]) if row["best"] else len(objects)] += 1
+        runs[label] = summarise(rows, threshold, calibrate_s, dict(db.calibration))
+        runs[label].update(rows=rows, confusion=confusion, settings=dataclasses.asdict(ms))
+        print(label, json.dumps(runs[label]["summary"], indent=1), flush=True)
+    label = "verified" if "verified" in runs else next(iter(runs))
+    rows, confusion, threshold = runs[label]["rows"], runs[label]["confusion"], runs[label]["summary"]["threshold"]
 
     # --- stability --------------------------------------------------------------------
     stability = []
@@ -367,21 +426,7 @@ def main():
                 }
             )
 
-    summary = {
-        "objects": len(objects),
-        "test_views": n,
-        "top1": float(top1),
-        "accepted_and_correct": float(accepted_correct),
-        "known_wrongly_rejected": float(wrongly_rejected),
-        "unknown_rejected": float(unknown_rejected),
-        "threshold": threshold,
-        "seconds_per_recognition_median": float(np.median(seconds)),
-        "seconds_per_recognition_mean": float(np.mean(seconds)),
-        "matching_seconds_median": float(np.median([r["matching_s"] for r in rows])),
-        "compile_plus_first_recovery_s": cold,
-        "recovery_wall_s": recovery_wall,
-        "calibration_s": calibrate_s,
-    }
+    summary = dict(runs[label]["summary"], compile_plus_first_recovery_s=cold, recovery_wall_s=recovery_wall)
     print(json.dumps(summary, indent=1))
     for s in stability:
         print(
@@ -397,17 +442,19 @@ def main():
                 "distance_m": DISTANCE,
                 "noise_m": NOISE,
                 "recover": {k: dataclasses.asdict(v) for k, v in RECOVER.items()},
-                "match": dataclasses.asdict(settings),
+                "match": runs[label]["settings"],
                 "learn_views": LEARN_VIEWS,
                 "human_learn": HUMAN_LEARN,
                 "human_test": HUMAN_TEST,
                 "dtype": "float32",
             },
+            "matcher": label,
             "summary": summary,
-            "calibration": db.calibration,
+            "calibration": runs[label]["calibration"],
             "stability": stability,
             "rows": rows,
             "confusion": {"rows": objects, "columns": objects + ["(rejected)"], "counts": confusion.tolist()},
+            "same_run": {k: {"settings": r["settings"], "summary": r["summary"]} for k, r in runs.items()},
         },
     )
     plot_confusion(confusion, objects, result_path(f"{tag}_confusion", "png"))

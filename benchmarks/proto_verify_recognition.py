@@ -9,10 +9,14 @@ observed depth D (all finite pixels; the plate is not masked): agreement
 exp(-(R - D)² / 2τ²), τ = k x the object's scale; explained = agreement summed over D's
 pixels / their count; precision = agreement summed over R's pixels / those not hidden
 behind a nearer observed surface. An object's score is its best over views and poses.
+``refine`` (session 29) first fits every pose to the observed points by ICP
+(``sqparts.fit_pose``, what the package now does) and renders again.
 
     JAX_PLATFORMS=cpu python benchmarks/proto_verify_recognition.py candidates  # ~18 min
     JAX_PLATFORMS=cpu python benchmarks/proto_verify_recognition.py render      # ~4 min
     JAX_PLATFORMS=cpu python benchmarks/proto_verify_recognition.py analyse
+    JAX_PLATFORMS=cpu python benchmarks/proto_verify_recognition.py refine      # ~15 min
+    JAX_PLATFORMS=cpu python benchmarks/proto_verify_recognition.py analyse-refined
 
 Intermediate pickles go to ``$SQPARTS_VERIFY_WORK`` (default /tmp/sqparts-verify).
 """
@@ -32,60 +36,21 @@ sys.path.insert(0, str(Path(__file__).resolve().parent))
 
 import bench_recognition as B
 import numpy as np
-from scipy.spatial import KDTree
 
 from sqparts._database import ModelDatabase, transform_parts, view_from_parts
 from sqparts._describe import describe
 from sqparts._encoding import part_vectors, render_layers
 from sqparts._part import stack_parts
 from sqparts._recognize import (
-    _RELABEL,
-    _SPARSE,
     MatchSettings,
-    _refine_pose,
-    _similarity,
+    Observation,
+    align_candidates,
+    fit_pose,
     match_descriptions,
-    unary_similarity,
+    observed_points,
 )
 
 WORK = Path(os.environ.get("SQPARTS_VERIFY_WORK", "/tmp/sqparts-verify"))
-
-
-def align_all(query, model, settings, starts_n=4):
-    """``align_descriptions`` returning every refined start: [(score, 4x4 pose)]."""
-    qtree, mtree = KDTree(query.surface), KDTree(model.surface)
-    q, m = query.surface[::_SPARSE], model.surface[::_SPARSE]
-    sigma = settings.alignment_tolerance * max(query.scale, model.scale)
-    unary = unary_similarity(query, model, settings)
-    benefit = unary * np.sqrt(query.volumes[:, None] * model.volumes[None, :])
-    pairs = np.argsort(-benefit, axis=None, kind="stable")[: settings.alignment_pairs]
-    qi, mj = np.unravel_index(pairs, benefit.shape)
-    rq, rm = query.rotations[qi].copy(), model.rotations[mj].copy()
-    for r in (rq, rm):
-        r[np.linalg.det(r) < 0, :, 2] *= -1
-    rot = np.einsum("pab,sbc,pdc->psad", rq, _RELABEL, rm).reshape(-1, 3, 3)
-    cq = np.average(query.positions, 0, query.volumes)
-    cm = np.average(model.positions, 0, model.volumes)
-    anchors_q = np.concatenate([np.repeat(query.positions[qi], len(_RELABEL), 0), np.repeat(cq[None], len(rot), 0)])
-    anchors_m = np.concatenate([np.repeat(model.positions[mj], len(_RELABEL), 0), np.repeat(cm[None], len(rot), 0)])
-    rot = np.concatenate([rot, rot])
-    trans = anchors_q - np.einsum("sab,sb->sa", rot, anchors_m)
-    moved = np.einsum("sab,nb->sna", rot, m) + trans[:, None]
-    rank = _similarity(qtree, moved.reshape(-1, 3), sigma).reshape(len(rot), -1).mean(1)
-    starts: list[int] = []
-    for s in np.argsort(-rank, kind="stable"):
-        if all(np.linalg.norm(rot[s] - rot[o]) > 0.3 or np.linalg.norm(trans[s] - trans[o]) > sigma for o in starts):
-            starts.append(int(s))
-        if len(starts) == starts_n:
-            break
-    out = []
-    for s in starts:
-        r, t = _refine_pose(q, qtree, m, mtree, rot[s], trans[s], sigma)
-        score = 0.5 * (_similarity(qtree, m @ r.T + t, sigma).mean() + _similarity(mtree, (q - t) @ r, sigma).mean())
-        pose = np.eye(4)
-        pose[:3, :3], pose[:3, 3] = r, t
-        out.append((float(score), pose))
-    return out
 
 
 def build_db():
@@ -122,9 +87,8 @@ def _work(args):
         for name, stored_views in _DB.objects.items():
             for k, view in enumerate(stored_views):
                 pm = max(match_descriptions(query, s.description, settings).score for s in view.descriptions)
-                res.append(
-                    dict(figure=f, name=name, view=k, part=pm, align=align_all(query, view.main.description, settings))
-                )
+                found = align_candidates(query, view.main.description, settings)
+                res.append(dict(figure=f, name=name, view=k, part=pm, align=[(a.score, a.pose) for a in found]))
     return key, res
 
 
@@ -165,6 +129,36 @@ def render():
     pickle.dump(out, open(WORK / "renders.pkl", "wb"))
 
 
+def refine():
+    """Every candidate pose refined by ICP onto the observed points, then rendered again."""
+    views, _cache, db = build_db()
+    cands = pickle.load(open(WORK / "candidates.pkl", "rb"))
+    rendered = pickle.load(open(WORK / "renders.pkl", "rb"))
+    out = {}
+    t0 = time.time()
+    for key, name, _r, _spec in views:
+        if key not in cands:
+            continue
+        depth = rendered[key]["depth"]
+        cam = B.camera() if name != "human" else B.camera(focal=B.RESOLUTION * 4.0 / 2.4)
+        pts = observed_points(Observation(depth, cam, np.isfinite(depth)[None]), np.isfinite(depth))
+        vecs, owners = [], []
+        for ci, c in enumerate(cands[key]):
+            stored = db.objects[c["name"]][c["view"]].main
+            sigma = 0.08 * stored.description.scale
+            for j, (_a, pose) in enumerate(c["align"]):
+                better = fit_pose(pts, stored.description, pose, sigma)
+                v = part_vectors(transform_parts(stored.parts, better))
+                owners.append((ci, j, len(v)))
+                vecs.append(v)
+        layers = render_layers(np.concatenate(vecs), cam)
+        bounds = np.cumsum([0] + [n for *_, n in owners])
+        renders = np.stack([np.min(layers[a:b], 0) for a, b in zip(bounds[:-1], bounds[1:])])
+        out[key] = dict(rendered[key], renders=renders.astype(np.float32))
+        print(key, len(owners), f"{time.time() - t0:.0f} s", flush=True)
+    pickle.dump(out, open(WORK / "refined.pkl", "wb"))
+
+
 def _verify(depth, rendered, tau):
     seen, model = np.isfinite(depth), np.isfinite(rendered)
     both = seen & model
@@ -184,9 +178,9 @@ COMBINE = {
 }
 
 
-def analyse():
+def analyse(which="renders"):
     _views, _cache, db = build_db()
-    rendered = pickle.load(open(WORK / "renders.pkl", "rb"))
+    rendered = pickle.load(open(WORK / f"{which}.pkl", "rb"))
     scale = {n: np.mean([v.main.description.scale for v in vs]) for n, vs in db.objects.items()}
     for k in (0.05, 0.1, 0.2):
         for label, combine in COMBINE.items():
@@ -203,4 +197,10 @@ def analyse():
 
 if __name__ == "__main__":
     WORK.mkdir(parents=True, exist_ok=True)
-    {"candidates": candidates, "render": render, "analyse": analyse}[sys.argv[1]]()
+    {
+        "candidates": candidates,
+        "render": render,
+        "refine": refine,
+        "analyse": analyse,
+        "analyse-refined": lambda: analyse("refined"),
+    }[sys.argv[1]]()

@@ -150,10 +150,13 @@ _EXPORTS = {
         "Alignment",
         "Match",
         "MatchSettings",
+        "Observation",
+        "align_candidates",
         "align_descriptions",
         "calibrate_threshold",
         "estimate_pose",
         "match_descriptions",
+        "verify_poses",
     ),
     "_scenes": (
         "BUILTIN_SCENES",

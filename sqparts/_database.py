@@ -35,7 +35,16 @@ if TYPE_CHECKING:
 from ._describe import Description, describe, merged_alternatives, part_volume, surface_cloud
 from ._io import _load_json, atomic_write, scene_from_dict, scene_to_dict
 from ._part import Part, stack_parts
-from ._recognize import MatchSettings, align_descriptions, calibrate_threshold, match_descriptions
+from ._recognize import (
+    MatchSettings,
+    Observation,
+    align_candidates,
+    calibrate_threshold,
+    fit_pose,
+    match_descriptions,
+    observed_points,
+    verify_poses,
+)
 
 DATABASE_FORMAT = "sqparts-database/1"
 MODEL_FORMAT = "sqparts-model/1"
@@ -346,18 +355,32 @@ class ModelDatabase:
         other.objects = {k: v for k, v in self.objects.items() if k not in names}
         return other
 
-    def match(self, query: Description, *, settings: MatchSettings = MatchSettings(), exclude=None):
+    def match(
+        self,
+        query: Description,
+        *,
+        settings: MatchSettings = MatchSettings(),
+        exclude=None,
+        observation: Observation | None = None,
+        figure=None,
+    ):
         """Per object, its best (score, view, kind, Match, stored) against ``query``, best first.
         ``exclude``: (name, view index) to leave out.
 
         A view's score is the geometric mean of its best description's part match and
         the alignment of the view's main solid with the query's
-        (:func:`~sqparts._recognize.align_descriptions`; the variants are the same solid
+        (:func:`~sqparts._recognize.align_candidates`; the variants are the same solid
         cut otherwise, so it is aligned once), and the match's pose is the alignment's
-        (when ``settings.alignment_tolerance`` is set)."""
-        out = []
+        (when ``settings.alignment_tolerance`` is set). Given the query's
+        ``observation`` (and its ``figure`` mask, default: all its figures), every
+        refined alignment of every view is fitted to the figure's observed points
+        (:func:`~sqparts._recognize.fit_pose`) and verified by rendering
+        (:func:`~sqparts._recognize.verify_poses`, all in one batched call): the view
+        then scores the geometric mean of the alignment and the verification of its best
+        pose, which is the match's pose (when ``settings.verification_tolerance`` is
+        set); the part match gives the correspondences."""
+        rows = []
         for name, views in self.objects.items():
-            best = None
             for k, view in enumerate(views):
                 if exclude == (name, k):
                     continue
@@ -365,24 +388,55 @@ class ModelDatabase:
                     ((match_descriptions(query, s.description, settings), s) for s in view.descriptions),
                     key=lambda r: r[0].score,
                 )
-                if settings.alignment_tolerance is not None:
-                    a = align_descriptions(query, view.main.description, settings)
-                    m = dataclasses.replace(m, score=float(np.sqrt(m.score * a.score)), pose=a.pose)
-                if best is None or m.score > best[0]:
-                    best = (m.score, k, stored.kind, m, stored)
-            if best is not None:
-                out.append((name, *best))
-        return sorted(out, key=lambda r: -r[1])
+                rows.append((name, k, m, stored, align_candidates(query, view.main.description, settings)))
+        tolerance = settings.verification_tolerance
+        posed: list | None = None  # per row, its alignments fitted to the observation
+        if observation is not None and tolerance is not None:
+            mask = observation.figures.any(0) if figure is None else figure
+            points = observed_points(observation, mask)
+            posed, solids, taus = [], [], []
+            for name, k, _m, _stored, aligned in rows:
+                model = self.objects[name][k].main
+                scale = max(query.scale, model.description.scale)
+                sigma = float(settings.alignment_tolerance or 0.0) * scale  # aligned only when it is set
+                poses = [fit_pose(points, model.description, a.pose, sigma) for a in aligned]
+                posed.append(poses)
+                solids += [transform_parts(model.parts, pose) for pose in poses]
+                taus += [tolerance * scale] * len(poses)
+            checks = iter(verify_poses(solids, observation, mask, taus))
+        best: dict[str, tuple] = {}
+        for r, (name, k, m, stored, aligned) in enumerate(rows):
+            if aligned and posed is not None:
+                evidence = [float(np.sqrt(max(a.score, 0.0) * next(checks))) for a in aligned]
+                j = int(np.argmax(evidence))
+                m = dataclasses.replace(m, score=evidence[j], pose=posed[r][j])
+            elif aligned:
+                m = dataclasses.replace(
+                    m, score=float(np.sqrt(m.score * max(aligned[0].score, 0.0))), pose=aligned[0].pose
+                )
+            if name not in best or m.score > best[name][0]:
+                best[name] = (m.score, k, stored.kind, m, stored)
+        return [(name, *best[name]) for name in sorted(best, key=lambda n: -best[n][0])]
 
     def calibrate(self, *, settings: MatchSettings = MatchSettings()) -> float:
         """Set :attr:`threshold` from the stored views alone: genuine scores (each view's
         main description against its own object with that view left out) and impostor
         scores (its best against the other objects); see
-        :func:`sqparts._recognize.calibrate_threshold`. Writes ``database.json``."""
+        :func:`sqparts._recognize.calibrate_threshold`. With
+        ``settings.verification_tolerance``, each view is matched as seen again: its own
+        parts rendered from its viewpoint (:func:`view_observation`) are the observation
+        the others' poses are verified on, so that the threshold is on the scale of
+        :func:`recognize`'s verified scores. Writes ``database.json``."""
         genuine, impostor = [], []
         for name, views in self.objects.items():
             for k, view in enumerate(views):
-                scores = {n: s for n, s, *_ in self.match(view.main.description, settings=settings, exclude=(name, k))}
+                query, observation = view.main.description, None
+                if settings.verification_tolerance is not None:
+                    query, observation = view_observation(view)
+                scores = {
+                    n: s
+                    for n, s, *_ in self.match(query, settings=settings, exclude=(name, k), observation=observation)
+                }
                 if len(views) > 1:
                     genuine.append(scores[name])
                 others = [s for n, s in scores.items() if n != name]
@@ -393,6 +447,33 @@ class ModelDatabase:
         if self.path.is_dir():
             self._write_index()
         return self.threshold
+
+
+def view_observation(view: StoredView, *, size: int = 64) -> tuple[Description, Observation]:
+    """A stored view seen again: its main parts rendered by a ``size`` x ``size`` pinhole
+    camera from the side it was learnt from (the stored parts keep the learning camera's
+    axes; only its centre was moved to the origin), 6 object radii away, the object
+    filling about half the image. Returns the main description moved into that camera's
+    frame and the rendering as an :class:`~sqparts._recognize.Observation` (one figure:
+    every rendered pixel). Used to calibrate verified scores on the stored views alone."""
+    from ._camera import PinholeCamera
+    from ._encoding import part_vectors, render_layers
+
+    parts, desc = view.main.parts, view.main.description
+    radius = float(np.max(np.linalg.norm(np.asarray(parts.position), axis=-1) + np.asarray(parts.size).max(-1)))
+    shift = np.array([0.0, 0.0, 6.0 * radius])
+    f = 0.25 * size * 6.0
+    camera = PinholeCamera(width=size, height=size, fx=f, fy=f, cx=(size - 1) / 2, cy=(size - 1) / 2)
+    pose = np.eye(4)
+    pose[:3, 3] = shift
+    nearest = render_layers(part_vectors(transform_parts(parts, pose)), camera).min(0)
+    depth = np.where(np.isfinite(nearest), nearest, np.nan).astype(np.float32)
+    moved = dataclasses.replace(
+        desc,
+        positions=desc.positions + shift,
+        surface=None if desc.surface is None else desc.surface + shift,
+    )
+    return moved, Observation(depth, camera, np.isfinite(depth)[None])
 
 
 def _figure_recoveries(recovery) -> list:
@@ -486,25 +567,38 @@ def learn(name: str, views, *, database, levels: int = 2, progress=None, **recov
     return db
 
 
-def match_figures(figures, *, database, settings: MatchSettings = MatchSettings()):
+def match_figures(
+    figures, *, database, settings: MatchSettings = MatchSettings(), observation: Observation | None = None
+):
     """Match each figure's parts (a list of batched :class:`~sqparts.Part`, camera frame)
     against every stored object. Returns (best name or None, list of
     :class:`RecognitionMatch`, one per object, best first); query part indices count
     through all figures in order. Each figure is matched on its own, and, when there are
     several, all of them together (an object torn at its own depth jumps; an occluder
-    is then an extra part)."""
+    is then an extra part). ``observation``: the range image the figures were recovered
+    from, with one mask per figure (:meth:`Observation.of`), to verify each pose on
+    (:meth:`ModelDatabase.match`)."""
     db = database if isinstance(database, ModelDatabase) else ModelDatabase(database)
-    figures = [
-        f if f.batch_shape else stack_parts([f]) for f in figures if f is not None and (not f.batch_shape or len(f))
+    if observation is not None and len(observation.figures) != len(figures):
+        raise ValueError(
+            f"observation: got {len(observation.figures)} figure masks, expected one per figure ({len(figures)})"
+        )
+    kept = [
+        (i, f if f.batch_shape else stack_parts([f]))
+        for i, f in enumerate(figures)
+        if f is not None and (not f.batch_shape or len(f))
     ]
-    offsets = np.cumsum([0] + [len(f) for f in figures])
-    queries = list(enumerate(figures))
-    if len(figures) > 1:  # also all figures together: an object torn at its own depth jumps
-        queries.append((-1, stack_parts([p for f in figures for p in f])))
+    offsets = np.cumsum([0] + [len(f) for _, f in kept])
+    queries: list[tuple[int, Part, int | None]] = [(k, parts, i) for k, (i, parts) in enumerate(kept)]
+    if len(kept) > 1:  # also all figures together: an object torn at its own depth jumps
+        queries.append((-1, stack_parts([p for _, f in kept for p in f]), None))
     best: dict[str, tuple] = {}
-    for f, parts in queries:
+    for f, parts, index in queries:
         query = describe(parts)
-        for name, score, view, kind, m, stored in db.match(query, settings=settings):
+        mask = None if observation is None or index is None else observation.figures[index]
+        for name, score, view, kind, m, stored in db.match(
+            query, settings=settings, observation=observation, figure=mask
+        ):
             if name not in best or score > best[name][0]:
                 pairs = m.pairs.copy()
                 pairs[:, 0] += offsets[f] if f >= 0 else 0
@@ -567,7 +661,12 @@ def recognize(
             raise ValueError("depth, camera: got none, expected a range image and its camera (or recovery=)")
         recovery = recover_scene(depth, camera, progress=progress, **recover_kwargs)
     t1 = time.perf_counter()
-    top, matches = match_figures([r.parts for r in _figure_recoveries(recovery)], database=db, settings=settings)
+    top, matches = match_figures(
+        [r.parts for r in _figure_recoveries(recovery)],
+        database=db,
+        settings=settings,
+        observation=Observation.of(recovery),
+    )
     t2 = time.perf_counter()
     return Recognition(
         top, matches, db.threshold, recovery, {"recovery": t1 - t0, "matching": t2 - t1, "total": t2 - t0}

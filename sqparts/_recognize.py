@@ -31,6 +31,16 @@ best few are refined by iterative closest points (weighted Kabsch on both direct
 nearest neighbours). Its score, the share of each surface lying within a tolerance of
 the other, does not depend on how either solid was cut into parts; the database
 scores a stored view by the geometric mean of the two (``MatchSettings.alignment_tolerance``).
+
+Hypothesise, then verify: when the query's range image is known (:class:`Observation`),
+each refined alignment is fitted to the figure's observed points by ICP
+(:func:`fit_pose`), then the stored parts at that pose are rendered into the query's
+camera (:func:`verify_poses`, one batched call of the package's renderer for every pose
+of every stored view) and compared with the observed depth pixel by pixel. Both steps
+work on the data, not on the query's recovered parts, which change from view to view
+more than the object does. A view then scores the geometric mean of the alignment and
+the verification of its best pose (``MatchSettings.verification_tolerance``); the part
+match still gives the correspondences.
 """
 
 from __future__ import annotations
@@ -42,6 +52,7 @@ from scipy.optimize import linear_sum_assignment
 from scipy.spatial import KDTree
 from scipy.spatial.transform import Rotation
 
+from ._camera import Camera
 from ._describe import ATTRIBUTES, RELATIONS, SHAPE_BINS, SHAPE_RANGE, Description
 
 
@@ -73,6 +84,12 @@ class MatchSettings:
     alignment_pairs : how many (query part, model part) pairs, most similar and largest
         first, propose poses (24 each).
     alignment_starts : how many of the best proposals are refined.
+    verification_tolerance : verifying poses by rendering (:func:`verify_poses`), when
+        the query's range image is known: the tolerance τ of a rendered depth's
+        difference from the observed one, a fraction of the larger object's scale. Each
+        refined alignment is first fitted to the observed points (:func:`fit_pose`); a
+        view then scores the geometric mean of the alignment and the verification of its
+        best pose. None: no verification.
     weighting : a matched pair's weight: ``"fraction"``, sqrt(v_query v_model) of the two
         parts' volume fractions; ``"volume"``, min(V_query, V_model) / max(ΣV_query,
         ΣV_model) of their volumes in scene units, so that a query explaining only a small
@@ -91,6 +108,7 @@ class MatchSettings:
     alignment_tolerance: float | None = 0.08
     alignment_pairs: int = 12
     alignment_starts: int = 4
+    verification_tolerance: float | None = 0.1
 
     def __post_init__(self):
         if self.weighting not in ("fraction", "volume"):
@@ -98,9 +116,10 @@ class MatchSettings:
         t = self.shape_tolerance
         if t is not None and not (isinstance(t, (int, float)) and np.isfinite(t) and t > 0):
             raise ValueError(f"shape_tolerance: got {t!r}, expected a number > 0 or None")
-        t = self.alignment_tolerance
-        if t is not None and not (isinstance(t, (int, float)) and np.isfinite(t) and t > 0):
-            raise ValueError(f"alignment_tolerance: got {t!r}, expected a number > 0 or None")
+        for name in ("alignment_tolerance", "verification_tolerance"):
+            t = getattr(self, name)
+            if t is not None and not (isinstance(t, (int, float)) and np.isfinite(t) and t > 0):
+                raise ValueError(f"{name}: got {t!r}, expected a number > 0 or None")
         for name in ("alignment_pairs", "alignment_starts"):
             k = getattr(self, name)
             if isinstance(k, bool) or not isinstance(k, (int, np.integer)) or k < 1:
@@ -306,18 +325,21 @@ def _similarity(tree: KDTree, points: np.ndarray, sigma: float) -> np.ndarray:
     return np.exp(-0.5 * (d / sigma) ** 2)
 
 
-def _refine_pose(q, qtree, m, mtree, r, t, sigma):
-    """Iterative closest points from (r, t): each step a weighted Kabsch on the nearest
-    neighbours of both surfaces (model to query and query to model), weights falling
-    with distance (exp(-d²/8σ²)), so that surface one solid has and the other lacks (an
-    occluded or extra part) pulls little. ``q``, ``m``: the sparse points that move;
-    ``qtree``, ``mtree``: all of each surface."""
+def _refine_pose(q, m, mtree, r, t, sigma, qtree=None):
+    """Iterative closest points from (r, t), the pose taking the model's frame to the
+    query's: each step a weighted Kabsch on the nearest neighbours of the query's points
+    ``q`` among the model's surface (``mtree``) and, given the query's surface
+    (``qtree``), of the model's points ``m`` among it; weights fall with distance
+    (exp(-d²/8σ²)), so that surface one side has and the other lacks (an occluded or
+    extra part) pulls little. Without ``qtree`` the query's points are data (an observed
+    range image's), which the model's surface is brought onto."""
     for _ in range(_ICP_ITERATIONS):
-        d1, i1 = qtree.query(m @ r.T + t)
         d2, i2 = mtree.query((q - t) @ r)
-        src = np.concatenate([m, mtree.data[i2]])
-        dst = np.concatenate([qtree.data[i1], q])
-        w = np.exp(-0.125 * (np.concatenate([d1, d2]) / sigma) ** 2) + 1e-12
+        src, dst, d = mtree.data[i2], q, d2
+        if qtree is not None:
+            d1, i1 = qtree.query(m @ r.T + t)
+            src, dst, d = np.concatenate([m, src]), np.concatenate([qtree.data[i1], dst]), np.concatenate([d1, d])
+        w = np.exp(-0.125 * (d / sigma) ** 2) + 1e-12
         sc, dc = np.average(src, 0, w), np.average(dst, 0, w)
         u, _, vt = np.linalg.svd(((src - sc) * w[:, None]).T @ (dst - dc))
         r = vt.T @ np.diag([1.0, 1.0, np.sign(np.linalg.det(vt.T @ u.T))]) @ u.T
@@ -325,8 +347,11 @@ def _refine_pose(q, qtree, m, mtree, r, t, sigma):
     return r, t
 
 
-def align_descriptions(query: Description, model: Description, settings: MatchSettings = MatchSettings()) -> Alignment:
-    """Align the model's whole solid to the query's (see the module docstring).
+def align_candidates(
+    query: Description, model: Description, settings: MatchSettings = MatchSettings()
+) -> list[Alignment]:
+    """Every refined start of :func:`align_descriptions`, best first (empty when either
+    description lacks its ``surface`` or ``settings.alignment_tolerance`` is None).
 
     Poses are proposed by the ``settings.alignment_pairs`` pairs of parts with the
     largest unary similarity times the geometric mean of their volume fractions: the
@@ -335,11 +360,10 @@ def align_descriptions(query: Description, model: Description, settings: MatchSe
     volume-weighted centre on the query's. All proposals are scored by the mean
     similarity of the model's surface points to the query's surface; the
     ``settings.alignment_starts`` best distinct ones are refined by :func:`_refine_pose`
-    and the best-scoring result is kept. Needs both descriptions' ``surface``
-    (score 1 and the identity when either lacks it).
-    """
+    and scored on both surfaces. Several are kept because the surfaces alone can prefer a
+    pose that the range image rules out (:func:`verify_poses`)."""
     if query.surface is None or model.surface is None or settings.alignment_tolerance is None:
-        return Alignment(1.0, np.eye(4))
+        return []
     qtree, mtree = KDTree(query.surface), KDTree(model.surface)
     q, m = query.surface[::_SPARSE], model.surface[::_SPARSE]
     sigma = settings.alignment_tolerance * max(query.scale, model.scale)
@@ -366,15 +390,123 @@ def align_descriptions(query: Description, model: Description, settings: MatchSe
             starts.append(int(s))
         if len(starts) == settings.alignment_starts:
             break
-    best = Alignment(-1.0, np.eye(4))
+    out = []
     for s in starts:
-        r, t = _refine_pose(q, qtree, m, mtree, rot[s], trans[s], sigma)
+        r, t = _refine_pose(q, m, mtree, rot[s], trans[s], sigma, qtree)
         score = 0.5 * (_similarity(qtree, m @ r.T + t, sigma).mean() + _similarity(mtree, (q - t) @ r, sigma).mean())
-        if score > best.score:
-            pose = np.eye(4)
-            pose[:3, :3], pose[:3, 3] = r, t
-            best = Alignment(float(score), pose)
-    return best
+        pose = np.eye(4)
+        pose[:3, :3], pose[:3, 3] = r, t
+        out.append(Alignment(float(score), pose))
+    return sorted(out, key=lambda a: -a.score)
+
+
+def align_descriptions(query: Description, model: Description, settings: MatchSettings = MatchSettings()) -> Alignment:
+    """Align the model's whole solid to the query's (see the module docstring): the best
+    of :func:`align_candidates`. Needs both descriptions' ``surface`` (score 1 and the
+    identity when either lacks it)."""
+    if query.surface is None or model.surface is None or settings.alignment_tolerance is None:
+        return Alignment(1.0, np.eye(4))
+    return next(iter(align_candidates(query, model, settings)), Alignment(-1.0, np.eye(4)))
+
+
+@dataclasses.dataclass(frozen=True, eq=False)
+class Observation:
+    """The range image a query was recovered from, to verify poses on
+    (:func:`verify_poses`).
+
+    Attributes
+    ----------
+    depth : (H, W) z-depth, NaN where there is no return.
+    camera : the camera that took it.
+    figures : (F, H, W) bool, the pixels of each figure of the query (what its parts are
+        to explain).
+    """
+
+    depth: np.ndarray
+    camera: Camera
+    figures: np.ndarray
+
+    def __post_init__(self):
+        depth, figures = np.asarray(self.depth, np.float32), np.asarray(self.figures, bool)
+        if figures.ndim == 2:
+            figures = figures[None]
+        if depth.shape != (self.camera.height, self.camera.width) or figures.shape[1:] != depth.shape:
+            raise ValueError(
+                f"observation: got depth {depth.shape} and figures {figures.shape}, expected "
+                f"({self.camera.height}, {self.camera.width}) and (F, {self.camera.height}, {self.camera.width})"
+            )
+        object.__setattr__(self, "depth", depth)
+        object.__setattr__(self, "figures", figures)
+
+    @classmethod
+    def of(cls, recovery) -> "Observation":
+        """The image, camera and figure masks of a :class:`~sqparts.SceneRecovery` or
+        :class:`~sqparts.Recovery`."""
+        figures = list(getattr(recovery, "figures", None) or [recovery])
+        camera = getattr(recovery, "camera", None) or figures[0].data.camera
+        return cls(recovery.depth, camera, np.stack([np.asarray(f.figure, bool) for f in figures]))
+
+
+_OBSERVED_POINTS = 800
+"""Observed points a pose is fitted to (:func:`fit_pose`): a fixed draw of the figure's."""
+
+
+def observed_points(observation: Observation, figure) -> np.ndarray:
+    """(n, 3) camera-frame points of the ``figure`` mask's pixels, at most
+    :data:`_OBSERVED_POINTS` of them (a fixed draw)."""
+    points = np.asarray(observation.camera.points(observation.depth))[np.asarray(figure, bool)]
+    points = points[np.isfinite(points).all(-1)]
+    if len(points) > _OBSERVED_POINTS:
+        points = points[np.sort(np.random.default_rng(0).choice(len(points), _OBSERVED_POINTS, replace=False))]
+    return points
+
+
+def fit_pose(points, model: Description, pose, sigma: float) -> np.ndarray:
+    """``pose`` (4x4, the model's frame to the camera's) refined by iterative closest
+    points bringing the model's outer surface onto observed ``points`` (:func:`_refine_pose`
+    without a query surface: the data, not the query's recovered parts, which are cut
+    differently from view to view). The pose as given when the model has no surface or
+    there are fewer than 3 points."""
+    pose = np.asarray(pose, float)
+    if model.surface is None or len(points) < 3:
+        return pose
+    r, t = _refine_pose(np.asarray(points, float), None, KDTree(model.surface), pose[:3, :3], pose[:3, 3], sigma)
+    out = np.eye(4)
+    out[:3, :3], out[:3, 3] = r, t
+    return out
+
+
+def verify_poses(solids, observation: Observation, figure, tolerance) -> np.ndarray:
+    """(k,) how well each of ``solids`` (batched :class:`~sqparts.Part`, camera frame: a
+    stored model at a candidate pose) explains the observed range image, in [0, 1].
+
+    Each solid is rendered into the observation's camera (one batched call for all of
+    them) and compared with the observed depth D pixel by pixel: agreement
+    exp(-(R - D)²/2τ²), τ = ``tolerance`` (one per solid, scene units). ``explained`` is
+    the agreement summed over the ``figure`` mask's pixels over their count; ``precision``
+    the agreement summed over the rendered pixels over their count, both leaving out
+    those hidden behind a nearer observed surface (an occluder). The score is
+    sqrt(explained x precision): a model that covers the figure but spills far past it,
+    or one that fits a piece of it, both score low."""
+    from ._encoding import part_vectors, render_layers
+
+    solids = list(solids)
+    if not solids:
+        return np.zeros(0)
+    counts = [len(part_vectors(s)) for s in solids]
+    layers = render_layers(np.concatenate([part_vectors(s) for s in solids]), observation.camera)
+    bounds = np.cumsum([0, *counts])
+    rendered = np.stack([layers[a:b].min(0) for a, b in zip(bounds[:-1], bounds[1:])])  # (k, H, W), inf: miss
+    tau = np.broadcast_to(np.asarray(tolerance, float), (len(solids),))[:, None, None]
+    depth, figure = observation.depth[None], np.asarray(figure, bool)[None]
+    seen, model = np.isfinite(depth), np.isfinite(rendered)
+    both = seen & model
+    agree = np.where(both, np.exp(-0.5 * ((rendered - np.where(seen, depth, 0.0)) / tau) ** 2), 0.0)
+    hidden = both & (depth < rendered - 2.0 * tau)
+    explained = (agree * figure).sum((1, 2)) / max(int(figure.sum()), 1)
+    visible = model & ~hidden
+    precision = (agree * visible).sum((1, 2)) / np.maximum(visible.sum((1, 2)), 1)
+    return np.sqrt(explained * precision)
 
 
 def shape_similarity(query: Description, model: Description, tolerance: float | None = 0.5) -> float:
@@ -388,24 +520,32 @@ def shape_similarity(query: Description, model: Description, tolerance: float | 
     return max(0.0, 1.0 - w / tolerance)
 
 
-def calibrate_threshold(genuine, impostor, *, default: float = 0.45) -> float:
-    """Score threshold separating ``genuine`` scores (a view against its own object, the
-    view itself left out) from ``impostor`` scores (a view's best against other objects).
+FALSE_ACCEPT = 0.05
+"""The share of the stored views' impostor scores that :func:`calibrate_threshold` lets
+through: the rate at which a view of an object the database does not know is expected to
+be taken for one it does."""
 
-    The threshold minimises the sum of the two error rates, and sits midway between the
-    neighbouring scores; with only one kind of score it keeps a margin from it, and with
-    none it is ``default``.
+
+def calibrate_threshold(genuine, impostor, *, default: float = 0.45, false_accept: float = FALSE_ACCEPT) -> float:
+    """Score threshold for rejecting unknown objects, from ``impostor`` scores (a stored
+    view's best against the other objects: what an unknown object scores) and
+    ``genuine`` scores (a view against its own object, the view itself left out).
+
+    The threshold rejects all but a ``false_accept`` share of the impostor scores (the
+    Neyman-Pearson choice: the unknown-object error is the one fixed), midway between the
+    highest impostor score it must reject and the next higher score of either kind (0.05
+    above it when there is none). The genuine scores do not move it: a view left out is
+    farther from its object's other views than a new view usually is from its nearest
+    stored one, so they understate how well known objects score. With no impostor scores
+    it is 0.8 x the lowest genuine score (at most ``default``); with none at all, ``default``.
     """
-    g, i = np.sort(np.asarray(genuine, float)), np.sort(np.asarray(impostor, float))
-    if len(g) == 0 and len(i) == 0:
-        return float(default)
-    if len(g) == 0:
-        return float(max(default, i.max() + 0.05))
+    g, i = np.asarray(genuine, float), np.sort(np.asarray(impostor, float))[::-1]
     if len(i) == 0:
-        return float(min(default, 0.8 * g.min()))
-    values = np.unique(np.concatenate([g, i]))
-    candidates = np.concatenate([[values[0] - 1e-3], (values[1:] + values[:-1]) / 2, [values[-1] + 1e-3]])
-    errors = [np.mean(g < t) + np.mean(i >= t) for t in candidates]
-    best = np.flatnonzero(np.isclose(errors, np.min(errors)))
-    # Of equally good thresholds, the middle of the widest run.
-    return float(candidates[best[len(best) // 2]])
+        return float(default) if len(g) == 0 else float(min(default, 0.8 * g.min()))
+    k = int(np.floor(false_accept * len(i) + 1e-9))  # impostors allowed through
+    if k >= len(i):
+        return float(i[-1] - 1e-3)
+    rejected = i[k]
+    above = np.concatenate([g, i])
+    above = above[above > rejected]
+    return float(0.5 * (rejected + above.min()) if len(above) else rejected + 0.05)

@@ -13,10 +13,24 @@ from scipy.spatial import KDTree
 from scipy.spatial.transform import Rotation
 
 import sqparts
-from sqparts._database import ModelDatabase, match_figures, transform_parts, view_from_parts
+from sqparts._database import (
+    ModelDatabase,
+    match_figures,
+    transform_parts,
+    view_from_parts,
+    view_observation,
+)
 from sqparts._describe import SHAPE_BINS, SHAPE_RANGE, Description, describe, shape_distribution, surface_cloud
 from sqparts._part import stack_parts
-from sqparts._recognize import align_descriptions, shape_similarity
+from sqparts._recognize import (
+    Observation,
+    align_candidates,
+    align_descriptions,
+    fit_pose,
+    observed_points,
+    shape_similarity,
+    verify_poses,
+)
 from sqparts.cli import main
 
 
@@ -167,6 +181,13 @@ def test_threshold_is_calibrated_between_genuine_and_impostor_scores():
     assert sqparts.calibrate_threshold([0.8, 0.9], [0.2, 0.3]) == pytest.approx(0.55)
     assert sqparts.calibrate_threshold([], [0.6]) == pytest.approx(0.65)
     assert sqparts.calibrate_threshold([], []) == 0.45
+    # Of 40 impostor scores 5% (2) may pass: the threshold sits between the 3rd highest
+    # and the next score above it, whatever the genuine scores below it.
+    impostor = np.linspace(0.0, 0.78, 40)
+    t = sqparts.calibrate_threshold([0.1, 0.9], impostor)
+    assert t == pytest.approx(0.5 * (impostor[-3] + impostor[-2]))
+    assert np.mean(impostor >= t) == pytest.approx(0.05)
+    assert sqparts.calibrate_threshold([0.1, 0.9], impostor, false_accept=0.0) == pytest.approx(0.84)
 
 
 @pytest.mark.parametrize("name", ["", "a/b", ".hidden", "database", "x" * 101, 3])
@@ -347,6 +368,8 @@ def test_bad_match_settings_are_refused():
         sqparts.MatchSettings(alignment_tolerance=0)
     with pytest.raises(ValueError, match=r"alignment_pairs: got True, expected an integer >= 1"):
         sqparts.MatchSettings(alignment_pairs=True)
+    with pytest.raises(ValueError, match=r"verification_tolerance: got -1, expected a number > 0 or None"):
+        sqparts.MatchSettings(verification_tolerance=-1)
 
 
 # --- the whole solid: its outer surface, aligned -----------------------------------------
@@ -408,6 +431,134 @@ def test_alignment_tolerates_a_hidden_part_and_ignores_how_the_solid_is_cut():
     other = describe(stack_parts([head, dataclasses.replace(head, position=np.array([0.0, 0.3, 2.5]))]))
     # Not 1: the two pieces' rounded ends pinch the bar where it was cut.
     assert cut.score > 0.8 and cut.score > align_descriptions(other, model).score + 0.3
+
+
+# --- verification: stored parts rendered into the query's camera ----------------------
+
+ORTHO = sqparts.OrthographicCamera(48, 48, 0.01, 23.5, 23.5)
+
+
+def _observed(parts, camera=ORTHO):
+    depth = np.asarray(sqparts.render_range_image(parts, camera))
+    return Observation(depth, camera, np.isfinite(depth)[None])
+
+
+def test_verification_of_a_solid_moved_along_the_rays_is_the_closed_form():
+    """Orthographic rays along z: a solid moved by d along z keeps its silhouette and
+    every rendered depth moves by exactly d, so explained = precision = exp(-d²/2τ²); a
+    solid moved off the figure explains nothing."""
+    box = sqparts.Part(size=[0.1, 0.07, 0.05], squareness=[0.3, 0.5], position=[0.0, 0.0, 1.0], taper=0.2)
+    obs, tau = _observed(stack_parts([box])), 0.02
+    shifts = [0.0, 0.01, 0.02, 0.04]
+    solids = [stack_parts([dataclasses.replace(box, position=np.array([0.0, 0.0, 1.0 + d]))]) for d in shifts]
+    solids.append(stack_parts([dataclasses.replace(box, position=np.array([0.3, 0.0, 1.0]))]))
+    got = verify_poses(solids, obs, obs.figures[0], [tau] * len(solids))
+    want = [np.exp(-0.5 * (d / tau) ** 2) for d in shifts] + [0.0]
+    np.testing.assert_allclose(got, want, atol=2e-3)
+
+
+def test_verification_does_not_count_a_model_hidden_by_an_occluder():
+    """A plate in front hides the left half of a sphere: the true sphere still scores
+    about 1 on the figure it explains (its visible half), since the hidden half is behind
+    observed surface; a sphere twice as wide spills off the figure and scores less."""
+    sphere = sqparts.Part(size=[0.12] * 3, squareness=[1.0, 1.0], position=[0.0, 0.0, 1.0])
+    plate = sqparts.Part(size=[0.1, 0.3, 0.01], squareness=[0.1, 0.1], position=[-0.1, 0.0, 0.7])
+    depth, labels = sqparts.render_range_image(stack_parts([sphere, plate]), ORTHO, return_labels=True)
+    obs = Observation(np.asarray(depth), ORTHO, (np.asarray(labels) == 0)[None])
+    big = dataclasses.replace(sphere, size=np.array([0.2, 0.12, 0.12]))
+    score = verify_poses([stack_parts([sphere]), stack_parts([big])], obs, obs.figures[0], 0.01)
+    assert score[0] > 0.98 and score[1] < 0.85
+
+
+def test_verification_picks_the_pose_the_range_image_shows():
+    """Two boxes seen from the front, and two candidate poses of them that differ by a
+    half turn about the viewing axis: the one that reproduces the image scores 1, the
+    other about the share of the image the two have in common (0.45)."""
+    box = sqparts.Part(size=[0.15, 0.05, 0.05], squareness=[0.2, 0.2], position=[0.05, 0.0, 1.0])
+    wedge = sqparts.Part(size=[0.05, 0.12, 0.05], squareness=[0.2, 0.2], position=[0.15, 0.05, 1.0])
+    model = stack_parts([box, wedge])
+    obs = _observed(model)
+    flip = np.diag([-1.0, -1.0, 1.0, 1.0])  # a half turn about the z axis (through (0, 0, 1))
+    good, bad = verify_poses([model, transform_parts(model, flip)], obs, obs.figures[0], 0.02)
+    assert good > 0.99 and bad < 0.6
+
+
+def test_verified_matching_prefers_the_object_in_the_image(tmp_path):
+    """The chair's range image, matched with the image: the chair's stored parts at their
+    best pose reproduce it (score near 1); the other objects score far lower."""
+    db = _database(tmp_path / "db")
+    s = sqparts.builtin_scene("chair")
+    obs = _observed(s.parts, s.camera)
+    best, matches = match_figures([s.parts], database=db, observation=obs)
+    verified = {m.name: m.score for m in matches}
+    assert best == "chair" and verified["chair"] > 0.97
+    for name in ("human", "castings"):
+        assert verified[name] < verified["chair"] - 0.3
+    with pytest.raises(ValueError, match=r"observation: got 1 figure masks, expected one per figure \(2\)"):
+        match_figures([s.parts, s.parts], database=db, observation=obs)
+
+
+def test_fitting_a_pose_to_the_observed_points_recovers_the_motion():
+    """The chair, moved and seen by its camera (the visible side only): a pose 4 degrees
+    and 3 cm off is brought back onto the observed points to within 1 cm, and its
+    verification rises to about 1."""
+    s = sqparts.builtin_scene("chair")
+    model = view_from_parts(s.parts).main  # centred: the model frame
+    centre = np.asarray(s.parts.position, float).mean(0) - np.asarray(model.parts.position, float).mean(0)
+    truth = np.eye(4)
+    truth[:3, 3] = centre
+    obs = _observed(transform_parts(model.parts, truth), s.camera)
+    off = np.eye(4)
+    off[:3, :3] = Rotation.from_rotvec([0.0, np.radians(4.0), 0.0]).as_matrix()
+    off[:3, 3] = centre + [0.03, -0.01, 0.02]
+    points = observed_points(obs, obs.figures[0])
+    fitted = fit_pose(points, model.description, off, 0.08 * model.description.scale)
+    probe = np.asarray(model.parts.position, float)
+    moved_by = lambda pose: probe @ pose[:3, :3].T + pose[:3, 3]  # noqa: E731
+    assert np.abs(moved_by(off) - moved_by(truth)).max() > 0.03
+    assert np.abs(moved_by(fitted) - moved_by(truth)).max() < 0.01
+    tau = 0.1 * model.description.scale
+    before, after = verify_poses(
+        [transform_parts(model.parts, off), transform_parts(model.parts, fitted)], obs, obs.figures[0], tau
+    )
+    assert after > 0.97 and after > before + 0.1
+    np.testing.assert_array_equal(fit_pose(points[:2], model.description, off, 0.05), off)  # too few: as given
+
+
+def test_a_view_seen_again_is_its_own_parts_from_its_own_side():
+    """view_observation renders the stored parts from the side they were learnt from: the
+    nearest point of the rendering is the parts' nearest point along -z (closed form for
+    an axis-aligned box, moved 6 radii away), and the view verified against its own
+    rendering at the identity pose scores 1."""
+    box = sqparts.Part(size=[0.2, 0.1, 0.05], squareness=[0.1, 0.1], position=[0.3, 0.1, 2.0])
+    view = view_from_parts(stack_parts([box]))
+    query, obs = view_observation(view)
+    radius = 0.2  # the stored part is centred: |position| 0 plus its largest semi-axis
+    assert np.nanmin(obs.depth) == pytest.approx(6 * radius - 0.05, abs=2e-3)
+    assert obs.figures.shape == (1, 64, 64) and obs.figures.sum() > 200
+    pose = np.eye(4)
+    pose[:3, 3] = query.positions[0] - np.asarray(view.main.parts.position)[0]
+    assert verify_poses([transform_parts(view.main.parts, pose)], obs, obs.figures[0], 0.01)[0] > 0.99
+
+
+def test_every_refined_alignment_is_a_rigid_motion_best_first():
+    parts = sqparts.builtin_scene("chair").parts
+    query = describe(moved(parts)[0])
+    found = align_candidates(query, describe(parts))
+    assert 1 < len(found) <= sqparts.MatchSettings().alignment_starts
+    assert [a.score for a in found] == sorted((a.score for a in found), reverse=True)
+    for a in found:
+        r = a.pose[:3, :3]
+        np.testing.assert_allclose(r @ r.T, np.eye(3), atol=1e-9)
+        assert np.linalg.det(r) == pytest.approx(1.0) and np.array_equal(a.pose[3], [0, 0, 0, 1])
+    assert align_candidates(dataclasses.replace(query, surface=None), describe(parts)) == []
+
+
+def test_bad_observations_are_refused():
+    with pytest.raises(
+        ValueError, match=r"observation: got depth \(4, 4\) and figures \(1, 4, 4\), expected \(48, 48\)"
+    ):
+        Observation(np.zeros((4, 4)), ORTHO, np.zeros((1, 4, 4), bool))
 
 
 # --- the whole-object term: the D2 shape distribution of the parts' surfaces -----------
