@@ -457,7 +457,7 @@ def view_observation(view: StoredView, *, size: int = 64) -> tuple[Description, 
     frame and the rendering as an :class:`~sqparts._recognize.Observation` (one figure:
     every rendered pixel). Used to calibrate verified scores on the stored views alone."""
     from ._camera import PinholeCamera
-    from ._encoding import part_vectors, render_layers
+    from ._encoding import render_labels
 
     parts, desc = view.main.parts, view.main.description
     radius = float(np.max(np.linalg.norm(np.asarray(parts.position), axis=-1) + np.asarray(parts.size).max(-1)))
@@ -466,8 +466,7 @@ def view_observation(view: StoredView, *, size: int = 64) -> tuple[Description, 
     camera = PinholeCamera(width=size, height=size, fx=f, fy=f, cx=(size - 1) / 2, cy=(size - 1) / 2)
     pose = np.eye(4)
     pose[:3, 3] = shift
-    nearest = render_layers(part_vectors(transform_parts(parts, pose)), camera).min(0)
-    depth = np.where(np.isfinite(nearest), nearest, np.nan).astype(np.float32)
+    depth, _ = render_labels(transform_parts(parts, pose), camera)
     moved = dataclasses.replace(
         desc,
         positions=desc.positions + shift,
@@ -478,6 +477,14 @@ def view_observation(view: StoredView, *, size: int = 64) -> tuple[Description, 
 
 def _figure_recoveries(recovery) -> list:
     return list(getattr(recovery, "figures", None) or [recovery])
+
+
+def observation_of(recovery) -> Observation:
+    """The image, camera and figure masks of a :class:`~sqparts.SceneRecovery` or
+    :class:`~sqparts.Recovery`, to verify its matches on."""
+    figures = _figure_recoveries(recovery)
+    camera = getattr(recovery, "camera", None) or figures[0].data.camera
+    return Observation(recovery.depth, camera, np.stack([np.asarray(f.figure, bool) for f in figures]))
 
 
 def _coarse_levels(recovery, levels: int) -> list[Part]:
@@ -576,7 +583,7 @@ def match_figures(
     through all figures in order. Each figure is matched on its own, and, when there are
     several, all of them together (an object torn at its own depth jumps; an occluder
     is then an extra part). ``observation``: the range image the figures were recovered
-    from, with one mask per figure (:meth:`Observation.of`), to verify each pose on
+    from, with one mask per figure (:func:`observation_of`), to verify each pose on
     (:meth:`ModelDatabase.match`)."""
     db = database if isinstance(database, ModelDatabase) else ModelDatabase(database)
     if observation is not None and len(observation.figures) != len(figures):
@@ -665,7 +672,7 @@ def recognize(
         [r.parts for r in _figure_recoveries(recovery)],
         database=db,
         settings=settings,
-        observation=Observation.of(recovery),
+        observation=observation_of(recovery),
     )
     t2 = time.perf_counter()
     return Recognition(

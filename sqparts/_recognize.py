@@ -438,14 +438,6 @@ class Observation:
         object.__setattr__(self, "depth", depth)
         object.__setattr__(self, "figures", figures)
 
-    @classmethod
-    def of(cls, recovery) -> "Observation":
-        """The image, camera and figure masks of a :class:`~sqparts.SceneRecovery` or
-        :class:`~sqparts.Recovery`."""
-        figures = list(getattr(recovery, "figures", None) or [recovery])
-        camera = getattr(recovery, "camera", None) or figures[0].data.camera
-        return cls(recovery.depth, camera, np.stack([np.asarray(f.figure, bool) for f in figures]))
-
 
 _OBSERVED_POINTS = 800
 """Observed points a pose is fitted to (:func:`fit_pose`): a fixed draw of the figure's."""
@@ -493,9 +485,9 @@ def verify_poses(solids, observation: Observation, figure, tolerance) -> np.ndar
     solids = list(solids)
     if not solids:
         return np.zeros(0)
-    counts = [len(part_vectors(s)) for s in solids]
-    layers = render_layers(np.concatenate([part_vectors(s) for s in solids]), observation.camera)
-    bounds = np.cumsum([0, *counts])
+    vectors = [part_vectors(s) for s in solids]
+    layers = render_layers(np.concatenate(vectors), observation.camera)
+    bounds = np.cumsum([0, *map(len, vectors)])
     rendered = np.stack([layers[a:b].min(0) for a, b in zip(bounds[:-1], bounds[1:])])  # (k, H, W), inf: miss
     tau = np.broadcast_to(np.asarray(tolerance, float), (len(solids),))[:, None, None]
     depth, figure = observation.depth[None], np.asarray(figure, bool)[None]
