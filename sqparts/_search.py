@@ -46,7 +46,7 @@ from ._part import (
     rotation_matrix,
 )
 from ._polish import grow_parts, pad_rows
-from ._render import cast_part
+from ._render import DEFAULT_NEWTON_STEPS, cast_part
 
 SEARCH_NEWTON_STEPS = 6
 """Newton steps when scoring hypotheses (grazing silhouette pixels barely move Γ)."""
@@ -785,6 +785,29 @@ def fit_image(
 # --- the expanding grid method (Appendix) ----------------------------------------------
 
 
+@functools.partial(jax.jit, static_argnames=("num_bins",))
+def _gamma_of_vectors(vecs, origins, directions, measured, figure, sigma, lam, *, num_bins):
+    """Γ over the whole image for each 14-vector of ``vecs``: one program for every
+    profile of the same length (the image and encoding are arguments, not constants)."""
+
+    def one(v):
+        g, _ = _score_one(
+            Part.from_vector(v),
+            origins,
+            directions,
+            measured,
+            figure,
+            None,
+            sigma=sigma,
+            lam=lam,
+            num_bins=num_bins,
+            newton_steps=DEFAULT_NEWTON_STEPS,
+        )
+        return g
+
+    return jax.lax.map(one, vecs, batch_size=16)
+
+
 def gamma_profile(data: RangeData, part: Part, parameter: int, offsets, *, num_bins: int | None = None) -> np.ndarray:
     """Γ over the whole image as parameter ``parameter`` (index into the 14-vector) of
     ``part`` moves by each of ``offsets`` (Figure 6c). Invalid parts get -inf."""
@@ -792,23 +815,20 @@ def gamma_profile(data: RangeData, part: Part, parameter: int, offsets, *, num_b
     p = data.pad
     h, w = data.camera.height, data.camera.width
     measured, figure = data.depth[p : p + h, p : p + w], data.figure[p : p + h, p : p + w]
-    nb = num_bins or NUM_BINS
     enc = data.encoding
-    base = part.to_vector()
-    vecs = jnp.stack([base.at[parameter].add(float(x)) for x in offsets])
-
-    @jax.jit
-    def run(vecs):
-        def one(v):
-            t, hit = cast_part(Part.from_vector(v), o, d)
-            mu, eps, _, _ = gamma_terms(t, hit, measured, figure, sigma=enc.sigma, num_bins=nb)
-            return mu - enc.commission_weight * eps
-
-        return jax.lax.map(one, vecs, batch_size=16)
-
-    out = np.asarray(run(vecs), np.float64)
-    valid = _valid_vectors(np.asarray(vecs))
-    return np.where(valid, out, -np.inf)
+    vecs = np.asarray(part.to_vector(), np.float32)[None].repeat(len(offsets), 0)
+    vecs[:, parameter] += np.asarray(offsets, np.float32)
+    out = _gamma_of_vectors(
+        jnp.asarray(vecs),
+        o,
+        d,
+        measured,
+        figure,
+        jnp.float32(enc.sigma),
+        jnp.float32(enc.commission_weight),
+        num_bins=num_bins or NUM_BINS,
+    )
+    return np.where(_valid_vectors(vecs), np.asarray(out, np.float64), -np.inf)
 
 
 def _valid_vectors(vecs: np.ndarray) -> np.ndarray:

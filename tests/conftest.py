@@ -8,7 +8,10 @@ os.environ.setdefault("JAX_PLATFORMS", "cpu")
 # The suite's own compilation cache, for this process, the CLI's main() run in it and the
 # processes it starts: never the user's (a cache file another process is still writing
 # reads as a corrupt executable, which aborts XLA).
+# With pytest-xdist, each worker has its own: JAX writes cache files in place, and another
+# worker reading one half-written aborts.
 os.environ.setdefault("SQPARTS_CACHE_DIR", str(Path.home() / ".cache" / "sqparts" / "jax-tests"))
+os.environ["SQPARTS_CACHE_DIR"] += "-" + os.environ.get("PYTEST_XDIST_WORKER", "main")
 
 import jax
 import numpy as np

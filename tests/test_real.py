@@ -122,7 +122,6 @@ def test_teapot_side_view_gives_body_lid_handle_and_spout():
         depth,
         cam,
         scene=sqparts.SceneSettings(prettify=True, up=rot.as_matrix() @ [0.0, 1.0, 0.0]),
-        search="paper",
     )
     assert len(rec.figures) == 1
     r = rec.figures[0]

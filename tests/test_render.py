@@ -1,3 +1,4 @@
+import functools
 from unittest import mock
 
 import jax
@@ -127,7 +128,7 @@ def test_jit_equals_no_jit_and_chunked_equals_unchunked(rng):
         t_eager, h_eager = cast_part(parts[0], o, d)
     np.testing.assert_array_equal(h_jit, h_eager)
     np.testing.assert_allclose(t_jit, t_eager, rtol=1e-5)
-    full_t, full_h = jax.vmap(cast_part, in_axes=(0, None, None))(parts, o, d)
+    full_t, full_h = jax.jit(jax.vmap(cast_part, in_axes=(0, None, None)))(parts, o, d)
     for bs in (1, 3, 7):
         t, h = jax.jit(lambda p: cast_batch(p, o, d, batch_size=bs))(parts)
         np.testing.assert_array_equal(h, full_h)
@@ -144,14 +145,14 @@ def test_ray_tiles_equal_one_pass(rng):
     t_tiled, h_tiled = jax.jit(lambda p: cast_part(p, o, d, ray_batch_size=10))(parts[0])
     np.testing.assert_array_equal(h_tiled, h)
     np.testing.assert_allclose(t_tiled, t, rtol=1e-6)
-    grad = jax.grad(lambda v: cast_part(sqparts.Part.from_vector(v), o, d)[0].sum())(parts[0].to_vector())
-    grad_tiled = jax.grad(lambda v: cast_part(sqparts.Part.from_vector(v), o, d, ray_batch_size=10)[0].sum())(
+    grad = jax.jit(jax.grad(lambda v: cast_part(sqparts.Part.from_vector(v), o, d)[0].sum()))(parts[0].to_vector())
+    grad_tiled = jax.jit(jax.grad(lambda v: cast_part(sqparts.Part.from_vector(v), o, d, ray_batch_size=10)[0].sum()))(
         parts[0].to_vector()
     )
     np.testing.assert_allclose(grad_tiled, grad, rtol=1e-5, atol=1e-6)
-    full_t, full_h = jax.vmap(cast_part, in_axes=(0, None, None))(parts, o, d)
+    full_t, full_h = jax.jit(jax.vmap(cast_part, in_axes=(0, None, None)))(parts, o, d)
     with mock.patch("sqparts._render.CPU_TILE", 64):  # tiles of 64 // 3 = 21 rays
-        batch_t, batch_h = cast_batch(parts, o, d, batch_size=3)
+        batch_t, batch_h = jax.jit(functools.partial(cast_batch, batch_size=3))(parts, o, d)
     np.testing.assert_array_equal(batch_h, full_h)
     np.testing.assert_allclose(batch_t, full_t, rtol=1e-6)
 
@@ -176,6 +177,7 @@ def test_depth_gradients_match_finite_differences(x64, rng, deformed):
     o, d = _interior_rays(part, PINHOLE)
     o, d = jnp.asarray(o, jnp.float64), jnp.asarray(d, jnp.float64)
 
+    @jax.jit
     def depth_sum(v):
         t, hit = cast_part(sqparts.Part.from_vector(v), o, d, 12)
         return jnp.sum(t * jnp.arange(1, len(t) + 1))
