@@ -289,6 +289,7 @@ def recognise_view(job) -> dict:
         "recovery_error": e.get("error"),
         "unknown_best": unknown[0].name if unknown and unknown[0].score >= threshold else None,
         "unknown_top_score": unknown[0].score if unknown else 0.0,
+        "scores": {m.name: m.score for m in matches},  # every object's, for offline rejection rules
     }
     print(
         f"{key}: best {best} ({row['top_score']:.2f}; true {row['true_score']:.2f}), without it: {row['unknown_best']}"
