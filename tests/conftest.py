@@ -11,7 +11,8 @@ os.environ.setdefault("JAX_PLATFORMS", "cpu")
 # With pytest-xdist, each worker has its own: JAX writes cache files in place, and another
 # worker reading one half-written aborts.
 os.environ.setdefault("SQPARTS_CACHE_DIR", str(Path.home() / ".cache" / "sqparts" / "jax-tests"))
-os.environ["SQPARTS_CACHE_DIR"] += "-" + os.environ.get("PYTEST_XDIST_WORKER", "main")
+if "PYTEST_XDIST_WORKER" in os.environ:
+    os.environ["SQPARTS_CACHE_DIR"] += "-" + os.environ["PYTEST_XDIST_WORKER"]
 
 import jax
 import numpy as np
