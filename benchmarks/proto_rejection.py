@@ -26,7 +26,7 @@ import bench_recognition as B
 
 import sqparts
 from sqparts._describe import describe
-from sqparts._recognize import Observation, verify_poses
+from sqparts._recognize import MatchSettings, Observation, verify_poses
 
 
 def roc_area(a, b):
@@ -90,7 +90,7 @@ def margin(every: int):
             )
             db.add_view(name, view, calibrate=False)
     tests = [(key, name, spec, cache[key]) for key, name, role, spec in views if role == "test"][::every]
-    jobs = [(str(folder), 1.0, B.MatchSettings(), key, name, spec, e) for key, name, spec, e in tests]
+    jobs = [(str(folder), 1.0, MatchSettings(), key, name, spec, e) for key, name, spec, e in tests]
     with multiprocessing.get_context("spawn").Pool(2) as pool:
         rows = [r for r in pool.map(B.recognise_view, jobs, chunksize=1) if r["scores"]]
     known, unknown = [], []
