@@ -25,19 +25,6 @@ ROOT = Path(__file__).resolve().parents[1]
 DATA = ROOT.parent / "shared" / "data"
 
 
-# The longest test files, first: pytest-xdist hands each worker whole files in collection
-# order, and a long file left for last runs alone on one core.
-LONG_FILES = ("test_real.py", "test_notebooks.py", "test_recognition.py", "test_batch.py", "test_render.py")
-
-
-def pytest_collection_modifyitems(config, items):
-    def rank(item):
-        name = item.path.name
-        return LONG_FILES.index(name) if name in LONG_FILES else len(LONG_FILES)
-
-    items.sort(key=rank)  # stable: each file's own order kept
-
-
 @pytest.fixture(autouse=True)
 def release_crowded_programs():
     """After each test, the compiled programs are dropped once the process holds a quarter
