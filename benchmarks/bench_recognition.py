@@ -243,6 +243,23 @@ def recover_all(views, meshes, cache: dict) -> dict:
     return cache
 
 
+def learnt_database(views, cache: dict, folder) -> ModelDatabase:
+    """The database of the learnt views' cached recoveries, in ``folder`` (uncalibrated)."""
+    db = ModelDatabase(folder)
+    for key, name, role, _spec in views:
+        if role == "learn":
+            e = cache[key]  # as view_from_recovery: all figures are the object
+            others = [p for f in e["figures"][1:] for p in _parts(f)]
+            view = view_from_parts(
+                stack_parts([p for f in e["figures"] for p in _parts(f)]),
+                source=key,
+                initial=stack_parts([*_parts(e["initial"]), *others]),
+                levels=[stack_parts([*_parts(p), *others]) for p in e["levels"]],
+            )
+            db.add_view(name, view, calibrate=False)
+    return db
+
+
 _WORKER_DB: dict = {}
 
 
@@ -367,19 +384,8 @@ def main():
     import tempfile
 
     folder = Path(tempfile.mkdtemp(prefix="sqparts-bench-db-"))
-    db = ModelDatabase(folder)
+    db = learnt_database(views, cache, folder)
     objects = MESHES + ["teapot", "human"]
-    for key, name, role, _spec in views:
-        if role == "learn":
-            e = cache[key]  # as view_from_recovery: all figures are the object
-            others = [p for f in e["figures"][1:] for p in _parts(f)]
-            view = view_from_parts(
-                stack_parts([p for f in e["figures"] for p in _parts(f)]),
-                source=key,
-                initial=stack_parts([*_parts(e["initial"]), *others]),
-                levels=[stack_parts([*_parts(p), *others]) for p in e["levels"]],
-            )
-            db.add_view(name, view, calibrate=False)
     # --- recognition, by each matcher in the same run ----------------------------------
     tests = [(key, name, spec, cache[key]) for key, name, role, spec in views if role == "test"]
     runs = {}

@@ -71,24 +71,10 @@ def self_normalised():
 
 
 def margin(every: int):
-    from sqparts import ModelDatabase, stack_parts
-    from sqparts._database import view_from_parts
-
     cache = json.loads(B.CACHE.read_text())
     views = B.plan()
     folder = Path(tempfile.mkdtemp(prefix="sqparts-proto-db-"))
-    db = ModelDatabase(folder)
-    for key, name, role, _spec in views:
-        if role == "learn":
-            e = cache[key]
-            others = [p for f in e["figures"][1:] for p in B._parts(f)]
-            view = view_from_parts(
-                stack_parts([p for f in e["figures"] for p in B._parts(f)]),
-                source=key,
-                initial=stack_parts([*B._parts(e["initial"]), *others]),
-                levels=[stack_parts([*B._parts(p), *others]) for p in e["levels"]],
-            )
-            db.add_view(name, view, calibrate=False)
+    B.learnt_database(views, cache, folder)
     tests = [(key, name, spec, cache[key]) for key, name, role, spec in views if role == "test"][::every]
     jobs = [(str(folder), 1.0, MatchSettings(), key, name, spec, e) for key, name, spec, e in tests]
     with multiprocessing.get_context("spawn").Pool(2) as pool:

@@ -37,7 +37,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parent))
 import bench_recognition as B
 import numpy as np
 
-from sqparts._database import ModelDatabase, transform_parts, view_from_parts
+from sqparts._database import transform_parts
 from sqparts._describe import describe
 from sqparts._encoding import part_vectors, render_layers
 from sqparts._part import stack_parts
@@ -56,19 +56,7 @@ WORK = Path(os.environ.get("SQPARTS_VERIFY_WORK", "/tmp/sqparts-verify"))
 def build_db():
     views = B.plan()
     cache = json.loads(B.CACHE.read_text())
-    db = ModelDatabase(tempfile.mkdtemp())
-    for key, name, role, _ in views:
-        if role == "learn":
-            e = cache[key]
-            others = [p for f in e["figures"][1:] for p in B._parts(f)]
-            view = view_from_parts(
-                stack_parts([p for f in e["figures"] for p in B._parts(f)]),
-                source=key,
-                initial=stack_parts([*B._parts(e["initial"]), *others]),
-                levels=[stack_parts([*B._parts(p), *others]) for p in e["levels"]],
-            )
-            db.add_view(name, view, calibrate=False)
-    return views, cache, db
+    return views, cache, B.learnt_database(views, cache, tempfile.mkdtemp())
 
 
 _DB = None
