@@ -65,14 +65,29 @@ _state: dict[str, Path | None] = {"dir": None}
 _loaded_tables: list[dict] = []  # every persistent_jit's loaded programs (see forget_loaded)
 
 
+CACHE_MAX_BYTES = 1 << 30
+"""Most bytes JAX's persistent compilation cache keeps (least recently used entries are
+evicted beyond it). A bound also makes JAX read and write every entry under a file lock,
+so processes sharing the folder (a batch's local workers, Dask workers on one host, the
+test suite's workers) never read an entry another is still writing."""
+
+_CACHE_SETTINGS = (
+    "jax_compilation_cache_dir",
+    "jax_persistent_cache_min_compile_time_secs",
+    "jax_compilation_cache_max_size",
+)
+
+
 def enable_caches() -> None:
     """What the command line and its Dask workers turn on: JAX's persistent compilation
     cache in ``$SQPARTS_CACHE_DIR`` (default ``~/.cache/sqparts/jax``), for every program
-    however small, and the exported programs beside it (``exported/``), so that a later
+    however small, bounded by :data:`CACHE_MAX_BYTES` and safe to share between
+    processes, and the exported programs beside it (``exported/``), so that a later
     process neither compiles nor traces them. An unwritable cache folder leaves both off."""
     cache = Path(os.environ.get("SQPARTS_CACHE_DIR", str(Path.home() / ".cache" / "sqparts" / "jax")))
     try:
         cache.mkdir(parents=True, exist_ok=True)
+        jax.config.update("jax_compilation_cache_max_size", CACHE_MAX_BYTES)
         jax.config.update("jax_compilation_cache_dir", str(cache))
         jax.config.update("jax_persistent_cache_min_compile_time_secs", 0.0)
         set_export_dir(cache / "exported")
@@ -85,8 +100,7 @@ def caches_enabled():
     """:func:`enable_caches` for the duration of a ``with`` block (one command-line run),
     then the settings as they were: ``main()`` called from Python leaves the caller's
     process as it found it."""
-    names = ("jax_compilation_cache_dir", "jax_persistent_cache_min_compile_time_secs")
-    before = {name: getattr(jax.config, name) for name in names}
+    before = {name: getattr(jax.config, name) for name in _CACHE_SETTINGS}
     export = _state["dir"]
     enable_caches()
     try:

@@ -8,16 +8,25 @@ os.environ.setdefault("JAX_PLATFORMS", "cpu")
 # The suite's own compilation cache, for this process, the CLI's main() run in it and the
 # processes it starts: never the user's (a cache file another process is still writing
 # reads as a corrupt executable, which aborts XLA).
-# With pytest-xdist, each worker has its own: JAX writes cache files in place, and another
-# worker reading one half-written aborts.
+# pytest-xdist's workers share it: with a size bound, as the command line sets it, JAX reads
+# and writes every entry under a file lock, so no worker reads an entry half-written.
 os.environ.setdefault("SQPARTS_CACHE_DIR", str(Path.home() / ".cache" / "sqparts" / "jax-tests"))
-if "PYTEST_XDIST_WORKER" in os.environ:
-    os.environ["SQPARTS_CACHE_DIR"] += "-" + os.environ["PYTEST_XDIST_WORKER"]
+
+# Set through the environment, so that the processes tests start (the notebooks' kernels)
+# share it too.
+os.environ.update(
+    JAX_COMPILATION_CACHE_DIR=os.environ["SQPARTS_CACHE_DIR"],
+    JAX_PERSISTENT_CACHE_MIN_COMPILE_TIME_SECS="1.0",
+    JAX_COMPILATION_CACHE_MAX_SIZE=str(1 << 30),  # sqparts._compile.CACHE_MAX_BYTES
+)
 
 import jax
 import numpy as np
 import pytest
 
+from sqparts._compile import CACHE_MAX_BYTES
+
+jax.config.update("jax_compilation_cache_max_size", CACHE_MAX_BYTES)
 jax.config.update("jax_compilation_cache_dir", os.environ["SQPARTS_CACHE_DIR"])
 jax.config.update("jax_persistent_cache_min_compile_time_secs", 1.0)
 

@@ -249,12 +249,17 @@ def test_crowded_processes_release_their_programs():
 def test_the_command_line_leaves_the_callers_caches_as_it_found_them(tmp_path, monkeypatch):
     """main() called from Python turns the caches on for its run only."""
     monkeypatch.setenv("SQPARTS_CACHE_DIR", str(tmp_path / "cache"))
-    names = ("jax_compilation_cache_dir", "jax_persistent_cache_min_compile_time_secs")
+    names = (
+        "jax_compilation_cache_dir",
+        "jax_persistent_cache_min_compile_time_secs",
+        "jax_compilation_cache_max_size",
+    )
     before = {n: getattr(jax.config, n) for n in names}
     _compile.set_export_dir(None)
     with _compile.caches_enabled():
         assert _compile._state["dir"] == tmp_path / "cache" / "exported"
         assert jax.config.jax_persistent_cache_min_compile_time_secs == 0.0
+        assert jax.config.jax_compilation_cache_max_size == _compile.CACHE_MAX_BYTES
     assert _compile._state["dir"] is None
     assert {n: getattr(jax.config, n) for n in names} == before
     from sqparts.cli import main
@@ -265,6 +270,34 @@ def test_the_command_line_leaves_the_callers_caches_as_it_found_them(tmp_path, m
     assert main([*argv, "--out", str(tmp_path / "d.npy"), "--quiet"]) == 0
     assert _compile._state["dir"] is None
     assert {n: getattr(jax.config, n) for n in names} == before
+
+
+def test_processes_share_the_compilation_cache_under_a_lock(tmp_path):
+    """Two processes with the command line's caches on, one after the other: the second
+    loads the first's program instead of compiling it, and every entry went through JAX's
+    file lock (its ``.lockfile`` and per-entry access times exist only when entries are
+    written and read under the lock)."""
+    import subprocess
+    import sys
+
+    code = (
+        "import jax, jax.numpy as jnp\n"
+        "from jax._src import monitoring\n"
+        "from sqparts._compile import enable_caches\n"
+        "seen = []\n"
+        "monitoring.register_event_listener(lambda e, **k: seen.append(e.rsplit('/', 1)[-1]))\n"
+        "enable_caches()\n"
+        "jax.jit(lambda x: jnp.sin(x) * 3)(jnp.arange(5.0)).block_until_ready()\n"
+        "print(seen.count('cache_hits'), seen.count('cache_misses'))\n"
+    )
+    env = {**__import__("os").environ, "SQPARTS_CACHE_DIR": str(tmp_path / "cache"), "JAX_PLATFORMS": "cpu"}
+    runs = [subprocess.run([sys.executable, "-c", code], env=env, capture_output=True, text=True) for _ in range(2)]
+    assert [r.returncode for r in runs] == [0, 0], [r.stderr for r in runs]
+    (hits0, misses0), (hits1, misses1) = [map(int, r.stdout.split()[-2:]) for r in runs]
+    assert hits0 == 0 and misses0 >= 1  # the first compiles (the arange and the sine)
+    assert hits1 == misses0 and misses1 == 0  # the second loads them all
+    assert (tmp_path / "cache" / ".lockfile").exists()
+    assert list((tmp_path / "cache").glob("*-atime"))
 
 
 def test_concurrently_is_the_loop_in_order(monkeypatch):
