@@ -12,20 +12,19 @@ os.environ.setdefault("JAX_PLATFORMS", "cpu")
 # and writes every entry under a file lock, so no worker reads an entry half-written.
 os.environ.setdefault("SQPARTS_CACHE_DIR", str(Path.home() / ".cache" / "sqparts" / "jax-tests"))
 
-# Set through the environment, so that the processes tests start (the notebooks' kernels)
-# share it too.
-os.environ.update(
-    JAX_COMPILATION_CACHE_DIR=os.environ["SQPARTS_CACHE_DIR"],
-    JAX_PERSISTENT_CACHE_MIN_COMPILE_TIME_SECS="1.0",
-    JAX_COMPILATION_CACHE_MAX_SIZE=str(1 << 30),  # sqparts._compile.CACHE_MAX_BYTES
-)
-
 import jax
 import numpy as np
 import pytest
 
 from sqparts._compile import CACHE_MAX_BYTES
 
+# Also through the environment, which the processes tests start (the notebooks' kernels)
+# read when they import JAX.
+os.environ.update(
+    JAX_COMPILATION_CACHE_DIR=os.environ["SQPARTS_CACHE_DIR"],
+    JAX_PERSISTENT_CACHE_MIN_COMPILE_TIME_SECS="1.0",
+    JAX_COMPILATION_CACHE_MAX_SIZE=str(CACHE_MAX_BYTES),
+)
 jax.config.update("jax_compilation_cache_max_size", CACHE_MAX_BYTES)
 jax.config.update("jax_compilation_cache_dir", os.environ["SQPARTS_CACHE_DIR"])
 jax.config.update("jax_persistent_cache_min_compile_time_secs", 1.0)
