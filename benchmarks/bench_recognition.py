@@ -83,6 +83,13 @@ def normalised_mesh(path: Path) -> trimesh.Trimesh:
     return mesh
 
 
+def all_meshes() -> dict:
+    """The ten model meshes and the teapot, normalised, by object name."""
+    meshes = {name: normalised_mesh(DATA / "models" / f"{name}.obj") for name in MESHES}
+    meshes["teapot"] = normalised_mesh(DATA / "teapot.obj")
+    return meshes
+
+
 def _rotation(azimuth, elevation):
     r = trimesh.transformations.rotation_matrix
     return r(np.radians(elevation), [1, 0, 0]) @ r(np.radians(azimuth), [0, 1, 0])
@@ -273,9 +280,7 @@ def recognise_view(job) -> dict:
 
         sqparts._compile.enable_caches()
         _WORKER_DB[folder] = ModelDatabase(folder)
-        meshes = {n: normalised_mesh(DATA / "models" / f"{n}.obj") for n in MESHES}
-        meshes["teapot"] = normalised_mesh(DATA / "teapot.obj")
-        _WORKER_DB["meshes"] = meshes
+        _WORKER_DB["meshes"] = all_meshes()
     db = _WORKER_DB[folder]
     db.threshold = threshold
     figures = [_parts(f) for f in e["figures"]]
@@ -367,8 +372,7 @@ def main():
 
     sqparts._compile.enable_caches()
     views = plan()
-    meshes = {name: normalised_mesh(DATA / "models" / f"{name}.obj") for name in MESHES}
-    meshes["teapot"] = normalised_mesh(DATA / "teapot.obj")
+    meshes = all_meshes()
     cache = json.loads(CACHE.read_text()) if args.from_cache and CACHE.exists() else {}
     t_start = time.perf_counter()
     # Warm-up (compilation), reported apart: one learning view recovered twice.

@@ -34,11 +34,19 @@ def roc_area(a, b):
     return float(np.mean(a[:, None] > b[None, :]) + 0.5 * np.mean(a[:, None] == b[None, :]))
 
 
+def report(label: str, known, unknown) -> None:
+    """ROC area of a statistic on known against unknown views, and the fraction of known
+    views rejected at the threshold that rejects 90% of the unknown ones."""
+    tau = np.quantile(unknown, 0.9)
+    print(
+        f"{label:20s} ROC area {roc_area(known, unknown):.3f}; at 90% unknown rejected, known rejected {np.mean(known < tau):.2f}"
+    )
+
+
 def self_normalised():
     res = json.loads((B.ROOT / "benchmarks" / "results" / "recognition_verified.json").read_text())
     cache = json.loads(B.CACHE.read_text())
-    meshes = {n: B.normalised_mesh(B.DATA / "models" / f"{n}.obj") for n in B.MESHES}
-    meshes["teapot"] = B.normalised_mesh(B.DATA / "teapot.obj")
+    meshes = B.all_meshes()
     out = []
     for r in res["rows"]:
         e = cache[r["view"]]
@@ -63,11 +71,7 @@ def self_normalised():
         ("score / sqrt(self)", lambda s: s / np.sqrt(own)),
         ("score / self", lambda s: s / own),
     ]:
-        a, b = f(true), f(other)
-        tau = np.quantile(b, 0.9)
-        print(
-            f"{name:20s} ROC area {roc_area(a, b):.3f}; at 90% unknown rejected, known rejected {np.mean(a < tau):.2f}"
-        )
+        report(name, f(true), f(other))
 
 
 def margin(every: int):
@@ -92,11 +96,7 @@ def margin(every: int):
         ("margin", lambda a: a[:, 1]),
         ("best x margin", lambda a: a[:, 0] * a[:, 1]),
     ]:
-        a, b = f(k), f(u)
-        tau = np.quantile(b, 0.9)
-        print(
-            f"{label:14s} ROC area {roc_area(a, b):.3f}; at 90% unknown rejected, known rejected {np.mean(a < tau):.2f}"
-        )
+        report(label, f(k), f(u))
     out = Path(tempfile.gettempdir()) / "proto_rejection_margin.json"
     out.write_text(json.dumps(rows))
     print("rows:", out)

@@ -93,8 +93,7 @@ def candidates():
 
 def render():
     views, _cache, db = build_db()
-    meshes = {name: B.normalised_mesh(B.DATA / "models" / f"{name}.obj") for name in B.MESHES}
-    meshes["teapot"] = B.normalised_mesh(B.DATA / "teapot.obj")
+    meshes = B.all_meshes()
     cands = pickle.load(open(WORK / "candidates.pkl", "rb"))
     out = {}
     for key, name, _r, spec in views:

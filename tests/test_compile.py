@@ -5,6 +5,9 @@ few distinct programs, none new for another image size within a bucket."""
 import contextlib
 import json
 import logging
+import os
+import subprocess
+import sys
 from pathlib import Path
 
 import equinox as eqx
@@ -277,9 +280,6 @@ def test_processes_share_the_compilation_cache_under_a_lock(tmp_path):
     loads the first's program instead of compiling it, and every entry went through JAX's
     file lock (its ``.lockfile`` and per-entry access times exist only when entries are
     written and read under the lock)."""
-    import subprocess
-    import sys
-
     code = (
         "import jax, jax.numpy as jnp\n"
         "from jax._src import monitoring\n"
@@ -290,7 +290,7 @@ def test_processes_share_the_compilation_cache_under_a_lock(tmp_path):
         "jax.jit(lambda x: jnp.sin(x) * 3)(jnp.arange(5.0)).block_until_ready()\n"
         "print(seen.count('cache_hits'), seen.count('cache_misses'))\n"
     )
-    env = {**__import__("os").environ, "SQPARTS_CACHE_DIR": str(tmp_path / "cache"), "JAX_PLATFORMS": "cpu"}
+    env = {**os.environ, "SQPARTS_CACHE_DIR": str(tmp_path / "cache"), "JAX_PLATFORMS": "cpu"}
     runs = [subprocess.run([sys.executable, "-c", code], env=env, capture_output=True, text=True) for _ in range(2)]
     assert [r.returncode for r in runs] == [0, 0], [r.stderr for r in runs]
     (hits0, misses0), (hits1, misses1) = [map(int, r.stdout.split()[-2:]) for r in runs]
