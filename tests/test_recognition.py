@@ -23,7 +23,10 @@ from sqparts._database import (
 from sqparts._describe import SHAPE_BINS, SHAPE_RANGE, Description, describe, shape_distribution, surface_cloud
 from sqparts._part import stack_parts
 from sqparts._recognize import (
+    _SHORTLIST,
     Observation,
+    _rank_poses,
+    _similarity,
     align_candidates,
     align_descriptions,
     fit_pose,
@@ -539,6 +542,27 @@ def test_a_view_seen_again_is_its_own_parts_from_its_own_side():
     pose = np.eye(4)
     pose[:3, 3] = query.positions[0] - np.asarray(view.main.parts.position)[0]
     assert verify_poses([transform_parts(view.main.parts, pose)], obs, obs.figures[0], 0.01)[0] > 0.99
+
+
+def test_coarse_to_fine_ranking_keeps_the_brute_force_best_poses():
+    """Against brute force (every proposal's mean similarity on all its points): the
+    shortlist's values are exact, and the best poses come first in the same order."""
+    surface = surface_cloud(sqparts.builtin_scene("chair").parts)[::5]
+    tree, sigma = KDTree(surface_cloud(sqparts.builtin_scene("chair").parts)), 0.02
+    rng = np.random.default_rng(3)
+    rot = Rotation.random(300, random_state=4).as_matrix()
+    rot[:5] = Rotation.from_rotvec(rng.normal(0, 0.05, (5, 3))).as_matrix()  # five near the truth
+    moved = (
+        np.einsum("sab,nb->sna", rot, surface - surface.mean(0)) + surface.mean(0) + rng.normal(0, 0.01, (300, 1, 3))
+    )
+    exact = _similarity(tree, moved.reshape(-1, 3), sigma).reshape(300, -1).mean(1)
+    rank = _rank_poses(tree, moved, sigma)
+    best = np.argsort(-exact, kind="stable")[:5]
+    np.testing.assert_array_equal(np.argsort(-rank, kind="stable")[:5], best)
+    shortlisted = rank > -1.0
+    assert shortlisted.sum() == _SHORTLIST
+    np.testing.assert_allclose(rank[shortlisted], exact[shortlisted], rtol=1e-12)
+    assert rank[~shortlisted].max() < rank[shortlisted].min()
 
 
 def test_every_refined_alignment_is_a_rigid_motion_best_first():
