@@ -399,17 +399,17 @@ class ModelDatabase:
             mask = observation.figures.any(0) if figure is None else figure
             points = observed_points(observation, mask)
 
-            def fitted(r):  # one row's alignments fitted to the observed points
+            def fitted(r):  # one row's stored view, its scale, its alignments fitted to the points
                 name, k, _m, _stored, aligned = r
                 model = self.objects[name][k].main
-                sigma = float(settings.alignment_tolerance or 0.0) * max(query.scale, model.description.scale)
-                return [fit_pose(points, model.description, a.pose, sigma) for a in aligned]
+                scale = max(query.scale, model.description.scale)
+                sigma = float(settings.alignment_tolerance or 0.0) * scale  # aligned only when it is set
+                return model, scale, [fit_pose(points, model.description, a.pose, sigma) for a in aligned]
 
-            posed, solids, taus = concurrently(fitted, rows), [], []
-            for (name, k, *_), poses in zip(rows, posed):
-                model = self.objects[name][k].main
-                solids += [transform_parts(model.parts, pose) for pose in poses]
-                taus += [tolerance * max(query.scale, model.description.scale)] * len(poses)
+            fits = concurrently(fitted, rows)
+            posed = [poses for _, _, poses in fits]
+            solids = [transform_parts(model.parts, pose) for model, _, poses in fits for pose in poses]
+            taus = [tolerance * scale for _, scale, poses in fits for _ in poses]
             checks = iter(verify_poses(solids, observation, mask, taus))
         best: dict[str, tuple] = {}
         for r, (name, k, m, stored, aligned) in enumerate(rows):

@@ -555,8 +555,8 @@ def test_a_view_seen_again_is_its_own_parts_from_its_own_side():
 def test_coarse_to_fine_ranking_keeps_the_brute_force_best_poses():
     """Against brute force (every proposal's mean similarity on all its points): the
     shortlist's values are exact, and the best poses come first in the same order."""
-    surface = surface_cloud(sqparts.builtin_scene("chair").parts)[::5]
-    tree, sigma = KDTree(surface_cloud(sqparts.builtin_scene("chair").parts)), 0.02
+    cloud = surface_cloud(sqparts.builtin_scene("chair").parts)
+    surface, tree, sigma = cloud[::5], KDTree(cloud), 0.02
     rng = np.random.default_rng(3)
     rot = Rotation.random(300, random_state=4).as_matrix()
     rot[:5] = Rotation.from_rotvec(rng.normal(0, 0.05, (5, 3))).as_matrix()  # five near the truth
