@@ -32,7 +32,6 @@ import numpy as np
 if TYPE_CHECKING:
     from ._recover import Recovery, SceneRecovery
 
-from ._compile import concurrently
 from ._describe import Description, describe, merged_alternatives, part_volume, surface_cloud
 from ._io import _load_json, atomic_write, scene_from_dict, scene_to_dict
 from ._part import Part, stack_parts
@@ -379,37 +378,31 @@ class ModelDatabase:
         (:func:`~sqparts._recognize.verify_poses`, all in one batched call): the view
         then scores the geometric mean of the alignment and the verification of its best
         pose, which is the match's pose (when ``settings.verification_tolerance`` is
-        set); the part match gives the correspondences. The stored views are matched and
-        fitted on threads (:func:`~sqparts._compile.concurrently`; the same results as one
-        after another)."""
-
-        def row(job):  # one stored view: its best description's part match, its alignments
-            name, k, view = job
-            m, stored = max(
-                ((match_descriptions(query, s.description, settings), s) for s in view.descriptions),
-                key=lambda r: r[0].score,
-            )
-            return name, k, m, stored, align_candidates(query, view.main.description, settings)
-
-        jobs = [(n, k, v) for n, views in self.objects.items() for k, v in enumerate(views) if exclude != (n, k)]
-        rows = concurrently(row, jobs)  # numpy and scipy's k-d trees, which release the GIL
+        set); the part match gives the correspondences."""
+        rows = []
+        for name, views in self.objects.items():
+            for k, view in enumerate(views):
+                if exclude == (name, k):
+                    continue
+                m, stored = max(
+                    ((match_descriptions(query, s.description, settings), s) for s in view.descriptions),
+                    key=lambda r: r[0].score,
+                )
+                rows.append((name, k, m, stored, align_candidates(query, view.main.description, settings)))
         tolerance = settings.verification_tolerance
         posed: list | None = None  # per row, its alignments fitted to the observation
         if observation is not None and tolerance is not None:
             mask = observation.figures.any(0) if figure is None else figure
             points = observed_points(observation, mask)
-
-            def fitted(r):  # one row's stored view, its scale, its alignments fitted to the points
-                name, k, _m, _stored, aligned = r
+            posed, solids, taus = [], [], []
+            for name, k, _m, _stored, aligned in rows:
                 model = self.objects[name][k].main
                 scale = max(query.scale, model.description.scale)
                 sigma = float(settings.alignment_tolerance or 0.0) * scale  # aligned only when it is set
-                return model, scale, [fit_pose(points, model.description, a.pose, sigma) for a in aligned]
-
-            fits = concurrently(fitted, rows)
-            posed = [poses for _, _, poses in fits]
-            solids = [transform_parts(model.parts, pose) for model, _, poses in fits for pose in poses]
-            taus = [tolerance * scale for _, scale, poses in fits for _ in poses]
+                poses = [fit_pose(points, model.description, a.pose, sigma) for a in aligned]
+                posed.append(poses)
+                solids += [transform_parts(model.parts, pose) for pose in poses]
+                taus += [tolerance * scale] * len(poses)
             checks = iter(verify_poses(solids, observation, mask, taus))
         best: dict[str, tuple] = {}
         for r, (name, k, m, stored, aligned) in enumerate(rows):

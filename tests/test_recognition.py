@@ -486,25 +486,17 @@ def test_verification_picks_the_pose_the_range_image_shows():
     assert good > 0.99 and bad < 0.6
 
 
-def test_verified_matching_prefers_the_object_in_the_image(tmp_path, monkeypatch):
+def test_verified_matching_prefers_the_object_in_the_image(tmp_path):
     """The chair's range image, matched with the image: the chair's stored parts at their
-    best pose reproduce it (score near 1); the other objects score far lower. The stored
-    views matched on threads give exactly what one thread gives."""
+    best pose reproduce it (score near 1); the other objects score far lower."""
     db = _database(tmp_path / "db")
     s = sqparts.builtin_scene("chair")
     obs = _observed(s.parts, s.camera)
-    monkeypatch.setenv("SQPARTS_THREADS", "2")
     best, matches = match_figures([s.parts], database=db, observation=obs)
     verified = {m.name: m.score for m in matches}
     assert best == "chair" and verified["chair"] > 0.97
     for name in ("human", "castings"):
         assert verified[name] < verified["chair"] - 0.3
-    monkeypatch.setenv("SQPARTS_THREADS", "1")
-    _, alone = match_figures([s.parts], database=db, observation=obs)
-    assert [(m.name, m.score, m.view) for m in alone] == [(m.name, m.score, m.view) for m in matches]
-    for m, a in zip(matches, alone):
-        np.testing.assert_array_equal(m.pose, a.pose)
-        np.testing.assert_array_equal(m.parts, a.parts)
     with pytest.raises(ValueError, match=r"observation: got 1 figure masks, expected one per figure \(2\)"):
         match_figures([s.parts, s.parts], database=db, observation=obs)
 
