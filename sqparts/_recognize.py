@@ -331,15 +331,20 @@ def _similarity(tree: KDTree, points: np.ndarray, sigma: float) -> np.ndarray:
     return np.exp(-0.5 * (d / sigma) ** 2)
 
 
+def _mean_similarity(tree: KDTree, moved: np.ndarray, sigma: float) -> np.ndarray:
+    """(s,) mean :func:`_similarity` of each set of moved points (s, n, 3)."""
+    return _similarity(tree, moved.reshape(-1, 3), sigma).reshape(len(moved), -1).mean(1)
+
+
 def _rank_poses(tree: KDTree, moved: np.ndarray, sigma: float) -> np.ndarray:
     """(s,) ranking of proposed poses by the mean :func:`_similarity` of their moved
     points (s, n, 3) to the tree's surface, coarse to fine: every proposal on every
     :data:`_COARSE`-th point, then the :data:`_SHORTLIST` best again on all points. The
     shortlist's values are exact; the rest rank below them, in their coarse order."""
-    coarse = _similarity(tree, moved[:, ::_COARSE].reshape(-1, 3), sigma).reshape(len(moved), -1).mean(1)
+    coarse = _mean_similarity(tree, moved[:, ::_COARSE], sigma)
     rank = coarse - 2.0
     shortlist = np.argsort(-coarse, kind="stable")[:_SHORTLIST]
-    rank[shortlist] = _similarity(tree, moved[shortlist].reshape(-1, 3), sigma).reshape(len(shortlist), -1).mean(1)
+    rank[shortlist] = _mean_similarity(tree, moved[shortlist], sigma)
     return rank
 
 
