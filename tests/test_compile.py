@@ -300,6 +300,31 @@ def test_processes_share_the_compilation_cache_under_a_lock(tmp_path):
     assert list((tmp_path / "cache").glob("*-atime"))
 
 
+def test_an_entry_left_by_a_killed_process_does_not_stop_the_cache(tmp_path):
+    """A process killed between writing a cache entry and its access time leaves an entry
+    without one; JAX's eviction then fails on every later write (with a warning: nothing
+    new is kept). The command line's caches mend it first, so the next program is kept."""
+    cache = tmp_path / "cache"
+    cache.mkdir()
+    (cache / "jit_f-0123abcd-cache").write_bytes(b"\0" * 64)  # no jit_f-0123abcd-atime
+    code = (
+        "import jax, jax.numpy as jnp\n"
+        "from sqparts._compile import enable_caches\n"
+        "enable_caches()\n"
+        "jax.jit(lambda x: jnp.cos(x) + 2)(jnp.arange(3.0)).block_until_ready()\n"
+    )
+    env = {**os.environ, "SQPARTS_CACHE_DIR": str(cache), "JAX_PLATFORMS": "cpu"}
+    run = subprocess.run(
+        [sys.executable, "-W", "error::UserWarning", "-c", code], env=env, capture_output=True, text=True
+    )
+    assert run.returncode == 0, run.stderr
+    assert "Error writing persistent compilation cache" not in run.stderr
+    written = {p.name for p in cache.glob("*-cache")} - {"jit_f-0123abcd-cache"}
+    assert written  # the new program was kept
+    for entry in cache.glob("*-cache"):
+        assert entry.with_name(entry.name.removesuffix("-cache") + "-atime").exists()
+
+
 def test_concurrently_is_the_loop_in_order(monkeypatch):
     """The threads' results are the loop's, in the items' order, whatever the thread
     count; an exception reaches the caller; ``progress`` sees every call."""
