@@ -314,6 +314,11 @@ _RELABEL = np.round(Rotation.create_group("O").as_matrix())
 """The 24 rotations of a box (the octahedral group): the signed permutation matrices with
 determinant +1, rounded to exact 0 and ±1."""
 _ICP_ITERATIONS = 15
+_GATE = 8.0
+"""Nearest neighbours farther than this many σ are no correspondence in :func:`_refine_pose`:
+their weight would be exp(-8) ≈ 3e-4 of a coincident pair's, and a k-d tree answers a
+query bounded at that distance several times sooner than an open one far from its
+points."""
 _SPARSE = 5
 """Moved points are every fifth of a surface's (itself an area-proportional draw, of 400
 of the 2000); the distances are to all the other surface's points."""
@@ -354,14 +359,21 @@ def _refine_pose(q, m, mtree, r, t, sigma, qtree=None):
     ``q`` among the model's surface (``mtree``) and, given the query's surface
     (``qtree``), of the model's points ``m`` among it; weights fall with distance
     (exp(-d²/8σ²)), so that surface one side has and the other lacks (an occluded or
-    extra part) pulls little. Without ``qtree`` the query's points are data (an observed
-    range image's), which the model's surface is brought onto."""
+    extra part) pulls little; pairs farther apart than :data:`_GATE` σ are left out.
+    Without ``qtree`` the query's points are data (an observed range image's), which the
+    model's surface is brought onto."""
+    gate = _GATE * sigma
     for _ in range(_ICP_ITERATIONS):
-        d2, i2 = mtree.query((q - t) @ r)
-        src, dst, d = mtree.data[i2], q, d2
+        d2, i2 = mtree.query((q - t) @ r, distance_upper_bound=gate)
+        near = np.isfinite(d2)
+        src, dst, d = mtree.data[i2[near]], q[near], d2[near]
         if qtree is not None:
-            d1, i1 = qtree.query(m @ r.T + t)
-            src, dst, d = np.concatenate([m, src]), np.concatenate([qtree.data[i1], dst]), np.concatenate([d1, d])
+            d1, i1 = qtree.query(m @ r.T + t, distance_upper_bound=gate)
+            near = np.isfinite(d1)
+            src = np.concatenate([m[near], src])
+            dst, d = np.concatenate([qtree.data[i1[near]], dst]), np.concatenate([d1[near], d])
+        if len(d) < 3:  # nothing within reach: the pose stays as it is
+            break
         w = np.exp(-0.125 * (d / sigma) ** 2) + 1e-12
         sc, dc = np.average(src, 0, w), np.average(dst, 0, w)
         u, _, vt = np.linalg.svd(((src - sc) * w[:, None]).T @ (dst - dc))

@@ -526,6 +526,9 @@ def test_fitting_a_pose_to_the_observed_points_recovers_the_motion():
     )
     assert after > 0.97 and after > before + 0.1
     np.testing.assert_array_equal(fit_pose(points[:2], model.description, off, 0.05), off)  # too few: as given
+    far = off.copy()
+    far[2, 3] += 5.0  # 5 m behind: no observed point within 8 sigma (0.4 m) of its surface
+    np.testing.assert_array_equal(fit_pose(points, model.description, far, 0.05), far)  # out of reach: as given
 
 
 def test_a_view_seen_again_is_its_own_parts_from_its_own_side():
