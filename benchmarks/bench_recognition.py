@@ -71,9 +71,19 @@ STABILITY_OBJECTS = ["spot", "teapot"]
 CACHE = RESULTS / "recognition_cache.json"
 
 
-def camera(resolution=RESOLUTION, focal=FOCAL):
-    c = (resolution - 1) / 2
-    return sqparts.PinholeCamera(resolution, resolution, focal, focal, c, c)
+def set_resolution(resolution: int) -> None:
+    """Render every view ``resolution`` pixels square, the focal length scaled with it (the
+    objects then cover the same share of the image), and keep its recoveries in a cache of
+    their own (64, the default: ``recognition_cache.json``)."""
+    global RESOLUTION, FOCAL, CACHE
+    RESOLUTION, FOCAL = resolution, resolution * DISTANCE / 1.1
+    CACHE = RESULTS / ("recognition_cache.json" if resolution == 64 else f"recognition_cache_{resolution}.json")
+
+
+def camera(focal=None):
+    c = (RESOLUTION - 1) / 2
+    f = FOCAL if focal is None else focal
+    return sqparts.PinholeCamera(RESOLUTION, RESOLUTION, f, f, c, c)
 
 
 def normalised_mesh(path: Path) -> trimesh.Trimesh:
@@ -274,7 +284,8 @@ def recognise_view(job) -> dict:
     """One test view matched by one matcher (run in a worker process): the database read
     from its folder, the view rendered again (the same seed), its figures' cached parts
     and masks, the poses verified on that range image."""
-    folder, threshold, settings, key, name, spec, e = job
+    folder, resolution, threshold, settings, key, name, spec, e = job
+    set_resolution(resolution)
     if folder not in _WORKER_DB:
         import sqparts._compile
 
@@ -355,13 +366,23 @@ def main():
         action="store_true",
         help="redraw the pictures from the saved results JSON (no recovery, no matching)",
     )
+    ap.add_argument(
+        "--resolution",
+        type=int,
+        default=RESOLUTION,
+        help="render views this many pixels square (focal length scaled with it; own recovery cache, "
+        "results saved with a _<resolution> suffix unless it is 64)",
+    )
     args = ap.parse_args()
+    set_resolution(args.resolution)
     settings = MatchSettings(shape_tolerance=0.5) if args.whole_object else MatchSettings()
     # The matcher before verification (run 4) is measured in the same run, on the same recoveries.
     matchers = {"verified": settings}
     if settings.verification_tolerance is not None:
         matchers = {"parts and alignment": dataclasses.replace(settings, verification_tolerance=None), **matchers}
     tag = "recognition_shape" if args.whole_object else "recognition"
+    if RESOLUTION != 64:
+        tag += f"_{RESOLUTION}"
     if args.plot_only:
         saved = json.loads(result_path(tag).read_text())
         c = saved["confusion"]
@@ -402,7 +423,7 @@ def main():
             f"{len(db.calibration['impostor'])} impostor scores ({calibrate_s:.0f} s)",
             flush=True,
         )
-        jobs = [(str(folder), threshold, ms, key, name, spec, e) for key, name, spec, e in tests]
+        jobs = [(str(folder), RESOLUTION, threshold, ms, key, name, spec, e) for key, name, spec, e in tests]
         with multiprocessing.get_context("spawn").Pool(2) as pool:  # matching is numpy on one core
             rows = pool.map(recognise_view, jobs, chunksize=1)
         confusion = np.zeros((len(objects), len(objects) + 1), int)
