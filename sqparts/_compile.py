@@ -87,7 +87,7 @@ def enable_caches() -> None:
     cache = Path(os.environ.get("SQPARTS_CACHE_DIR", str(Path.home() / ".cache" / "sqparts" / "jax")))
     try:
         cache.mkdir(parents=True, exist_ok=True)
-        repair_cache(cache)
+        _repair_cache(cache)
         jax.config.update("jax_compilation_cache_max_size", CACHE_MAX_BYTES)
         jax.config.update("jax_compilation_cache_dir", str(cache))
         jax.config.update("jax_persistent_cache_min_compile_time_secs", 0.0)
@@ -96,7 +96,7 @@ def enable_caches() -> None:
         pass
 
 
-def repair_cache(cache: Path) -> int:
+def _repair_cache(cache: Path) -> int:
     """Give every entry of JAX's bounded compilation cache in ``cache`` that lacks its
     access-time file one (its own modification time); returns how many were mended.
 

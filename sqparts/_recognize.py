@@ -492,8 +492,9 @@ def fit_pose(points, model: Description, pose, sigma: float) -> np.ndarray:
     """``pose`` (4x4, the model's frame to the camera's) refined by iterative closest
     points bringing the model's outer surface onto observed ``points`` (:func:`_refine_pose`
     without a query surface: the data, not the query's recovered parts, which are cut
-    differently from view to view). The pose as given when the model has no surface or
-    there are fewer than 3 points."""
+    differently from view to view). The pose as given when the model has no surface,
+    there are fewer than 3 points or none of them is within reach of the model's surface
+    (:data:`_GATE`)."""
     pose = np.asarray(pose, float)
     if model.surface is None or len(points) < 3:
         return pose
