@@ -63,9 +63,10 @@ def run(resolution: int, tests: list[str]) -> None:
 def finish(resolution, tests, rows, threshold, calibrate_s, calibration, recovery_s) -> None:
     """Apply the calibrated threshold to the rows, summarise them as the benchmark does
     and save ``results/recognition_pilot_<resolution>.json``."""
-    for r in rows:  # the calibrated threshold, as the benchmark applies it
+    for r in rows:  # the calibrated threshold, as recognise_view applies it
         r["best"] = r["top"] if r["top_score"] >= threshold else None
-        r["unknown_best"] = None if r["unknown_top_score"] < threshold else "(another object)"
+        other = max((n for n in r["scores"] if n != r["object"]), key=r["scores"].get)
+        r["unknown_best"] = other if r["unknown_top_score"] >= threshold else None
     out = B.summarise(rows, threshold, calibrate_s, calibration)
     out["summary"]["recovery_wall_s"] = recovery_s
     save(

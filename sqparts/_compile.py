@@ -96,23 +96,20 @@ def enable_caches() -> None:
         pass
 
 
-def _repair_cache(cache: Path) -> int:
+def _repair_cache(cache: Path) -> None:
     """Give every entry of JAX's bounded compilation cache in ``cache`` that lacks its
-    access-time file one (its own modification time); returns how many were mended.
+    access-time file one (its own modification time).
 
     JAX writes an entry (``<key>-cache``) and then its access time (``<key>-atime``); a
     process killed between the two leaves an entry without one, and from then on every
     write to the cache fails (its eviction reads every entry's access time), each with a
     warning, so no new program is ever kept again. Writing the missing file is harmless
     when another process is itself just about to write it."""
-    mended = 0
     for entry in cache.glob("*-cache"):
         atime = entry.with_name(entry.name.removesuffix("-cache") + "-atime")
         if not atime.exists():
             with contextlib.suppress(OSError):  # e.g. evicted meanwhile by another process
                 atime.write_bytes(entry.stat().st_mtime_ns.to_bytes(8, "little"))
-                mended += 1
-    return mended
 
 
 @contextlib.contextmanager
