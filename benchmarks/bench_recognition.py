@@ -301,18 +301,14 @@ def recognise_view(job) -> dict:
         labels = np.asarray(e["labels"]).reshape(depth.shape)
         observation = Observation(depth, cam, np.stack([labels == k for k in range(len(figures))]))
     t0 = time.perf_counter()
-    best, matches = match_figures(figures, database=db, settings=settings, observation=observation)
+    _, matches = match_figures(figures, database=db, settings=settings, observation=observation)
     match_s = time.perf_counter() - t0
-    # The database without this object gives the same matches less its own (each
-    # object's best is found on its own): the unknown case needs no second match.
-    unknown = [m for m in matches if m.name != name]
     names = [m.name for m in matches]
     row = {
         "view": key,
         "object": name,
         "spec": spec,
         "parts": [len(f) for f in figures],
-        "best": best,
         "top": names[0] if names else None,
         "top_score": matches[0].score if matches else 0.0,
         "true_score": next((m.score for m in matches if m.name == name), 0.0),
@@ -320,14 +316,29 @@ def recognise_view(job) -> dict:
         "recovery_s": e["seconds"],
         "matching_s": match_s,
         "recovery_error": e.get("error"),
-        "unknown_best": unknown[0].name if unknown and unknown[0].score >= threshold else None,
-        "unknown_top_score": unknown[0].score if unknown else 0.0,
-        "scores": {m.name: m.score for m in matches},  # every object's, for offline rejection rules
+        "scores": {m.name: m.score for m in matches},  # every object's: decide() accepts or rejects
     }
+    decide([row], db)
     print(
-        f"{key}: best {best} ({row['top_score']:.2f}; true {row['true_score']:.2f}), without it: {row['unknown_best']}"
+        f"{key}: best {row['best']} ({row['top_score']:.2f}; true {row['true_score']:.2f}), without it: {row['unknown_best']}"
     )
     return row
+
+
+def decide(rows, db: ModelDatabase) -> None:
+    """Accept or reject each row's best object by the calibrated database's rule
+    (:meth:`ModelDatabase.evidence` against its threshold), for the view as it is (known)
+    and for the database without the view's object (unknown: the same matches less its
+    own, each object's best being found on its own, so no second match is needed)."""
+    for r in rows:
+        scores = r["scores"]
+        unknown = {n: s for n, s in scores.items() if n != r["object"]}
+        r["evidence"] = db.evidence(scores.values())
+        r["best"] = r["top"] if scores and r["evidence"] >= db.threshold else None
+        r["unknown_evidence"] = db.evidence(unknown.values())
+        r["unknown_top_score"] = max(unknown.values(), default=0.0)
+        top = max(unknown, key=unknown.__getitem__) if unknown else None
+        r["unknown_best"] = top if unknown and r["unknown_evidence"] >= db.threshold else None
 
 
 def summarise(rows, threshold, calibrate_s, calibration) -> dict:
@@ -374,6 +385,12 @@ def main():
         "results saved with a _<resolution> suffix unless it is 64)",
     )
     ap.add_argument(
+        "--rescore",
+        action="store_true",
+        help="decide the saved results' rows again (accept or reject each view's best object) under a database "
+        "calibrated now from the cached learnt views; the matching itself is not repeated",
+    )
+    ap.add_argument(
         "--verified-only",
         action="store_true",
         help="match by the verified matcher alone (no same-run comparison with the matcher before "
@@ -394,6 +411,9 @@ def main():
         c = saved["confusion"]
         plot_confusion(np.array(c["counts"]), c["rows"], result_path(f"{tag}_confusion", "png"))
         plot_top1(saved["rows"], c["rows"], result_path(f"{tag}_confusion_top1", "png"))
+        return
+    if args.rescore:
+        rescore(tag, settings)
         return
     import sqparts._compile
 
@@ -432,9 +452,8 @@ def main():
         jobs = [(str(folder), RESOLUTION, threshold, ms, key, name, spec, e) for key, name, spec, e in tests]
         with multiprocessing.get_context("spawn").Pool(2) as pool:  # matching is numpy on one core
             rows = pool.map(recognise_view, jobs, chunksize=1)
-        confusion = np.zeros((len(objects), len(objects) + 1), int)
-        for row in rows:
-            confusion[objects.index(row["object"]), objects.index(row["best"]) if row["best"] else len(objects)] += 1
+        decide(rows, db)  # by the database as calibrated for this matcher
+        confusion = confusion_counts(rows, objects)
         runs[label] = summarise(rows, threshold, calibrate_s, dict(db.calibration))
         runs[label].update(rows=rows, confusion=confusion, settings=dataclasses.asdict(ms))
         print(label, json.dumps(runs[label]["summary"], indent=1), flush=True)
@@ -495,6 +514,47 @@ def main():
             "same_run": {k: {"settings": r["settings"], "summary": r["summary"]} for k, r in runs.items()},
         },
     )
+    plot_confusion(confusion, objects, result_path(f"{tag}_confusion", "png"))
+    plot_top1(rows, objects, result_path(f"{tag}_confusion_top1", "png"))
+
+
+def confusion_counts(rows, objects) -> np.ndarray:
+    confusion = np.zeros((len(objects), len(objects) + 1), int)
+    for row in rows:
+        confusion[objects.index(row["object"]), objects.index(row["best"]) if row["best"] else len(objects)] += 1
+    return confusion
+
+
+def rescore(tag: str, settings: MatchSettings) -> None:
+    """The saved run's rows decided again (:func:`decide`) by a database calibrated now
+    from the cached learnt views (the run's own database: calibration is deterministic),
+    under today's rule; the summary, confusion matrix and pictures remade, the previous
+    summary kept under ``before_rescore``."""
+    import tempfile
+
+    import sqparts._compile
+
+    sqparts._compile.enable_caches()
+    saved = json.loads(result_path(tag).read_text())
+    cache = json.loads(CACHE.read_text())
+    db = learnt_database(plan(), cache, Path(tempfile.mkdtemp(prefix="sqparts-bench-db-")))
+    t0 = time.perf_counter()
+    threshold = db.calibrate(settings=settings)
+    calibrate_s = time.perf_counter() - t0
+    rows = saved["rows"]
+    decide(rows, db)
+    objects = saved["confusion"]["rows"]
+    confusion = confusion_counts(rows, objects)
+    before = saved["summary"]
+    summary = summarise(rows, threshold, calibrate_s, dict(db.calibration))
+    saved.update(
+        summary={**before, **summary["summary"], "statistic": db.statistic},
+        calibration=summary["calibration"],
+        confusion={**saved["confusion"], "counts": confusion.tolist()},
+        before_rescore={"when": saved.pop("when", None), "machine": saved.pop("machine", None), "summary": before},
+    )
+    print(json.dumps(saved["summary"], indent=1))
+    save(tag, saved)
     plot_confusion(confusion, objects, result_path(f"{tag}_confusion", "png"))
     plot_top1(rows, objects, result_path(f"{tag}_confusion_top1", "png"))
 

@@ -155,6 +155,7 @@ _EXPORTS = {
         "align_descriptions",
         "calibrate_threshold",
         "estimate_pose",
+        "lead",
         "match_descriptions",
         "verify_poses",
     ),

@@ -2,7 +2,8 @@
 
 A database is a folder of JSON files, human-readable and diffable::
 
-    DB/database.json   {"format": "sqparts-database/1", "threshold": t, "calibration": {...}}
+    DB/database.json   {"format": "sqparts-database/2", "threshold": t, "statistic": "lead" or "score",
+                        "calibration": {...}}
     DB/NAME.json       {"format": "sqparts-model/1", "name": NAME, "views": [VIEW, ...]}
 
 Each VIEW is one learnt range image: ``source`` (where it came from), ``main`` (the
@@ -12,7 +13,10 @@ the model's frame) with its ``description`` (:meth:`sqparts.Description.to_json`
 ``{"kind", "parts", "description"}``: ``level`` (the multiscale levels, coarse to fine,
 section 4.1), ``initial`` (the selection before refinement), ``merged`` (two touching
 parts as one) and ``split`` (a long part as two). Recognition matches a query against
-every stored description of an object and keeps the best.
+every stored description of an object and keeps the best. ``statistic`` names what the
+threshold bounds: the best object's score, or its lead over the other objects
+(:func:`~sqparts.lead`; databases of :data:`~sqparts._recognize.COHORT` or more objects).
+A version-1 index (no ``statistic``; its threshold bounds the score) is still read.
 
 Every file is written atomically (``sqparts._io.atomic_write``) and read through the
 same checks as scene files, so a failed write leaves the database as it was.
@@ -36,17 +40,21 @@ from ._describe import Description, describe, merged_alternatives, part_volume, 
 from ._io import _load_json, atomic_write, scene_from_dict, scene_to_dict
 from ._part import Part, stack_parts
 from ._recognize import (
+    COHORT,
     MatchSettings,
     Observation,
     align_candidates,
     calibrate_threshold,
     fit_pose,
+    lead,
     match_descriptions,
     observed_points,
     verify_poses,
 )
 
-DATABASE_FORMAT = "sqparts-database/1"
+DATABASE_FORMAT = "sqparts-database/2"
+_READ_FORMATS = ("sqparts-database/1", DATABASE_FORMAT)
+STATISTICS = ("score", "lead")
 MODEL_FORMAT = "sqparts-model/1"
 INDEX = "database.json"
 DEFAULT_THRESHOLD = 0.45
@@ -245,8 +253,8 @@ class ModelDatabase:
 
     ``ModelDatabase(path)`` opens a folder, which need not exist yet (it is made on the
     first :meth:`add_view`). ``objects`` maps each name to its tuple of
-    :class:`StoredView`; ``threshold`` is the calibrated score below which a query is
-    not recognised.
+    :class:`StoredView`; ``threshold`` is the calibrated value of ``statistic`` below
+    which a query is not recognised (:meth:`evidence`).
     """
 
     def __init__(self, path):
@@ -255,6 +263,7 @@ class ModelDatabase:
             raise NotADirectoryError(f"--db: got {str(self.path)!r}, which is a file, expected a database folder")
         self.objects: dict[str, tuple] = {}
         self.threshold = DEFAULT_THRESHOLD
+        self.statistic = "score"
         self.calibration: dict = {}
         if self.path.is_dir():
             self._read()
@@ -263,14 +272,17 @@ class ModelDatabase:
         index = self.path / INDEX
         if index.is_file():
             data = _load_json(index, "database")
-            if not isinstance(data, dict) or data.get("format") != DATABASE_FORMAT:
+            if not isinstance(data, dict) or data.get("format") not in _READ_FORMATS:
                 raise ValueError(
                     f"database: got {str(index)!r} without format {DATABASE_FORMAT!r}, expected a sqparts database"
                 )
             t = data.get("threshold", DEFAULT_THRESHOLD)
             if not isinstance(t, (int, float)) or not np.isfinite(t):
                 raise ValueError(f"database.threshold: got {t!r}, expected a finite number")
-            self.threshold = float(t)
+            statistic = data.get("statistic", "score")
+            if statistic not in STATISTICS:
+                raise ValueError(f"database.statistic: got {statistic!r}, expected one of {', '.join(STATISTICS)}")
+            self.threshold, self.statistic = float(t), statistic
             self.calibration = data.get("calibration", {})
         for file in sorted(self.path.glob("*.json")):
             if file.name == INDEX or file.name.startswith("."):
@@ -325,6 +337,7 @@ class ModelDatabase:
             {
                 "format": DATABASE_FORMAT,
                 "threshold": self.threshold,
+                "statistic": self.statistic,
                 "calibration": self.calibration,
                 "objects": self.names,
             },
@@ -349,9 +362,11 @@ class ModelDatabase:
             self.calibrate()
 
     def without(self, *names) -> "ModelDatabase":
-        """An in-memory copy without the named objects (nothing written); the threshold kept."""
+        """An in-memory copy without the named objects (nothing written); the threshold
+        and its statistic kept."""
         other = ModelDatabase.__new__(ModelDatabase)
         other.path, other.threshold, other.calibration = self.path, self.threshold, self.calibration
+        other.statistic = self.statistic
         other.objects = {k: v for k, v in self.objects.items() if k not in names}
         return other
 
@@ -418,16 +433,31 @@ class ModelDatabase:
                 best[name] = (m.score, k, stored.kind, m, stored)
         return [(name, *best[name]) for name in sorted(best, key=lambda n: -best[n][0])]
 
+    def evidence(self, scores) -> float:
+        """What :attr:`threshold` bounds, for one query's ``scores`` (one per stored
+        object, any order): the best score's :func:`~sqparts.lead` over the others when
+        :attr:`statistic` is ``"lead"``, else the best score (0 when there are none)."""
+        s = sorted((float(x) for x in scores), reverse=True)
+        if not s:
+            return 0.0
+        return lead(s[0], s[1:]) if self.statistic == "lead" else s[0]
+
     def calibrate(self, *, settings: MatchSettings = MatchSettings()) -> float:
-        """Set :attr:`threshold` from the stored views alone: genuine scores (each view's
-        main description against its own object with that view left out) and impostor
-        scores (its best against the other objects); see
-        :func:`sqparts._recognize.calibrate_threshold`. With
+        """Set :attr:`threshold` from the stored views alone, each view matched against
+        the database with itself left out: genuine values (its score against its own
+        object) and impostor values (the best of the other objects: what an object the
+        database does not know scores); see :func:`sqparts.calibrate_threshold`. The
+        values are the scores themselves or, in a database of at least
+        :data:`~sqparts._recognize.COHORT` objects, their :func:`~sqparts.lead` over the
+        remaining objects (:attr:`statistic`; measured on the recognition benchmark, the
+        lead separates known from unknown objects better than the score). With
         ``settings.verification_tolerance``, each view is matched as seen again: its own
         parts rendered from its viewpoint (:func:`view_observation`) are the observation
         the others' poses are verified on, so that the threshold is on the scale of
-        :func:`recognize`'s verified scores. Writes ``database.json``."""
-        genuine, impostor = [], []
+        :func:`recognize`'s verified scores. :attr:`calibration` keeps every view's
+        scores. Writes ``database.json``."""
+        statistic = "lead" if len(self.objects) >= COHORT else "score"
+        genuine, impostor, views_scores = [], [], []
         for name, views in self.objects.items():
             for k, view in enumerate(views):
                 query, observation = view.main.description, None
@@ -437,13 +467,16 @@ class ModelDatabase:
                     n: s
                     for n, s, *_ in self.match(query, settings=settings, exclude=(name, k), observation=observation)
                 }
+                views_scores.append({"object": name, "view": k, "scores": scores})
+                others = sorted((s for n, s in scores.items() if n != name), reverse=True)
+                use_lead = statistic == "lead"
                 if len(views) > 1:
-                    genuine.append(scores[name])
-                others = [s for n, s in scores.items() if n != name]
+                    genuine.append(lead(scores[name], others) if use_lead else scores[name])
                 if others:
-                    impostor.append(max(others))
+                    impostor.append(lead(others[0], others[1:]) if use_lead else others[0])
+        self.statistic = statistic
         self.threshold = calibrate_threshold(genuine, impostor, default=DEFAULT_THRESHOLD)
-        self.calibration = {"genuine": sorted(genuine), "impostor": sorted(impostor)}
+        self.calibration = {"genuine": sorted(genuine), "impostor": sorted(impostor), "views": views_scores}
         if self.path.is_dir():
             self._write_index()
         return self.threshold
@@ -611,19 +644,23 @@ def match_figures(
                 pairs[:, 0] += offsets[f] if f >= 0 else 0
                 best[name] = (score, RecognitionMatch(name, score, pairs, m.pose, f, view, kind, stored.parts))
     matches = [m for _, m in sorted(best.values(), key=lambda r: -r[0])]
-    top = matches[0].name if matches and matches[0].score >= db.threshold else None
+    top = matches[0].name if matches and db.evidence([m.score for m in matches]) >= db.threshold else None
     return top, matches
 
 
 @dataclasses.dataclass(frozen=True)
 class Recognition:
-    """What :func:`recognize` found: ``best`` (a name, or None when no stored object
-    scores above ``threshold``), ``matches`` (one per stored object, best first), the
-    ``recovery`` of the input and the seconds taken (``timings``)."""
+    """What :func:`recognize` found: ``best`` (a name, or None when ``evidence``, the
+    database's :meth:`~ModelDatabase.evidence` for the matches' scores, is below
+    ``threshold``), ``statistic`` (what the evidence is: ``"score"`` or ``"lead"``),
+    ``matches`` (one per stored object, best first), the ``recovery`` of the input and the
+    seconds taken (``timings``)."""
 
     best: str | None
     matches: list
     threshold: float
+    evidence: float
+    statistic: str
     recovery: Recovery | SceneRecovery
     timings: dict
 
@@ -631,13 +668,18 @@ class Recognition:
         return {
             "best": self.best,
             "threshold": self.threshold,
+            "evidence": self.evidence,
+            "statistic": self.statistic,
             "matches": [m.to_json() for m in self.matches],
             "timings_s": self.timings,
         }
 
     def summary(self) -> str:
         top = ", ".join(f"{m.name} {m.score:.2f}" for m in self.matches[:3])
-        return f"best: {self.best or 'none (unknown object)'} (threshold {self.threshold:.2f}; {top})"
+        return (
+            f"best: {self.best or 'none (unknown object)'} ({self.statistic} {self.evidence:.2f}, "
+            f"threshold {self.threshold:.2f}; {top})"
+        )
 
 
 def recognize(
@@ -653,8 +695,9 @@ def recognize(
     """Recover a range image (or take ``recovery``) and match each of its figures against
     every stored object; per object the best figure, view and variant is kept.
 
-    ``best`` is the top object if its score reaches the database's calibrated threshold,
-    else None (an object the database does not know). Each match's ``pose`` takes the
+    ``best`` is the top object if the database's evidence for it (its score or, in a
+    database of several objects, its lead over the others: :meth:`ModelDatabase.evidence`)
+    reaches the calibrated threshold, else None (an object the database does not know). Each match's ``pose`` takes the
     model's frame to the camera frame.
     """
     from ._recover import recover_scene
@@ -676,5 +719,11 @@ def recognize(
     )
     t2 = time.perf_counter()
     return Recognition(
-        top, matches, db.threshold, recovery, {"recovery": t1 - t0, "matching": t2 - t1, "total": t2 - t0}
+        top,
+        matches,
+        db.threshold,
+        db.evidence([m.score for m in matches]),
+        db.statistic,
+        recovery,
+        {"recovery": t1 - t0, "matching": t2 - t1, "total": t2 - t0},
     )

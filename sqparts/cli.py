@@ -400,7 +400,7 @@ def cmd_learn(args) -> int:
     _say(
         args,
         f"learnt {args.name!r}: {len(db.objects[args.name])} view(s); {len(db.objects)} object(s) in "
-        f"{db.path}, threshold {db.threshold:.3f}",
+        f"{db.path}, threshold {db.threshold:.3f} on the {db.statistic}",
     )
     return 0
 

@@ -177,7 +177,61 @@ def test_recognition_best_and_rejection(tmp_path):
     best, matches = match_figures([moved(chair[1:])[0]], database=db)  # a leg hidden
     assert best == "chair" and matches[0].name == "chair"
     best, matches = match_figures([sqparts.builtin_scene("castings").parts], database=db.without("castings"))
+    assert db.statistic == "score"  # three objects, fewer than a cohort: the score decides
     assert best is None and matches[0].score < db.threshold
+
+
+def test_the_lead_is_the_best_score_less_the_mean_of_the_others(tmp_path):
+    assert sqparts.lead(0.9, [0.5, 0.2]) == pytest.approx(0.55)
+    assert sqparts.lead(0.7, []) == pytest.approx(0.7)
+    db = ModelDatabase(tmp_path / "db")
+    assert db.statistic == "score" and db.evidence([0.3, 0.8, 0.5]) == pytest.approx(0.8)
+    db.statistic = "lead"
+    assert db.evidence([0.3, 0.8, 0.5]) == pytest.approx(0.8 - 0.4) and db.evidence([]) == 0.0
+
+
+def test_calibration_keeps_every_views_scores_and_bounds_their_leads(tmp_path, monkeypatch):
+    """The threshold is calibrate_threshold over the leads (numpy, from the stored
+    per-view scores), and those scores are what matching each view, left out, gives.
+    (Three objects taken for a cohort here, to keep the test small.)"""
+    monkeypatch.setattr(sqparts._database, "COHORT", 3)
+    db = _database(tmp_path / "db")
+    assert db.statistic == "lead"
+    views = db.calibration["views"]
+    assert [(v["object"], v["view"]) for v in views] == [(n, 0) for n in db.objects]
+    first = views[0]
+    query, observation = view_observation(db.objects[first["object"]][0])
+    again = {n: s for n, s, *_ in db.match(query, exclude=(first["object"], 0), observation=observation)}
+    assert again == pytest.approx(first["scores"])
+    impostor = []
+    for v in views:
+        others = np.sort([s for n, s in v["scores"].items() if n != v["object"]])[::-1]
+        impostor.append(others[0] - others[1:].mean())
+    assert db.calibration["impostor"] == pytest.approx(sorted(impostor))
+    assert db.threshold == pytest.approx(sqparts.calibrate_threshold([], impostor))
+    # Fewer objects than the cohort: the score itself.
+    two = _database(tmp_path / "two", names=("chair", "castings"))
+    assert two.statistic == "score"
+    assert two.calibration["impostor"] == pytest.approx(
+        sorted(max(s for n, s in v["scores"].items() if n != v["object"]) for v in two.calibration["views"])
+    )
+
+
+def test_a_version_1_database_is_read_with_its_score_threshold(tmp_path, monkeypatch):
+    monkeypatch.setattr(sqparts._database, "COHORT", 3)
+    db = _database(tmp_path / "db", names=("chair", "castings", "human"))
+    index = tmp_path / "db" / "database.json"
+    data = json.loads(index.read_text())
+    assert data["format"] == "sqparts-database/2" and data["statistic"] == "lead"
+    data.update(format="sqparts-database/1", threshold=0.6)
+    del data["statistic"]
+    index.write_text(json.dumps(data))
+    old = ModelDatabase(tmp_path / "db")
+    assert old.statistic == "score" and old.threshold == 0.6 and old.names == db.names
+    data.update(format="sqparts-database/2", statistic="median")
+    index.write_text(json.dumps(data))
+    with pytest.raises(ValueError, match=r"database.statistic: got 'median', expected one of score, lead"):
+        ModelDatabase(tmp_path / "db")
 
 
 def test_threshold_is_calibrated_between_genuine_and_impostor_scores():
@@ -295,6 +349,9 @@ def test_learn_and_recognize_from_the_command_line(tmp_path, capsys):
     assert sorted(p.name for p in (out / "query").iterdir()) == ["parts.json", "recognition.json", "report.png"]
     result = json.loads((out / "query" / "recognition.json").read_text())
     assert result["best"] == "cigar" and [m["name"] for m in result["matches"]] == ["cigar", "slab"]
+    # Two objects: the evidence is the best score, at or above the threshold it passed.
+    assert result["statistic"] == "score" and result["evidence"] == pytest.approx(result["matches"][0]["score"])
+    assert result["evidence"] >= result["threshold"]
     assert np.asarray(result["matches"][0]["pose"]).shape == (4, 4) and result["matches"][0]["parts"]
     # Never overwritten silently; --overwrite replaces it.
     assert (
