@@ -457,6 +457,7 @@ class ModelDatabase:
         :func:`recognize`'s verified scores. :attr:`calibration` keeps every view's
         scores. Writes ``database.json``."""
         statistic = "lead" if len(self.objects) >= COHORT else "score"
+        use_lead = statistic == "lead"
         genuine, impostor, views_scores = [], [], []
         for name, views in self.objects.items():
             for k, view in enumerate(views):
@@ -469,7 +470,6 @@ class ModelDatabase:
                 }
                 views_scores.append({"object": name, "view": k, "scores": scores})
                 others = sorted((s for n, s in scores.items() if n != name), reverse=True)
-                use_lead = statistic == "lead"
                 if len(views) > 1:
                     genuine.append(lead(scores[name], others) if use_lead else scores[name])
                 if others:
@@ -696,9 +696,10 @@ def recognize(
     every stored object; per object the best figure, view and variant is kept.
 
     ``best`` is the top object if the database's evidence for it (its score or, in a
-    database of several objects, its lead over the others: :meth:`ModelDatabase.evidence`)
-    reaches the calibrated threshold, else None (an object the database does not know). Each match's ``pose`` takes the
-    model's frame to the camera frame.
+    database of :data:`~sqparts._recognize.COHORT` or more objects, its lead over the
+    others: :meth:`ModelDatabase.evidence`) reaches the calibrated threshold, else None
+    (an object the database does not know). Each match's ``pose`` takes the model's frame
+    to the camera frame.
     """
     from ._recover import recover_scene
 
