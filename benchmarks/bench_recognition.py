@@ -39,12 +39,20 @@ import trimesh
 from _common import RESULTS, result_path, save
 
 import sqparts
-from sqparts._database import ModelDatabase, _coarse_levels, match_figures, view_from_parts
+from sqparts._database import (
+    DEFAULT_THRESHOLD,
+    STATISTICS,
+    ModelDatabase,
+    _coarse_levels,
+    calibration_values,
+    match_figures,
+    view_from_parts,
+)
 from sqparts._describe import describe
 from sqparts._io import scene_from_dict, scene_to_dict
 from sqparts._mesh import render_mesh
 from sqparts._part import Part, matrix_to_rotation_vector, stack_parts
-from sqparts._recognize import MatchSettings, Observation, match_descriptions
+from sqparts._recognize import COHORT, MatchSettings, Observation, calibrate_threshold, match_descriptions
 
 ROOT = Path(__file__).resolve().parents[1]
 DATA = ROOT.parent / "shared" / "data"
@@ -512,6 +520,7 @@ def main():
             "rows": rows,
             "confusion": {"rows": objects, "columns": objects + ["(rejected)"], "counts": confusion.tolist()},
             "same_run": {k: {"settings": r["settings"], "summary": r["summary"]} for k, r in runs.items()},
+            "statistics": compare_statistics(rows, db),
         },
     )
     plot_confusion(confusion, objects, result_path(f"{tag}_confusion", "png"))
@@ -525,11 +534,46 @@ def confusion_counts(rows, objects) -> np.ndarray:
     return confusion
 
 
+def roc_area(a, b) -> float:
+    """P(a value of ``a`` > one of ``b``), ties counted half."""
+    a, b = np.asarray(a, float), np.asarray(b, float)
+    return float(np.mean(a[:, None] > b[None, :]) + 0.5 * np.mean(a[:, None] == b[None, :]))
+
+
+def compare_statistics(rows, db: ModelDatabase) -> dict:
+    """Each rejection statistic (the best score, its lead) on the same rows, thresholded
+    as the database would calibrate it from the same stored views' scores: known views
+    rejected, unknown views rejected; and, for reference, the ROC area of the known
+    views' evidence against the unknown views' and the known views rejected at the
+    threshold that rejects 90% of the unknown ones (chosen on the test views: not a
+    result, a measure of separation)."""
+    out = {}
+    for statistic in STATISTICS:
+        genuine, impostor = calibration_values(db.calibration["views"], statistic)
+        other = db.without()
+        other.statistic = statistic
+        other.threshold = calibrate_threshold(genuine, impostor, default=DEFAULT_THRESHOLD)
+        decided = [dict(r) for r in rows]
+        decide(decided, other)
+        known = np.array([r["evidence"] for r in decided])
+        unknown = np.array([r["unknown_evidence"] for r in decided])
+        out[statistic] = {
+            "threshold": other.threshold,
+            "accepted_and_correct": float(np.mean([r["best"] == r["object"] for r in decided])),
+            "known_wrongly_rejected": float(np.mean([r["best"] is None for r in decided])),
+            "unknown_rejected": float(np.mean([r["unknown_best"] is None for r in decided])),
+            "roc_area_known_vs_unknown": roc_area(known, unknown),
+            "known_rejected_at_90pct_unknown_rejected": float(np.mean(known <= np.quantile(unknown, 0.9))),
+        }
+    return out
+
+
 def rescore(tag: str, settings: MatchSettings) -> None:
-    """The saved run's rows decided again (:func:`decide`) by a database calibrated now
-    from the cached learnt views (the run's own database: calibration is deterministic),
-    under today's rule; the summary, confusion matrix and pictures remade, the previous
-    summary kept under ``before_rescore``."""
+    """The saved run's rows decided again (:func:`decide`) under today's rule, by a
+    database calibrated from the saved calibration's per-view scores or, when the run
+    saved none, calibrated now from the cached learnt views (the run's own database:
+    calibration is deterministic); the summary, confusion matrix and pictures remade,
+    the previous summary kept under ``before_rescore``."""
     import tempfile
 
     import sqparts._compile
@@ -539,21 +583,29 @@ def rescore(tag: str, settings: MatchSettings) -> None:
     cache = json.loads(CACHE.read_text())
     db = learnt_database(plan(), cache, Path(tempfile.mkdtemp(prefix="sqparts-bench-db-")))
     t0 = time.perf_counter()
-    threshold = db.calibrate(settings=settings)
+    if "views" in saved["calibration"]:
+        db.calibration = saved["calibration"]
+        db.statistic = "lead" if len(db.objects) >= COHORT else "score"
+        db.threshold = calibrate_threshold(
+            *calibration_values(db.calibration["views"], db.statistic), default=DEFAULT_THRESHOLD
+        )
+    else:
+        db.calibrate(settings=settings)
     calibrate_s = time.perf_counter() - t0
     rows = saved["rows"]
     decide(rows, db)
     objects = saved["confusion"]["rows"]
     confusion = confusion_counts(rows, objects)
     before = saved["summary"]
-    summary = summarise(rows, threshold, calibrate_s, dict(db.calibration))
+    summary = summarise(rows, db.threshold, calibrate_s, dict(db.calibration))
     saved.update(
         summary={**before, **summary["summary"], "statistic": db.statistic},
         calibration=summary["calibration"],
+        statistics=compare_statistics(rows, db),
         confusion={**saved["confusion"], "counts": confusion.tolist()},
         before_rescore={"when": saved.pop("when", None), "machine": saved.pop("machine", None), "summary": before},
     )
-    print(json.dumps(saved["summary"], indent=1))
+    print(json.dumps({"summary": saved["summary"], "statistics": saved["statistics"]}, indent=1))
     save(tag, saved)
     plot_confusion(confusion, objects, result_path(f"{tag}_confusion", "png"))
     plot_top1(rows, objects, result_path(f"{tag}_confusion_top1", "png"))

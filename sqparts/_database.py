@@ -457,8 +457,7 @@ class ModelDatabase:
         :func:`recognize`'s verified scores. :attr:`calibration` keeps every view's
         scores. Writes ``database.json``."""
         statistic = "lead" if len(self.objects) >= COHORT else "score"
-        use_lead = statistic == "lead"
-        genuine, impostor, views_scores = [], [], []
+        views_scores = []
         for name, views in self.objects.items():
             for k, view in enumerate(views):
                 query, observation = view.main.description, None
@@ -469,17 +468,31 @@ class ModelDatabase:
                     for n, s, *_ in self.match(query, settings=settings, exclude=(name, k), observation=observation)
                 }
                 views_scores.append({"object": name, "view": k, "scores": scores})
-                others = sorted((s for n, s in scores.items() if n != name), reverse=True)
-                if len(views) > 1:
-                    genuine.append(lead(scores[name], others) if use_lead else scores[name])
-                if others:
-                    impostor.append(lead(others[0], others[1:]) if use_lead else others[0])
+        genuine, impostor = calibration_values(views_scores, statistic)
         self.statistic = statistic
         self.threshold = calibrate_threshold(genuine, impostor, default=DEFAULT_THRESHOLD)
         self.calibration = {"genuine": sorted(genuine), "impostor": sorted(impostor), "views": views_scores}
         if self.path.is_dir():
             self._write_index()
         return self.threshold
+
+
+def calibration_values(views_scores, statistic: str) -> tuple[list[float], list[float]]:
+    """Genuine and impostor values of ``statistic`` (``"score"`` or ``"lead"``) from the
+    stored views' scores as :meth:`ModelDatabase.calibrate` keeps them (each
+    ``{"object", "view", "scores": {name: score}}``, the view itself left out): genuine,
+    its own object's score (when the object has other views) or that score's
+    :func:`~sqparts.lead` over the other objects; impostor, the best of the other objects
+    or its lead over the rest of them."""
+    genuine, impostor = [], []
+    for v in views_scores:
+        name, scores = v["object"], v["scores"]
+        others = sorted((s for n, s in scores.items() if n != name), reverse=True)
+        if name in scores:
+            genuine.append(lead(scores[name], others) if statistic == "lead" else scores[name])
+        if others:
+            impostor.append(lead(others[0], others[1:]) if statistic == "lead" else others[0])
+    return genuine, impostor
 
 
 def view_observation(view: StoredView, *, size: int = 64) -> tuple[Description, Observation]:
