@@ -39,20 +39,12 @@ import trimesh
 from _common import RESULTS, result_path, save
 
 import sqparts
-from sqparts._database import (
-    DEFAULT_THRESHOLD,
-    STATISTICS,
-    ModelDatabase,
-    _coarse_levels,
-    calibration_values,
-    match_figures,
-    view_from_parts,
-)
+from sqparts._database import STATISTICS, ModelDatabase, _coarse_levels, match_figures, view_from_parts
 from sqparts._describe import describe
 from sqparts._io import scene_from_dict, scene_to_dict
 from sqparts._mesh import render_mesh
 from sqparts._part import Part, matrix_to_rotation_vector, stack_parts
-from sqparts._recognize import COHORT, MatchSettings, Observation, calibrate_threshold, match_descriptions
+from sqparts._recognize import MatchSettings, Observation, match_descriptions
 
 ROOT = Path(__file__).resolve().parents[1]
 DATA = ROOT.parent / "shared" / "data"
@@ -395,8 +387,9 @@ def main():
     ap.add_argument(
         "--rescore",
         action="store_true",
-        help="decide the saved results' rows again (accept or reject each view's best object) under a database "
-        "calibrated now from the cached learnt views; the matching itself is not repeated",
+        help="decide the saved results' rows again (accept or reject each view's best object) under today's rule, "
+        "from the run's own per-view calibration scores (or a database calibrated now from the cached learnt "
+        "views, for runs that saved none); the matching itself is not repeated",
     )
     ap.add_argument(
         "--verified-only",
@@ -549,10 +542,8 @@ def compare_statistics(rows, db: ModelDatabase) -> dict:
     result, a measure of separation)."""
     out = {}
     for statistic in STATISTICS:
-        genuine, impostor = calibration_values(db.calibration["views"], statistic)
         other = db.without()
-        other.statistic = statistic
-        other.threshold = calibrate_threshold(genuine, impostor, default=DEFAULT_THRESHOLD)
+        other.calibrate_from(db.calibration["views"], statistic=statistic)
         decided = [dict(r) for r in rows]
         decide(decided, other)
         known = np.array([r["evidence"] for r in decided])
@@ -584,11 +575,7 @@ def rescore(tag: str, settings: MatchSettings) -> None:
     db = learnt_database(plan(), cache, Path(tempfile.mkdtemp(prefix="sqparts-bench-db-")))
     before = saved["summary"]
     if "views" in saved["calibration"]:  # the run's own calibration, decided again
-        db.calibration = saved["calibration"]
-        db.statistic = "lead" if len(db.objects) >= COHORT else "score"
-        db.threshold = calibrate_threshold(
-            *calibration_values(db.calibration["views"], db.statistic), default=DEFAULT_THRESHOLD
-        )
+        db.calibrate_from(saved["calibration"]["views"])
         calibrate_s = before["calibration_s"]
     else:
         t0 = time.perf_counter()

@@ -456,7 +456,6 @@ class ModelDatabase:
         the others' poses are verified on, so that the threshold is on the scale of
         :func:`recognize`'s verified scores. :attr:`calibration` keeps every view's
         scores. Writes ``database.json``."""
-        statistic = "lead" if len(self.objects) >= COHORT else "score"
         views_scores = []
         for name, views in self.objects.items():
             for k, view in enumerate(views):
@@ -468,12 +467,24 @@ class ModelDatabase:
                     for n, s, *_ in self.match(query, settings=settings, exclude=(name, k), observation=observation)
                 }
                 views_scores.append({"object": name, "view": k, "scores": scores})
+        self.calibrate_from(views_scores)
+        if self.path.is_dir():
+            self._write_index()
+        return self.threshold
+
+    def calibrate_from(self, views_scores, *, statistic: str | None = None) -> float:
+        """Set :attr:`statistic` (given, or by the number of objects: see
+        :meth:`calibrate`), :attr:`threshold` and :attr:`calibration` from stored views'
+        scores as :meth:`calibrate` keeps them (:func:`calibration_values`); nothing is
+        matched or written."""
+        if statistic is None:
+            statistic = "lead" if len(self.objects) >= COHORT else "score"
+        if statistic not in STATISTICS:
+            raise ValueError(f"statistic: got {statistic!r}, expected one of {', '.join(STATISTICS)}")
         genuine, impostor = calibration_values(views_scores, statistic)
         self.statistic = statistic
         self.threshold = calibrate_threshold(genuine, impostor, default=DEFAULT_THRESHOLD)
-        self.calibration = {"genuine": sorted(genuine), "impostor": sorted(impostor), "views": views_scores}
-        if self.path.is_dir():
-            self._write_index()
+        self.calibration = {"genuine": sorted(genuine), "impostor": sorted(impostor), "views": list(views_scores)}
         return self.threshold
 
 

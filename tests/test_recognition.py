@@ -188,6 +188,8 @@ def test_the_lead_is_the_best_score_less_the_mean_of_the_others(tmp_path):
     assert db.statistic == "score" and db.evidence([0.3, 0.8, 0.5]) == pytest.approx(0.8)
     db.statistic = "lead"
     assert db.evidence([0.3, 0.8, 0.5]) == pytest.approx(0.8 - 0.4) and db.evidence([]) == 0.0
+    with pytest.raises(ValueError, match=r"statistic: got 'median', expected one of score, lead"):
+        db.calibrate_from([], statistic="median")
 
 
 def test_calibration_keeps_every_views_scores_and_bounds_their_leads(tmp_path, monkeypatch):
