@@ -29,17 +29,12 @@ from sqparts._describe import describe
 from sqparts._recognize import MatchSettings, Observation, verify_poses
 
 
-def roc_area(a, b):
-    a, b = np.asarray(a, float), np.asarray(b, float)
-    return float(np.mean(a[:, None] > b[None, :]) + 0.5 * np.mean(a[:, None] == b[None, :]))
-
-
 def report(label: str, known, unknown) -> None:
     """ROC area of a statistic on known against unknown views, and the fraction of known
     views rejected at the threshold that rejects 90% of the unknown ones."""
     tau = np.quantile(unknown, 0.9)
     print(
-        f"{label:20s} ROC area {roc_area(known, unknown):.3f}; at 90% unknown rejected, known rejected {np.mean(known < tau):.2f}"
+        f"{label:20s} ROC area {B.roc_area(known, unknown):.3f}; at 90% unknown rejected, known rejected {np.mean(known < tau):.2f}"
     )
 
 

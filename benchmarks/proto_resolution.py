@@ -32,7 +32,6 @@ import numpy as np
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 import bench_recognition as B
 from _common import result_path, save
-from proto_rejection import roc_area
 
 import sqparts._compile
 from sqparts._recognize import MatchSettings
@@ -87,7 +86,7 @@ def compare(resolution: int) -> None:
             f"{label:>4s}: top-1 {sum(r['top'] == r['object'] for r in rows)}/{len(rows)}, "
             f"top-3 {sum((r['rank'] or 99) <= 3 for r in rows)}, "
             f"plate views top-1 {sum(r['top'] == r['object'] for r in rows if r['spec'].get('plate'))}, "
-            f"ROC area {roc_area(known, unknown):.3f}, known rejected at 90% unknown rejected "
+            f"ROC area {B.roc_area(known, unknown):.3f}, known rejected at 90% unknown rejected "
             f"{np.mean(np.asarray(known) < tau):.0%}, median true {np.median(known):.3f}, "
             f"median best other {np.median(unknown):.3f}"
         )
