@@ -109,18 +109,41 @@ class _Camera:
     def downsampled(self, factor: int):
         """The camera of an image binned ``factor`` × ``factor`` (pixel (i, j) of the new
         image covers old pixels [factor·i, factor·i + factor))."""
-        if not (isinstance(factor, (int, np.integer)) and factor >= 1):
-            raise ValueError(f"factor: got {factor!r}, expected an integer >= 1")
-        f = int(factor)
-        if f > min(self.width, self.height):
-            raise ValueError(
-                f"factor: got {f}, expected at most {min(self.width, self.height)} for a {self.width}x{self.height} camera"
-            )
+        f = self._factor("factor", factor)
         shift = (f - 1) / 2.0
         common = dict(
             width=self.width // f, height=self.height // f, cx=(self.cx - shift) / f, cy=(self.cy - shift) / f
         )
         return dataclasses.replace(self, **common, **self._scaled_fields(f))
+
+    def cropped(self, window, step: int = 1):
+        """The camera of ``image[row0 : row0 + rows : step, col0 : col0 + cols : step]``,
+        ``window`` = (row0, col0, rows, cols) inside the image: the same rays as those
+        pixels of this camera."""
+        s = self._factor("step", step)
+        row0, col0, rows, cols = (int(x) for x in window)
+        if not (
+            0 <= row0
+            and 0 <= col0
+            and rows >= 1
+            and cols >= 1
+            and row0 + rows <= self.height
+            and col0 + cols <= self.width
+        ):
+            raise ValueError(
+                f"window: got {window!r}, expected (row0, col0, rows, cols) inside {self.width}x{self.height}"
+            )
+        common = dict(width=-(-cols // s), height=-(-rows // s), cx=(self.cx - col0) / s, cy=(self.cy - row0) / s)
+        return dataclasses.replace(self, **common, **self._scaled_fields(s))
+
+    def _factor(self, name: str, f) -> int:
+        if not (isinstance(f, (int, np.integer)) and f >= 1):
+            raise ValueError(f"{name}: got {f!r}, expected an integer >= 1")
+        if f > min(self.width, self.height):
+            raise ValueError(
+                f"{name}: got {f}, expected at most {min(self.width, self.height)} for a {self.width}x{self.height} camera"
+            )
+        return int(f)
 
     def points(self, range_image) -> np.ndarray:
         """Back-project a range image to camera-frame points, shape (h, w, 3), NaN = none."""

@@ -32,6 +32,7 @@ from pathlib import Path
 from typing import TYPE_CHECKING
 
 import numpy as np
+from scipy.spatial.transform import Rotation
 
 if TYPE_CHECKING:
     from ._recover import Recovery, SceneRecovery
@@ -120,16 +121,17 @@ class StoredView:
 
 
 def transform_parts(parts: Part, pose) -> Part:
-    """Batched ``parts`` moved by a 4x4 rigid transform (p -> R p + t)."""
-    from ._part import matrix_to_rotation_vector
-
+    """Batched ``parts`` moved by a 4x4 rigid transform (p -> R p + t), on the host."""
     pose = np.asarray(pose, float)
     r, t = pose[:3, :3], pose[:3, 3]
-    rot = np.einsum("ij,njk->nik", r, np.asarray(parts.rotation(), float))
-    ori = np.stack([np.asarray(matrix_to_rotation_vector(m.astype(np.float32))) for m in rot]).astype(np.float32)
-    pos = (np.asarray(parts.position, float) @ r.T + t).astype(np.float32)
+    moved = Rotation.from_matrix(r) * Rotation.from_rotvec(np.asarray(parts.orientation, float).reshape(-1, 3))
     return Part(
-        size=parts.size, squareness=parts.squareness, position=pos, orientation=ori, bend=parts.bend, taper=parts.taper
+        size=parts.size,
+        squareness=parts.squareness,
+        position=(np.asarray(parts.position, float) @ r.T + t).astype(np.float32),
+        orientation=moved.as_rotvec().astype(np.float32),
+        bend=parts.bend,
+        taper=parts.taper,
     )
 
 

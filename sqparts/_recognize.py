@@ -46,6 +46,7 @@ match still gives the correspondences.
 from __future__ import annotations
 
 import dataclasses
+import math
 
 import numpy as np
 from scipy.optimize import linear_sum_assignment
@@ -341,15 +342,21 @@ def _mean_similarity(tree: KDTree, moved: np.ndarray, sigma: float) -> np.ndarra
     return _similarity(tree, moved.reshape(-1, 3), sigma).reshape(len(moved), -1).mean(1)
 
 
-def _rank_poses(tree: KDTree, moved: np.ndarray, sigma: float) -> np.ndarray:
-    """(s,) ranking of proposed poses by the mean :func:`_similarity` of their moved
-    points (s, n, 3) to the tree's surface, coarse to fine: every proposal on every
-    :data:`_COARSE`-th point, then the :data:`_SHORTLIST` best again on all points. The
-    shortlist's values are exact; the rest rank below them, in their coarse order."""
-    coarse = _mean_similarity(tree, moved[:, ::_COARSE], sigma)
+def _rank_poses(tree: KDTree, rot: np.ndarray, trans: np.ndarray, points: np.ndarray, sigma: float) -> np.ndarray:
+    """(s,) ranking of proposed poses (rotations (s, 3, 3), translations (s, 3)) by the
+    mean :func:`_similarity` of the moved ``points`` (n, 3) to the tree's surface, coarse
+    to fine: every proposal on every :data:`_COARSE`-th point, then the
+    :data:`_SHORTLIST` best again on all points. The shortlist's values are exact; the
+    rest rank below them, in their coarse order."""
+
+    def moved(k, p):
+        return np.einsum("sab,nb->sna", rot[k], p) + trans[k][:, None]
+
+    everyone = np.arange(len(rot))
+    coarse = _mean_similarity(tree, moved(everyone, points[::_COARSE]), sigma)
     rank = coarse - 2.0
     shortlist = np.argsort(-coarse, kind="stable")[:_SHORTLIST]
-    rank[shortlist] = _mean_similarity(tree, moved[shortlist], sigma)
+    rank[shortlist] = _mean_similarity(tree, moved(shortlist, points), sigma)
     return rank
 
 
@@ -418,9 +425,8 @@ def align_candidates(
     anchors_m = np.concatenate([np.repeat(model.positions[mj], len(_RELABEL), 0), np.repeat(cm[None], len(rot), 0)])
     rot = np.concatenate([rot, rot])
     trans = anchors_q - np.einsum("sab,sb->sa", rot, anchors_m)
-    moved = np.einsum("sab,nb->sna", rot, m) + trans[:, None]
     starts: list[int] = []
-    for s in np.argsort(-_rank_poses(qtree, moved, sigma), kind="stable"):
+    for s in np.argsort(-_rank_poses(qtree, rot, trans, m, sigma), kind="stable"):
         if all(np.linalg.norm(rot[s] - rot[o]) > 0.3 or np.linalg.norm(trans[s] - trans[o]) > sigma for o in starts):
             starts.append(int(s))
         if len(starts) == settings.alignment_starts:
@@ -504,6 +510,26 @@ def fit_pose(points, model: Description, pose, sigma: float) -> np.ndarray:
     return out
 
 
+VERIFY_PIXELS = 1024
+"""Poses are verified on a lattice of the image's pixels, every s-th pixel of every s-th
+row, s = floor(sqrt(figure pixels / VERIFY_PIXELS)), so that at least about this many of
+the figure's pixels are compared (every pixel of a smaller figure): both of
+:func:`verify_poses`'s terms are means over pixels, which the lattice samples evenly, and
+the rays rendered per pose no longer grow with the image (on a 640 x 480 frame whose
+object covers 20 000 pixels, s = 4)."""
+
+
+def verification_lattice(camera: Camera, figure) -> tuple[tuple[slice, slice], Camera]:
+    """The pixels a ``figure`` mask is verified on (:data:`VERIFY_PIXELS`): their index
+    into the image and the camera of exactly those pixels' rays
+    (:meth:`~sqparts.PinholeCamera.cropped`)."""
+    step = max(1, math.isqrt(int(np.count_nonzero(figure)) // VERIFY_PIXELS))
+    if step == 1:
+        return (slice(None), slice(None)), camera
+    window = (slice(None, None, step), slice(None, None, step))
+    return window, camera.cropped((0, 0, camera.height, camera.width), step)
+
+
 def verify_poses(solids, observation: Observation, figure, tolerance) -> np.ndarray:
     """(k,) how well each of ``solids`` (batched :class:`~sqparts.Part`, camera frame: a
     stored model at a candidate pose) explains the observed range image, in [0, 1].
@@ -515,18 +541,20 @@ def verify_poses(solids, observation: Observation, figure, tolerance) -> np.ndar
     the agreement summed over the rendered pixels over their count, both leaving out
     those hidden behind a nearer observed surface (an occluder). The score is
     sqrt(explained x precision): a model that covers the figure but spills far past it,
-    or one that fits a piece of it, both score low."""
+    or one that fits a piece of it, both score low. Both sums are taken over the pixels
+    of :func:`verification_lattice`, which bounds the rays rendered per solid."""
     from ._encoding import part_vectors, render_layers
 
     solids = list(solids)
     if not solids:
         return np.zeros(0)
+    window, camera = verification_lattice(observation.camera, figure)
     vectors = [part_vectors(s) for s in solids]
-    layers = render_layers(np.concatenate(vectors), observation.camera)
+    layers = render_layers(np.concatenate(vectors), camera)
     bounds = np.cumsum([0, *map(len, vectors)])
     rendered = np.stack([layers[a:b].min(0) for a, b in zip(bounds[:-1], bounds[1:])])  # (k, H, W), inf: miss
     tau = np.broadcast_to(np.asarray(tolerance, float), (len(solids),))[:, None, None]
-    depth, figure = observation.depth[None], np.asarray(figure, bool)[None]
+    depth, figure = observation.depth[window][None], np.asarray(figure, bool)[window][None]
     seen, model = np.isfinite(depth), np.isfinite(rendered)
     both = seen & model
     agree = np.where(both, np.exp(-0.5 * ((rendered - np.where(seen, depth, 0.0)) / tau) ** 2), 0.0)

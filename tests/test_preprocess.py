@@ -85,6 +85,30 @@ def test_downsample_other_cameras():
         np.testing.assert_allclose(d2 / np.linalg.norm(d2, axis=-1, keepdims=True), block_d, atol=2e-5)
 
 
+@pytest.mark.parametrize("step", [1, 2, 3])
+def test_cropped_camera_has_the_rays_of_those_pixels(step):
+    """A cropped, strided camera's rays are the original camera's at the same pixels
+    (``image[row0 : row0 + rows : step, col0 : col0 + cols : step]``)."""
+    for cam in (
+        CAM,
+        sqparts.OrthographicCamera(64, 48, 0.01, 31.5, 23.5),
+        sqparts.ScannerCamera(64, 48, 0.004, 0.004, 31.5, 23.5),
+    ):
+        window = (5, 7, 31, 26)
+        small = cam.cropped(window, step)
+        o, d = (np.asarray(a) for a in cam.rays())
+        o2, d2 = (np.asarray(a) for a in small.rays())
+        crop = (slice(5, 36, step), slice(7, 33, step))
+        assert o2.shape == o[crop].shape
+        np.testing.assert_allclose(o2, o[crop], atol=1e-6)
+        np.testing.assert_allclose(d2, d[crop], atol=1e-6)
+    for bad in ((0, 0, 0, 4), (-1, 0, 4, 4), (0, 0, CAM.height + 1, 4)):
+        with pytest.raises(ValueError, match="window"):
+            CAM.cropped(bad)
+    with pytest.raises(ValueError, match="step"):
+        CAM.cropped((0, 0, 4, 4), 0)
+
+
 def test_fit_plane_ransac(rng):
     n = rng.normal(size=3)
     n /= np.linalg.norm(n)

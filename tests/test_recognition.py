@@ -606,6 +606,39 @@ def test_a_view_seen_again_is_its_own_parts_from_its_own_side():
     assert verify_poses([transform_parts(view.main.parts, pose)], obs, obs.figures[0], 0.01)[0] > 0.99
 
 
+def test_verification_on_a_lattice_equals_the_full_image_formula_at_those_pixels(monkeypatch):
+    """verify_poses renders a large figure's image on a lattice of every s-th pixel;
+    against numpy on the full image's rendering at those pixels (the formula written out
+    again), for a pose that fits and one that spills."""
+    import sqparts._recognize as R
+    from sqparts._encoding import part_vectors, render_layers
+
+    s = sqparts.builtin_scene("chair")
+    obs = _observed(s.parts, s.camera)
+    figure = obs.figures[0]
+    off = np.eye(4)
+    off[:3, 3] = [0.05, 0.0, 0.0]
+    solids = [s.parts, transform_parts(s.parts, off)]
+    tau = 0.02
+    for pixels in (R.VERIFY_PIXELS, int(figure.sum()) // 4):  # step 1, then step 2
+        monkeypatch.setattr(R, "VERIFY_PIXELS", pixels)
+        window, camera = R.verification_lattice(s.camera, figure)
+        got = verify_poses(solids, obs, figure, tau)
+        want = []
+        for solid in solids:
+            full = render_layers(part_vectors(solid), s.camera).min(0)[window]
+            d, f = obs.depth[window], figure[window]
+            agree = np.zeros(d.shape)
+            both = np.isfinite(full) & np.isfinite(d)
+            agree[both] = np.exp(-0.5 * ((full[both] - d[both]) / tau) ** 2)
+            visible = np.isfinite(full) & ~(both & (np.nan_to_num(d, nan=np.inf) < full - 2 * tau))
+            want.append(np.sqrt(agree[f].sum() / f.sum() * agree[visible].sum() / visible.sum()))
+        np.testing.assert_allclose(got, want, atol=1e-5)
+        assert got[0] > 0.99 > got[1]
+    assert window[0].step == 2 and camera.width == len(range(*window[1].indices(s.camera.width)))
+    assert R.verification_lattice(s.camera, figure[:1])[0] == (slice(None), slice(None))  # a small figure: every pixel
+
+
 def test_coarse_to_fine_ranking_keeps_the_brute_force_best_poses():
     """Against brute force (every proposal's mean similarity on all its points): the
     shortlist's values are exact, and the best poses come first in the same order."""
@@ -614,11 +647,9 @@ def test_coarse_to_fine_ranking_keeps_the_brute_force_best_poses():
     rng = np.random.default_rng(3)
     rot = Rotation.random(300, random_state=4).as_matrix()
     rot[:5] = Rotation.from_rotvec(rng.normal(0, 0.05, (5, 3))).as_matrix()  # five near the truth
-    moved = (
-        np.einsum("sab,nb->sna", rot, surface - surface.mean(0)) + surface.mean(0) + rng.normal(0, 0.01, (300, 1, 3))
-    )
-    exact = np.array([_similarity(tree, points, sigma).mean() for points in moved])  # one pose at a time
-    rank = _rank_poses(tree, moved, sigma)
+    trans = surface.mean(0) - rot @ surface.mean(0) + rng.normal(0, 0.01, (300, 3))
+    exact = np.array([_similarity(tree, surface @ r.T + t, sigma).mean() for r, t in zip(rot, trans)])  # one at a time
+    rank = _rank_poses(tree, rot, trans, surface, sigma)
     best = np.argsort(-exact, kind="stable")[:5]
     np.testing.assert_array_equal(np.argsort(-rank, kind="stable")[:5], best)
     shortlisted = rank > -1.0
