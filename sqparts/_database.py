@@ -25,6 +25,7 @@ same checks as scene files, so a failed write leaves the database as it was.
 from __future__ import annotations
 
 import dataclasses
+import hashlib
 import json
 import re
 import time
@@ -88,8 +89,9 @@ _NUMBER_LIST = re.compile(r"\[\s+([-+0-9.eE,\s]+?)\s+\]")
 _FLAT_OBJECT = re.compile(r"\{\s+((?:\"[a-z_0-9]+\": [^{}\[\]\n]+,?\s+)+)\}")
 
 
-def _write_json(path: Path, data) -> None:
-    """Indented JSON with lists of numbers and flat objects (edges) on one line each."""
+def _write_json(path: Path, data) -> str:
+    """Indented JSON with lists of numbers and flat objects (edges) on one line each;
+    returns the text written."""
     text = json.dumps(_round(data), indent=1)
     text = _NUMBER_LIST.sub(lambda m: "[" + ", ".join(x.strip() for x in m.group(1).split(",")) + "]", text)
     text = _FLAT_OBJECT.sub(
@@ -97,6 +99,11 @@ def _write_json(path: Path, data) -> None:
     )
     with atomic_write(path, "w") as f:
         f.write(text + "\n")
+    return text + "\n"
+
+
+def _digest(text: str) -> str:
+    return hashlib.sha256(text.encode()).hexdigest()[:16]
 
 
 @dataclasses.dataclass(frozen=True)
@@ -267,6 +274,8 @@ class ModelDatabase:
         self.threshold = DEFAULT_THRESHOLD
         self.statistic = "score"
         self.calibration: dict = {}
+        self._digests: dict[str, str] = {}
+        """Per object, a fingerprint of its file's text as last read or written."""
         if self.path.is_dir():
             self._read()
 
@@ -291,6 +300,7 @@ class ModelDatabase:
                 continue
             data = _load_json(file, "model")
             where = file.name
+            digest = _digest(file.read_text())
             if (
                 not isinstance(data, dict)
                 or data.get("format") != MODEL_FORMAT
@@ -313,6 +323,7 @@ class ModelDatabase:
                     )
                 )
             self.objects[name] = tuple(views)
+            self._digests[name] = digest
 
     @property
     def names(self) -> list[str]:
@@ -331,7 +342,7 @@ class ModelDatabase:
                 for v in self.objects[name]
             ],
         }
-        _write_json(self.path / f"{name}.json", data)
+        self._digests[name] = _digest(_write_json(self.path / f"{name}.json", data))
 
     def _write_index(self) -> None:
         _write_json(
@@ -370,6 +381,7 @@ class ModelDatabase:
         other.path, other.threshold, other.calibration = self.path, self.threshold, self.calibration
         other.statistic = self.statistic
         other.objects = {k: v for k, v in self.objects.items() if k not in names}
+        other._digests = {k: v for k, v in self._digests.items() if k not in names}
         return other
 
     def match(
@@ -457,19 +469,40 @@ class ModelDatabase:
         parts rendered from its viewpoint (:func:`view_observation`) are the observation
         the others' poses are verified on, so that the threshold is on the scale of
         :func:`recognize`'s verified scores. :attr:`calibration` keeps every view's
-        scores. Writes ``database.json``."""
+        scores, the settings and a fingerprint of each object's file.
+
+        A view's score against an object is its best over that object's views alone, so
+        the last calibration's scores stand where neither the view's own object nor the
+        object matched against has changed since, under the same settings: only those
+        pairs are matched again, and adding one object to a database of n views matches
+        each view against the new object and the new views against all (not n x n).
+        Writes ``database.json``."""
+        key = _round(dataclasses.asdict(settings))
+        digests = {n: self._digests.get(n) for n in self.objects}
+        old = self.calibration if self.calibration.get("settings") == key else {}
+        unchanged = {n for n, d in (old.get("objects") or {}).items() if d is not None and digests.get(n) == d}
+        kept = {(v["object"], v["view"]): v["scores"] for v in old.get("views", []) if v["object"] in unchanged}
+        changed = self.without(*unchanged)
         views_scores = []
         for name, views in self.objects.items():
             for k, view in enumerate(views):
+                previous = kept.get((name, k))
+                if previous is not None and not changed.objects:
+                    views_scores.append({"object": name, "view": k, "scores": dict(previous)})
+                    continue
                 query, observation = view.main.description, None
                 if settings.verification_tolerance is not None:
                     query, observation = view_observation(view)
+                against = self if previous is None else changed
                 scores = {
                     n: s
-                    for n, s, *_ in self.match(query, settings=settings, exclude=(name, k), observation=observation)
+                    for n, s, *_ in against.match(query, settings=settings, exclude=(name, k), observation=observation)
                 }
+                if previous is not None:
+                    scores = {**{n: s for n, s in previous.items() if n in unchanged}, **scores}
                 views_scores.append({"object": name, "view": k, "scores": scores})
         self.calibrate_from(views_scores)
+        self.calibration.update(settings=key, objects=digests)
         if self.path.is_dir():
             self._write_index()
         return self.threshold

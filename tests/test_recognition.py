@@ -219,6 +219,36 @@ def test_calibration_keeps_every_views_scores_and_bounds_their_leads(tmp_path, m
     )
 
 
+def test_recalibration_matches_only_what_changed_and_equals_a_full_one(tmp_path, monkeypatch):
+    """Adding an object matches the old views against it alone and its view against all;
+    the scores and threshold equal a calibration from nothing. A database read back (its
+    files) matches nothing again, unless the settings differ."""
+    db = _database(tmp_path / "db", names=("chair", "castings"))
+    calls = []
+    real = ModelDatabase.match
+    monkeypatch.setattr(
+        ModelDatabase, "match", lambda self, *a, **k: calls.append(sorted(self.objects)) or real(self, *a, **k)
+    )
+    db.add_view("human", view_from_parts(sqparts.builtin_scene("human").parts, source="human"))
+    assert calls == [["human"], ["human"], ["castings", "chair", "human"]]
+    incremental, threshold = db.calibration["views"], db.threshold
+    db.calibration = {}
+    calls.clear()
+    db.calibrate()
+    assert len(calls) == 3 and all(c == ["castings", "chair", "human"] for c in calls)
+    assert [(v["object"], v["view"]) for v in incremental] == [
+        (v["object"], v["view"]) for v in db.calibration["views"]
+    ]
+    for a, b in zip(incremental, db.calibration["views"]):
+        assert a["scores"] == pytest.approx(b["scores"], rel=1e-12)
+    assert threshold == pytest.approx(db.threshold, rel=1e-12)
+    calls.clear()
+    again = ModelDatabase(tmp_path / "db")
+    assert again.calibrate() == pytest.approx(db.threshold, abs=1e-5) and calls == []
+    again.calibrate(settings=sqparts.MatchSettings(alignment_starts=2))
+    assert len(calls) == 3
+
+
 def test_a_version_1_database_is_read_with_its_score_threshold(tmp_path, monkeypatch):
     monkeypatch.setattr(sqparts._database, "COHORT", 3)
     db = _database(tmp_path / "db", names=("chair", "castings", "human"))
