@@ -523,7 +523,7 @@ def verification_lattice(camera: Camera, figure) -> tuple[tuple[slice, slice], C
     """The pixels a ``figure`` mask is verified on (:data:`VERIFY_PIXELS`): their index
     into the image and the camera of exactly those pixels' rays
     (:meth:`~sqparts.PinholeCamera.cropped`)."""
-    step = max(1, math.isqrt(int(np.count_nonzero(figure)) // VERIFY_PIXELS))
+    step = max(1, min(math.isqrt(int(np.count_nonzero(figure)) // VERIFY_PIXELS), camera.width, camera.height))
     if step == 1:
         return (slice(None), slice(None)), camera
     window = (slice(None, None, step), slice(None, None, step))

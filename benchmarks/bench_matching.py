@@ -1,0 +1,123 @@
+"""Seconds to match a recognition benchmark view, this checkout against another, in the
+same run.
+
+Each side matches the same cached 128 x 128 test views (one of each object by default)
+in its own process, against the database of the learnt views (both built from
+``results/recognition_cache_128.json``); the sides alternate, a few views at a time, so
+that both see the same machine. Saves per-view seconds and every object's score for both
+sides, so that the scores can be compared too::
+
+    git worktree add --detach /tmp/wt-base <commit>
+    JAX_PLATFORMS=cpu python benchmarks/bench_matching.py --base /tmp/wt-base
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import subprocess
+import sys
+import tempfile
+import time
+from pathlib import Path
+
+HERE = Path(__file__).resolve().parent
+VIEWS = (
+    "spot/test1 fish/test2 penguin/test3 wingnut/test4 koala/test5 scorpion/test0 "
+    "goathead/test1 cat/test2 boot/test3 hammer/test4 teapot/test5 human/test0"
+).split()
+
+
+def worker(out: Path, keys: list[str]) -> None:
+    """Match ``keys`` with the sqparts this script's checkout imports; write the rows."""
+    import numpy as np
+
+    sys.path.insert(0, str(HERE))
+    import bench_recognition as B
+
+    import sqparts._compile
+    from sqparts import Observation
+    from sqparts._database import match_figures
+
+    sqparts._compile.enable_caches()
+    B.set_resolution(128)
+    B.CACHE = Path(os.environ["SQPARTS_MATCH_CACHE"])
+    cache = json.loads(B.CACHE.read_text())
+    views = B.plan()
+    meshes = B.all_meshes()
+    db = B.learnt_database(views, cache, Path(tempfile.mkdtemp(prefix="sqparts-bench-db-")))
+    spec = {k: (n, s) for k, n, _, s in views}
+    rows = {}
+    for key in keys:
+        name, s = spec[key]
+        e = cache[key]
+        figures = [B._parts(f) for f in e["figures"]]
+        depth, cam = B.render(name, s, meshes)
+        labels = np.asarray(e["labels"]).reshape(depth.shape)
+        observation = Observation(depth, cam, np.stack([labels == k for k in range(len(figures))]))
+        t0 = time.perf_counter()
+        _, matches = match_figures(figures, database=db, observation=observation)
+        rows[key] = {"seconds": time.perf_counter() - t0, "scores": {m.name: m.score for m in matches}}
+        print(f"{sqparts.__file__}: {key} {rows[key]['seconds']:.1f} s", flush=True)
+    out.write_text(json.dumps(rows))
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--base", required=True, help="the other checkout (a git worktree)")
+    ap.add_argument("--views", nargs="+", default=VIEWS, help="cached test views to match")
+    ap.add_argument("--group", type=int, default=4, help="views per process before the sides alternate")
+    ap.add_argument("--worker", nargs=2, metavar=("OUT", "KEYS"), help=argparse.SUPPRESS)
+    args = ap.parse_args()
+    if args.worker:
+        worker(Path(args.worker[0]), args.worker[1].split(","))
+        return
+    from _common import save
+
+    env = {**os.environ, "SQPARTS_MATCH_CACHE": str(HERE / "results" / "recognition_cache_128.json")}
+    sides = {"base": Path(args.base).resolve(), "new": HERE.parent}
+    rows: dict[str, dict] = {"base": {}, "new": {}}
+    tmp = Path(tempfile.mkdtemp(prefix="sqparts-bench-match-"))
+    for g in range(0, len(args.views), args.group):
+        keys = ",".join(args.views[g : g + args.group])
+        for side, root in sides.items():
+            out = tmp / f"{side}{g}.json"
+            script = root / "benchmarks" / "bench_matching.py"
+            if not script.exists():  # a base from before this script: run this one with its package
+                script = HERE / "bench_matching.py"
+            subprocess.run(
+                [sys.executable, str(script), "--base", "-", "--worker", str(out), keys],
+                check=True,
+                env={**env, "PYTHONPATH": str(root)},
+                cwd=root,
+            )
+            rows[side].update(json.loads(out.read_text()))
+    import numpy as np
+
+    keys = [k for k in args.views if k in rows["base"] and k in rows["new"]]
+    base = np.array([rows["base"][k]["seconds"] for k in keys])
+    new = np.array([rows["new"][k]["seconds"] for k in keys])
+    diff = max(
+        abs(rows["base"][k]["scores"][n] - rows["new"][k]["scores"].get(n, np.nan))
+        for k in keys
+        for n in rows["base"][k]["scores"]
+    )
+    summary = {
+        "views": len(keys),
+        "median_s_base": float(np.median(base)),
+        "median_s_new": float(np.median(new)),
+        "total_ratio_base_over_new": float(base.sum() / new.sum()),
+        "largest_score_difference": float(diff),
+        "same_top_object": all(
+            max(rows["base"][k]["scores"], key=rows["base"][k]["scores"].get)
+            == max(rows["new"][k]["scores"], key=rows["new"][k]["scores"].get)
+            for k in keys
+        ),
+    }
+    print(json.dumps(summary, indent=1))
+    save("matching", {"base": str(sides["base"]), "summary": summary, "rows": rows})
+
+
+if __name__ == "__main__":
+    main()
