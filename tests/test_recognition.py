@@ -636,6 +636,15 @@ def test_a_view_seen_again_is_its_own_parts_from_its_own_side():
     assert verify_poses([transform_parts(view.main.parts, pose)], obs, obs.figures[0], 0.01)[0] > 0.99
 
 
+def test_moving_parts_moves_their_surface_rigidly():
+    """transform_parts against the motion applied to the surface points themselves."""
+    parts = sqparts.builtin_scene("castings").parts
+    moved_parts, pose = moved(parts)
+    np.testing.assert_allclose(
+        surface_cloud(moved_parts), surface_cloud(parts) @ pose[:3, :3].T + pose[:3, 3], atol=2e-5
+    )
+
+
 def test_verification_on_a_lattice_equals_the_full_image_formula_at_those_pixels(monkeypatch):
     """verify_poses renders a large figure's image on a lattice of every s-th pixel;
     against numpy on the full image's rendering at those pixels (the formula written out
@@ -650,7 +659,7 @@ def test_verification_on_a_lattice_equals_the_full_image_formula_at_those_pixels
     off[:3, 3] = [0.05, 0.0, 0.0]
     solids = [s.parts, transform_parts(s.parts, off)]
     tau = 0.02
-    for pixels in (R.VERIFY_PIXELS, int(figure.sum()) // 4):  # step 1, then step 2
+    for pixels in (R.VERIFY_PIXELS, int(figure.sum()) // 4):  # the default, then a step of 2
         monkeypatch.setattr(R, "VERIFY_PIXELS", pixels)
         window, camera = R.verification_lattice(s.camera, figure)
         got = verify_poses(solids, obs, figure, tau)
