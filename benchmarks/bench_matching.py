@@ -31,36 +31,24 @@ VIEWS = (
 
 
 def worker(out: Path, keys: list[str]) -> None:
-    """Match ``keys`` with the sqparts this script's checkout imports; write the rows."""
-    import numpy as np
-
+    """Match ``keys`` with the sqparts this script's checkout imports (the benchmark's own
+    ``recognise_view``, against the uncalibrated database); write the rows."""
     sys.path.insert(0, str(HERE))
     import bench_recognition as B
 
-    import sqparts._compile
-    from sqparts import Observation
-    from sqparts._database import match_figures
+    import sqparts
 
-    sqparts._compile.enable_caches()
-    B.set_resolution(128)
-    B.CACHE = Path(os.environ["SQPARTS_MATCH_CACHE"])
-    cache = json.loads(B.CACHE.read_text())
+    print(f"matching with {sqparts.__file__}", flush=True)
+    cache = json.loads(Path(os.environ["SQPARTS_MATCH_CACHE"]).read_text())
     views = B.plan()
-    meshes = B.all_meshes()
-    db = B.learnt_database(views, cache, Path(tempfile.mkdtemp(prefix="sqparts-bench-db-")))
+    folder = Path(tempfile.mkdtemp(prefix="sqparts-bench-db-"))
+    db = B.learnt_database(views, cache, folder)
     spec = {k: (n, s) for k, n, _, s in views}
     rows = {}
     for key in keys:
         name, s = spec[key]
-        e = cache[key]
-        figures = [B._parts(f) for f in e["figures"]]
-        depth, cam = B.render(name, s, meshes)
-        labels = np.asarray(e["labels"]).reshape(depth.shape)
-        observation = Observation(depth, cam, np.stack([labels == k for k in range(len(figures))]))
-        t0 = time.perf_counter()
-        _, matches = match_figures(figures, database=db, observation=observation)
-        rows[key] = {"seconds": time.perf_counter() - t0, "scores": {m.name: m.score for m in matches}}
-        print(f"{sqparts.__file__}: {key} {rows[key]['seconds']:.1f} s", flush=True)
+        row = B.recognise_view((str(folder), 128, db.threshold, sqparts.MatchSettings(), key, name, s, cache[key]))
+        rows[key] = {"seconds": row["matching_s"], "scores": row["scores"]}
     out.write_text(json.dumps(rows))
 
 

@@ -89,9 +89,8 @@ _NUMBER_LIST = re.compile(r"\[\s+([-+0-9.eE,\s]+?)\s+\]")
 _FLAT_OBJECT = re.compile(r"\{\s+((?:\"[a-z_0-9]+\": [^{}\[\]\n]+,?\s+)+)\}")
 
 
-def _write_json(path: Path, data) -> str:
-    """Indented JSON with lists of numbers and flat objects (edges) on one line each;
-    returns the text written."""
+def _write_json(path: Path, data) -> None:
+    """Indented JSON with lists of numbers and flat objects (edges) on one line each."""
     text = json.dumps(_round(data), indent=1)
     text = _NUMBER_LIST.sub(lambda m: "[" + ", ".join(x.strip() for x in m.group(1).split(",")) + "]", text)
     text = _FLAT_OBJECT.sub(
@@ -99,11 +98,12 @@ def _write_json(path: Path, data) -> str:
     )
     with atomic_write(path, "w") as f:
         f.write(text + "\n")
-    return text + "\n"
 
 
-def _digest(text: str) -> str:
-    return hashlib.sha256(text.encode()).hexdigest()[:16]
+def _digest(data) -> str:
+    """A fingerprint of JSON data as :func:`_write_json` writes it (numbers rounded), equal
+    for the data and for what reading the file back gives."""
+    return hashlib.sha256(json.dumps(_round(data), sort_keys=True).encode()).hexdigest()[:16]
 
 
 @dataclasses.dataclass(frozen=True)
@@ -275,7 +275,7 @@ class ModelDatabase:
         self.statistic = "score"
         self.calibration: dict = {}
         self._digests: dict[str, str] = {}
-        """Per object, a fingerprint of its file's text as last read or written."""
+        """Per object, a fingerprint of its file as last read or written."""
         if self.path.is_dir():
             self._read()
 
@@ -300,7 +300,6 @@ class ModelDatabase:
                 continue
             data = _load_json(file, "model")
             where = file.name
-            digest = _digest(file.read_text())
             if (
                 not isinstance(data, dict)
                 or data.get("format") != MODEL_FORMAT
@@ -323,7 +322,7 @@ class ModelDatabase:
                     )
                 )
             self.objects[name] = tuple(views)
-            self._digests[name] = digest
+            self._digests[name] = _digest(data)
 
     @property
     def names(self) -> list[str]:
@@ -342,7 +341,8 @@ class ModelDatabase:
                 for v in self.objects[name]
             ],
         }
-        self._digests[name] = _digest(_write_json(self.path / f"{name}.json", data))
+        _write_json(self.path / f"{name}.json", data)
+        self._digests[name] = _digest(data)
 
     def _write_index(self) -> None:
         _write_json(
@@ -478,28 +478,22 @@ class ModelDatabase:
         each view against the new object and the new views against all (not n x n).
         Writes ``database.json``."""
         key = _round(dataclasses.asdict(settings))
-        digests = {n: self._digests.get(n) for n in self.objects}
+        digests = {n: self._digests[n] for n in self.objects}
         old = self.calibration if self.calibration.get("settings") == key else {}
-        unchanged = {n for n, d in (old.get("objects") or {}).items() if d is not None and digests.get(n) == d}
+        unchanged = {n for n, d in (old.get("objects") or {}).items() if digests.get(n) == d}
         kept = {(v["object"], v["view"]): v["scores"] for v in old.get("views", []) if v["object"] in unchanged}
         changed = self.without(*unchanged)
         views_scores = []
         for name, views in self.objects.items():
             for k, view in enumerate(views):
-                previous = kept.get((name, k))
-                if previous is not None and not changed.objects:
-                    views_scores.append({"object": name, "view": k, "scores": dict(previous)})
-                    continue
-                query, observation = view.main.description, None
-                if settings.verification_tolerance is not None:
-                    query, observation = view_observation(view)
-                against = self if previous is None else changed
-                scores = {
-                    n: s
-                    for n, s, *_ in against.match(query, settings=settings, exclude=(name, k), observation=observation)
-                }
-                if previous is not None:
-                    scores = {**{n: s for n, s in previous.items() if n in unchanged}, **scores}
+                against = changed if (name, k) in kept else self
+                scores = {n: s for n, s in kept.get((name, k), {}).items() if n in unchanged}
+                if against.objects:
+                    query, observation = view.main.description, None
+                    if settings.verification_tolerance is not None:
+                        query, observation = view_observation(view)
+                    found = against.match(query, settings=settings, exclude=(name, k), observation=observation)
+                    scores.update((n, s) for n, s, *_ in found)
                 views_scores.append({"object": name, "view": k, "scores": scores})
         self.calibrate_from(views_scores)
         self.calibration.update(settings=key, objects=digests)
