@@ -618,10 +618,9 @@ def plot_top1(rows, objects, path):
 
 
 def plot_confusion(confusion, objects, path, *, xlabel="recognised as (best)"):
-    from sqparts._plot import _pyplot
+    from sqparts._plot import _subplots
 
-    plt = _pyplot()
-    fig, ax = plt.subplots(figsize=(7.5, 6.5), dpi=100)
+    fig, ax = _subplots(figsize=(7.5, 6.5), dpi=100)
     ax.imshow(confusion, cmap="Blues")
     for i in range(confusion.shape[0]):
         for j in range(confusion.shape[1]):
@@ -640,7 +639,6 @@ def plot_confusion(confusion, objects, path, *, xlabel="recognised as (best)"):
     ax.set_ylabel("true object")
     ax.set_title("sqparts recognize: unseen views, database of 12 objects")
     fig.savefig(path, bbox_inches="tight")
-    plt.close(fig)
     print(f"saved {path}")
 
 

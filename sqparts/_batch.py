@@ -124,14 +124,14 @@ def write_recovery(folder, recovery, *, title: str, names=None) -> None:
     """``parts.json``, ``model.ply`` and ``report.png`` of a recovery into ``folder``
     (a staged folder)."""
     from ._io import atomic_write
-    from ._mesh import save_mesh, scene_mesh
+    from ._mesh import save_ply, scene_surface
     from ._plot import save_report
 
     folder = Path(folder)
     text = json.dumps(recovery.scene_dict(names), indent=2)
     with atomic_write(folder / "parts.json", "w") as f:
         f.write(text + "\n")
-    save_mesh(folder / "model.ply", scene_mesh(recovery.parts, resolution=24))
+    save_ply(folder / "model.ply", *scene_surface(recovery.parts, resolution=24))
     save_report(folder / "report.png", recovery, title=title)
     if getattr(recovery, "camera", None) is not None:
         from ._io import save_view_data

@@ -12,6 +12,8 @@ This module is the only place the JAX core touches files for compilation. Its in
 
 * :func:`persistent_jit` (a decorator, used in place of ``jax.jit`` on entry points);
 * :func:`set_export_dir` (``None`` turns exporting off: every call is a plain ``jit``).
+* :func:`prefetching` (a block whose programs, as the last such block used them, are
+  loaded on a background thread while it runs).
   Off by default in the library; the CLI turns it on in its cache folder. The
   environment variable ``SQPARTS_EXPORT=0`` turns it off whatever is set.
 
@@ -41,7 +43,7 @@ import pickle
 import tempfile
 import threading
 from collections.abc import Callable
-from concurrent.futures import ThreadPoolExecutor
+from concurrent.futures import Future, ThreadPoolExecutor
 from pathlib import Path
 
 import jax
@@ -56,6 +58,7 @@ __all__ = [
     "enable_caches",
     "caches_enabled",
     "release_if_crowded",
+    "prefetching",
     "concurrently",
 ]
 
@@ -63,6 +66,8 @@ _log = logging.getLogger(__name__)
 _MAGIC = b"sqparts-export-1\n"
 _state: dict[str, Path | None] = {"dir": None}
 _loaded_tables: list[dict] = []  # every persistent_jit's loaded programs (see forget_loaded)
+_records: list[dict[str, None]] = []  # the entries used inside each open prefetching block, in order
+_prefetched: dict[str, Future] = {}  # entry name -> its runner (or None), being loaded in the background
 
 
 CACHE_MAX_BYTES = 1 << 30
@@ -313,6 +318,68 @@ def forget_loaded() -> None:
         table.clear()
 
 
+@contextlib.contextmanager
+def prefetching(label: str):
+    """Inside the block, the exported programs that the last block with the same
+    ``label`` used are loaded (and compiled, i.e. read from JAX's persistent cache) on a
+    background thread, in the order they were first used, while this thread goes on;
+    the ones this block uses are recorded for the next. Loading a program is mostly
+    XLA's work, done without the GIL, so a new process overlaps it with its own Python
+    work (importing the package, reading the input) and with the programs it already
+    runs. A call that needs a program not yet being loaded loads it itself; one being
+    loaded is waited for. A program loaded and never used costs only the background
+    thread's time; results never depend on what was loaded. A plain block when
+    exporting is off."""
+    directory = export_dir()
+    if directory is None:
+        yield
+        return
+    manifest = directory / f"{label}.programs"
+    try:
+        names = [n for n in manifest.read_text().split() if Path(n).name == n and n.endswith(".jaxexport")]
+    except (OSError, UnicodeDecodeError):
+        names = []
+    pool = ThreadPoolExecutor(1, thread_name_prefix="sqparts-prefetch")
+    for name in names:
+        if name not in _prefetched:
+            _prefetched[name] = pool.submit(_load, directory / name)
+    used: dict[str, None] = {}
+    _records.append(used)
+    try:
+        yield
+    finally:
+        _records.remove(used)
+        # What has not started loading never will; the one loading finishes before the
+        # process may exit (XLA must not be torn down under it).
+        pool.shutdown(wait=True, cancel_futures=True)
+        for name in names:
+            _prefetched.pop(name, None)
+    if used and list(used) != names:
+        with contextlib.suppress(OSError):
+            fd, tmp = tempfile.mkstemp(dir=directory, prefix=".tmp-", suffix=".programs")
+            with os.fdopen(fd, "w") as f:
+                f.write("\n".join(used) + "\n")
+            os.replace(tmp, manifest)
+
+
+def _take_prefetched(entry: str, avals):
+    """The runner :func:`prefetching` loaded for ``entry`` (waiting while it loads), or
+    ``None`` when it was not asked for, not started yet (then never), not loadable or
+    not for these arguments."""
+    future = _prefetched.pop(entry, None)
+    if future is None or future.cancel():
+        return None
+    runner = future.result()
+    if runner is not None and getattr(runner, "shapes", None) != _shapes(avals):
+        _log.warning("sqparts: ignoring exported program %s (argument shapes or dtypes differ)", entry)
+        return None
+    return runner
+
+
+def _shapes(avals) -> list:
+    return [(a.shape, a.dtype) for a in avals]
+
+
 def export_dir() -> Path | None:
     """The folder exported programs go to, or ``None`` when exporting is off."""
     if os.environ.get("SQPARTS_EXPORT", "1").strip().lower() in ("0", "false", "no", "off"):
@@ -376,6 +443,7 @@ def persistent_jit(fun=None, *, static_argnames=()):
     _loaded_tables.append(loaded)
     lock = threading.Lock()
     name = getattr(fun, "__qualname__", getattr(fun, "__name__", "fun"))
+    stem = f"{fun.__module__.rsplit('.', 1)[-1]}.{name}"
 
     @functools.wraps(fun)
     def call(*args, **kwargs):
@@ -403,12 +471,17 @@ def persistent_jit(fun=None, *, static_argnames=()):
         if " at 0x" in text:  # an object's default repr: not the same in another process
             return jitted(*args, **kwargs)
         key = hashlib.sha256(text.encode()).hexdigest()[:32]
+        entry = f"{stem}-{key}.jaxexport"
+        for used in _records:
+            used.setdefault(entry)
         runner = loaded.get(key)
         if runner is None and key not in loaded:
             with lock:  # threads meeting a new signature together (concurrently): one export
                 if key not in loaded:
-                    path = directory / f"{fun.__module__.rsplit('.', 1)[-1]}.{name}-{key}.jaxexport"
-                    loaded[key] = _load(path, avals) or _export(path, fun, static, tree, avals)
+                    path = directory / entry
+                    loaded[key] = (
+                        _take_prefetched(entry, avals) or _load(path, avals) or _export(path, fun, static, tree, avals)
+                    )
                 runner = loaded[key]
         if runner is None:
             return jitted(*args, **kwargs)
@@ -423,16 +496,24 @@ def persistent_jit(fun=None, *, static_argnames=()):
     return call
 
 
-def _make_runner(exported, out_skeleton):
-    out_tree = jax.tree_util.tree_structure(out_skeleton, is_leaf=lambda x: isinstance(x, _Skeleton))
-    if out_tree.num_leaves != len(exported.out_avals):
-        raise ValueError("output tree does not match the exported program")
-    run = jax.jit(exported.call)
-    return lambda leaves: jax.tree_util.tree_unflatten(out_tree, run(*leaves))
+class _Runner:
+    """An exported program compiled (or read from JAX's persistent cache), called on the
+    flat leaves; ``shapes`` are its arguments' shapes and dtypes."""
+
+    def __init__(self, exported, out_skeleton):
+        self.out_tree = jax.tree_util.tree_structure(out_skeleton, is_leaf=lambda x: isinstance(x, _Skeleton))
+        if self.out_tree.num_leaves != len(exported.out_avals):
+            raise ValueError("output tree does not match the exported program")
+        self.shapes = [(a.shape, a.dtype) for a in exported.in_avals]
+        self.compiled = jax.jit(exported.call).lower(*exported.in_avals).compile()
+
+    def __call__(self, leaves):
+        return jax.tree_util.tree_unflatten(self.out_tree, self.compiled(*leaves))
 
 
-def _load(path: Path, avals):
-    """The runner stored at ``path``, or ``None`` (missing, corrupt or stale entry)."""
+def _load(path: Path, avals=None):
+    """The runner stored at ``path``, or ``None`` (missing, corrupt or stale entry);
+    ``avals``, when given, must be its arguments' shapes and dtypes."""
     try:
         blob = path.read_bytes()
     except FileNotFoundError:
@@ -448,10 +529,9 @@ def _load(path: Path, avals):
             raise ValueError("checksum mismatch")
         serialized, out_skeleton = pickle.loads(payload)
         exported = jax.export.deserialize(bytearray(serialized))
-        want = [(a.shape, a.dtype) for a in avals]
-        if [(a.shape, a.dtype) for a in exported.in_avals] != want:
+        if avals is not None and [(a.shape, a.dtype) for a in exported.in_avals] != _shapes(avals):
             raise ValueError("argument shapes or dtypes differ")
-        return _make_runner(exported, out_skeleton)
+        return _Runner(exported, out_skeleton)
     except Exception as e:  # noqa: BLE001 - any bad entry: trace again, never fail
         _log.warning("sqparts: ignoring exported program %s (%s: %s); tracing instead", path, type(e).__name__, e)
         return None
@@ -471,7 +551,7 @@ def _export(path: Path, fun, static, tree, avals):
         exported = jax.export.export(jax.jit(flat))(*avals)
         skeleton = jax.tree_util.tree_unflatten(out["tree"], [_Skeleton() for _ in range(out["tree"].num_leaves)])
         payload = pickle.dumps((bytes(exported.serialize()), skeleton), protocol=pickle.HIGHEST_PROTOCOL)
-        runner = _make_runner(exported, skeleton)
+        runner = _Runner(exported, skeleton)
     except Exception as e:  # noqa: BLE001 - not exportable: plain jit
         _log.warning("sqparts: cannot export %s (%s: %s); using jit", path.name, type(e).__name__, e)
         return None

@@ -9,16 +9,18 @@ edges and round parts stay round.
 from __future__ import annotations
 
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 import jax
 import jax.numpy as jnp
 import numpy as np
-import trimesh
-import trimesh.visual
 
 from ._camera import Camera
 from ._io import atomic_write
 from ._part import Part, surface_point
+
+if TYPE_CHECKING:
+    import trimesh
 
 MESH_SUFFIXES = (".ply", ".obj", ".stl", ".glb", ".off")
 
@@ -43,6 +45,14 @@ def part_mesh(part: Part, *, resolution: int = 48) -> trimesh.Trimesh:
     ``resolution`` is the number of samples per quarter turn before merging (~3x that
     many distinct angles per quarter).
     """
+    import trimesh
+
+    return trimesh.Trimesh(*part_surface(part, resolution=resolution), process=False)
+
+
+def part_surface(part: Part, *, resolution: int = 48) -> tuple[np.ndarray, np.ndarray]:
+    """:func:`part_mesh`'s vertices (V, 3) and triangles (F, 3), wound outwards, as
+    numpy arrays (no trimesh)."""
     if part.batch_shape != ():
         raise ValueError(f"part: got batch shape {part.batch_shape}, expected a single part")
     if not isinstance(resolution, int) or resolution < 4:
@@ -70,38 +80,78 @@ def part_mesh(part: Part, *, resolution: int = 48) -> trimesh.Trimesh:
     south, north = n_lat * n_lon, n_lat * n_lon + 1
     faces.append(np.stack([np.full(n_lon, south), nxt[0], idx[0]], -1))
     faces.append(np.stack([np.full(n_lon, north), idx[-1], nxt[-1]], -1))
-    mesh = trimesh.Trimesh(verts, np.concatenate(faces), process=False)
-    if mesh.volume < 0:
-        mesh.invert()
-    return mesh
+    tris = np.concatenate(faces)
+    a, b, c = (verts[tris[:, k]] for k in range(3))
+    if np.einsum("ij,ij->", a, np.cross(b, c)) < 0:  # six times the signed volume
+        tris = np.ascontiguousarray(tris[:, ::-1])
+    return verts, tris
+
+
+def scene_surface(parts: Part, *, resolution: int = 48) -> tuple[np.ndarray, np.ndarray]:
+    """Every part's :func:`part_surface`, concatenated (vertices, triangles)."""
+    verts, faces, offset = [], [], 0
+    for part in _parts_list(parts):
+        v, f = part_surface(part, resolution=resolution)
+        verts.append(v)
+        faces.append(f + offset)
+        offset += len(v)
+    return np.concatenate(verts), np.concatenate(faces)
 
 
 def scene_mesh(parts: Part, *, resolution: int = 48, union: bool = False) -> trimesh.Trimesh:
     """Mesh of a scene: every part watertight, concatenated; or their Boolean union
     (``union=True``, through manifold3d) as one watertight body."""
-    single = parts.batch_shape == ()
-    meshes = [
-        part_mesh(parts if single else parts[i], resolution=resolution) for i in range(1 if single else len(parts))
-    ]
-    if union and len(meshes) > 1:
+    import trimesh
+
+    if union and len(_parts_list(parts)) > 1:
+        meshes = [part_mesh(p, resolution=resolution) for p in _parts_list(parts)]
         return trimesh.boolean.union(meshes, engine="manifold")  # pyright: ignore[reportReturnType]  # trimesh annotates Geometry; manifold gives a Trimesh
-    return trimesh.util.concatenate(meshes)  # pyright: ignore[reportReturnType]  # trimesh annotates Geometry; meshes give a Trimesh
+    return trimesh.Trimesh(*scene_surface(parts, resolution=resolution), process=False)
 
 
 def save_mesh(path, mesh: trimesh.Trimesh | trimesh.Scene) -> None:
     """Write a mesh (or a scene such as :func:`scene_trimesh`'s, as .glb) atomically; the
-    format follows the suffix (.ply .obj .stl .glb .off)."""
+    format follows the suffix (.ply .obj .stl .glb .off). A mesh goes to PLY through
+    :func:`save_ply`, anything else through trimesh's exporters."""
     path = Path(path)
     suffix = path.suffix.lower()
     if suffix not in MESH_SUFFIXES:
         raise ValueError(f"out: got {str(path)!r}, expected a mesh path ending in {', '.join(MESH_SUFFIXES)}")
+    if suffix == ".ply" and hasattr(mesh, "faces"):
+        save_ply(path, np.asarray(mesh.vertices), np.asarray(mesh.faces))  # pyright: ignore[reportAttributeAccessIssue]  # a Trimesh, not a Scene
+        return
     data = mesh.export(file_type=suffix[1:])
     with atomic_write(path, "wb") as f:
         f.write(data if isinstance(data, bytes) else data.encode())  # pyright: ignore[reportAttributeAccessIssue]  # trimesh's export may be a dict, but not for a mesh suffix
 
 
+def save_ply(path, vertices: np.ndarray, faces: np.ndarray) -> None:
+    """A triangle mesh as binary little-endian PLY (float32 ``x y z``, ``uchar int``
+    index lists: what trimesh writes, read by trimesh, Open3D, MeshLab and Blender),
+    atomically. Written with numpy alone, so ``sqparts recover`` need not import trimesh
+    (0.4 s of its start-up)."""
+    vertices = np.asarray(vertices, "<f4").reshape(-1, 3)
+    faces = np.asarray(faces).reshape(-1, 3)
+    if len(faces) and (faces.min() < 0 or faces.max() >= len(vertices)):
+        raise ValueError(f"faces: got indices outside 0..{len(vertices) - 1}, expected indices of the vertices")
+    records = np.empty(len(faces), dtype=[("n", "u1"), ("v", "<i4", (3,))])
+    records["n"] = 3
+    records["v"] = faces
+    header = (
+        "ply\nformat binary_little_endian 1.0\ncomment sqparts\n"
+        f"element vertex {len(vertices)}\nproperty float x\nproperty float y\nproperty float z\n"
+        f"element face {len(faces)}\nproperty list uchar int vertex_indices\nend_header\n"
+    )
+    with atomic_write(Path(path), "wb") as f:
+        f.write(header.encode("ascii"))
+        f.write(vertices.tobytes())
+        f.write(records.tobytes())
+
+
 def load_mesh(path) -> trimesh.Trimesh:
     """Read a mesh file (any format trimesh reads); scenes are flattened to one mesh."""
+    import trimesh
+
     path = Path(path)
     if not path.is_file():
         raise FileNotFoundError(f"mesh: got {str(path)!r}, expected an existing file")
@@ -162,6 +212,9 @@ def scene_trimesh(parts: Part, *, names=None, resolution: int = 32) -> trimesh.S
     colour, so the exported GLB (``scene.export("model.glb")``) shows the parts in their
     colours in Blender, three.js and other glTF viewers. Camera frame (OpenCV: y down).
     """
+    import trimesh
+    import trimesh.visual
+
     meshes = [part_mesh(p, resolution=resolution) for p in _parts_list(parts)]
     colors = part_colors(len(meshes))
     scene = trimesh.Scene()

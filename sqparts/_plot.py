@@ -4,24 +4,22 @@ from __future__ import annotations
 
 from pathlib import Path
 
+import matplotlib
 import numpy as np
+from matplotlib.figure import Figure
 
 from ._io import atomic_write
 
 
-def _pyplot():
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
-
-    return plt
+def _subplots(nrows: int = 1, ncols: int = 1, **figure):
+    """A figure and its axes without pyplot: no global state and no backend switched,
+    so a report can be drawn on any thread and beside the caller's own figures."""
+    fig = Figure(**figure)
+    return fig, fig.subplots(nrows, ncols)
 
 
 def range_image_rgb(depth, *, vmin=None, vmax=None, cmap: str = "viridis_r") -> np.ndarray:
     """uint8 RGB picture of a range image: near = bright; no return = black."""
-    import matplotlib
-
     d = np.asarray(depth, np.float64)
     ok = np.isfinite(d)
     lo = np.nanmin(d) if vmin is None and ok.any() else (vmin or 0.0)
@@ -34,9 +32,8 @@ def range_image_rgb(depth, *, vmin=None, vmax=None, cmap: str = "viridis_r") -> 
 
 def save_range_image_png(path, depth, *, title: str | None = None) -> None:
     """Save a range image as a PNG picture with a colour bar (atomic)."""
-    plt = _pyplot()
     d = np.asarray(depth, np.float32)
-    fig, ax = plt.subplots(figsize=(5, 5 * d.shape[0] / max(d.shape[1], 1) + 0.6), dpi=100)
+    fig, ax = _subplots(figsize=(5, 5 * d.shape[0] / max(d.shape[1], 1) + 0.6), dpi=100)
     im = ax.imshow(np.ma.masked_invalid(d), cmap="viridis_r", interpolation="nearest")
     ax.set_facecolor("black")
     fig.colorbar(im, ax=ax, fraction=0.046, pad=0.04, label="depth")
@@ -47,17 +44,13 @@ def save_range_image_png(path, depth, *, title: str | None = None) -> None:
 
 
 def _save(fig, path) -> None:
-    plt = _pyplot()
     path = Path(path)
     with atomic_write(path, "wb") as f:
         fig.savefig(f, format="png", bbox_inches="tight")
-    plt.close(fig)
 
 
 def _label_rgb(labels, depth=None) -> np.ndarray:
     """A colour per part label (-1 = black), shaded by depth when given."""
-    import matplotlib
-
     lab = np.asarray(labels)
     cmap = matplotlib.colormaps["tab20"]
     rgb = cmap((lab % 20) / 19.999)[..., :3]
@@ -76,12 +69,11 @@ def save_report(path, recovery, *, title: str | None = None) -> None:
     """Report PNG in the spirit of Figures 7-11: the data, the initial explanation (parts
     chosen by selection), the final model (parts after refinement), the model's range
     image against the data, and the residual R* - R; with a one-line summary."""
-    plt = _pyplot()
     depth = recovery.depth
     fig_mask = recovery.figure
     ok = np.isfinite(depth)
     lo, hi = (np.nanmin(depth[fig_mask]), np.nanmax(depth[fig_mask])) if fig_mask.any() else (0, 1)
-    fig, axes = plt.subplots(2, 3, figsize=(13, 8.6), dpi=90)
+    fig, axes = _subplots(2, 3, figsize=(13, 8.6), dpi=90)
     ax = axes.ravel()
     ax[0].imshow(np.ma.masked_invalid(np.where(fig_mask, depth, np.nan)), cmap="viridis_r", vmin=lo, vmax=hi)
     ax[0].set_title("(a) range data (figure)")
@@ -120,9 +112,8 @@ def _wrap(text: str, width: int = 150) -> str:
 def save_residual_report(path, recovery, model, *, title: str | None = None) -> None:
     """Figure 11 panels for a :class:`~sqparts.ResidualModel`: the residual R - R*, its
     variogram with the fractal fit, the parts' range image and parts plus residual model."""
-    plt = _pyplot()
     f = model.fractal
-    fig, ax = plt.subplots(1, 4, figsize=(16, 4), dpi=90)
+    fig, ax = _subplots(1, 4, figsize=(16, 4), dpi=90)
     sigma = recovery.settings["sigma"]
     im = ax[0].imshow(np.ma.masked_invalid(model.residual), cmap="coolwarm", vmin=-sigma, vmax=sigma)
     ax[0].set_title("residual R - R* (±σ)")
@@ -156,7 +147,6 @@ def save_recognition_report(path, recognition, *, title: str | None = None) -> N
     colour (unmatched recovered parts grey); with the scores of the top matches."""
     from ._render import render_range_image
 
-    plt = _pyplot()
     rec = recognition.recovery
     depth, camera = rec.depth, rec.camera
     parts = rec.parts
@@ -182,7 +172,7 @@ def save_recognition_report(path, recognition, *, title: str | None = None) -> N
         mrgb = _label_rgb(np.where(mlab == -2, 0, mlab), mdepth)
         mrgb[mlab == -2] = 0.6
         panels.append((f"model {match.name!r} ({match.kind}, view {match.view}) at the estimated pose", mrgb))
-    fig, axes = plt.subplots(1, len(panels), figsize=(4.2 * len(panels), 4.8), dpi=100)
+    fig, axes = _subplots(1, len(panels), figsize=(4.2 * len(panels), 4.8), dpi=100)
     for ax, (name, img) in zip(np.atleast_1d(axes), panels):
         ax.imshow(img, interpolation="nearest")
         ax.set_title(_wrap(name, 40), fontsize=9)

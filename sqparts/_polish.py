@@ -16,9 +16,7 @@ import math
 
 import jax
 import jax.numpy as jnp
-import lineax as lx
 import numpy as np
-import optimistix as optx
 
 from ._camera import camera_points, camera_rays
 from ._compile import RowMemo, concurrently, persistent_jit
@@ -40,12 +38,19 @@ def ray_penetration(part: Part, origin, direction, far: Float[ArrayLike, ""] = j
     return surface_distance(part, origin + t * direction)
 
 
-# The damped Gauss-Newton step through the normal equations (lineax >= 0.1's Normal: a
-# 14x14 Cholesky) instead of optimistix's default QR of the stacked (residuals + 14) x 14
-# Jacobian. The normal equations square the condition number, but the damping and the
-# prior below keep them well-posed; the steps agree to 1e-7 and a bucket of 8 parts
-# polishes in 79 ms instead of 112 ms on the CPU (human recovery warm: 8.3 -> 6.5 s).
-_LM = optx.LevenbergMarquardt(rtol=1e-6, atol=1e-8, linear_solver=lx.Normal(lx.Cholesky()))
+@functools.cache
+def _levenberg_marquardt():
+    """The damped Gauss-Newton step through the normal equations (lineax >= 0.1's
+    Normal: a 14x14 Cholesky) instead of optimistix's default QR of the stacked
+    (residuals + 14) x 14 Jacobian. The normal equations square the condition number,
+    but the damping and the prior below keep them well-posed; the steps agree to 1e-7
+    and a bucket of 8 parts polishes in 79 ms instead of 112 ms on the CPU (human
+    recovery warm: 8.3 -> 6.5 s). Imported on first trace: a process that loads its
+    exported programs never needs optimistix (0.1 s of its start-up)."""
+    import lineax as lx
+    import optimistix as optx
+
+    return optx.LevenbergMarquardt(rtol=1e-6, atol=1e-8, linear_solver=lx.Normal(lx.Cholesky()))
 
 
 def polish_part(part: Part, points, weights, *, rays=None, steps: int = 20) -> Part:
@@ -73,7 +78,9 @@ def polish_part(part: Part, points, weights, *, rays=None, steps: int = 20) -> P
         # A weak prior on the 14 numbers keeps unobserved ones near their start.
         return r, 1e-3 * (u - u0)
 
-    sol = optx.least_squares(residuals, _LM, u0, max_steps=steps, throw=False)
+    import optimistix as optx
+
+    sol = optx.least_squares(residuals, _levenberg_marquardt(), u0, max_steps=steps, throw=False)
     ok = jnp.all(jnp.isfinite(sol.value)) & (jnp.sum(w > 0) >= 8)
     return from_unconstrained(jnp.where(ok, sol.value, u0))
 

@@ -8,6 +8,7 @@ import logging
 import os
 import subprocess
 import sys
+import threading
 from pathlib import Path
 
 import equinox as eqx
@@ -125,7 +126,7 @@ def test_failing_exported_call_falls_back(export_dir, monkeypatch, caplog):
 
         return run
 
-    monkeypatch.setattr(_compile, "_make_runner", broken)
+    monkeypatch.setattr(_compile, "_Runner", broken)
     with caplog.at_level(logging.WARNING, logger="sqparts._compile"):
         _check(scaled(PART, POINTS, factor=2.0))
         _check(scaled(PART, POINTS, factor=2.0))  # the plain jit from now on, warned once
@@ -149,6 +150,98 @@ def test_inside_jit_it_is_the_plain_function(export_dir):
     out = jax.jit(lambda pts: scaled(PART, pts, factor=2.0))(POINTS)
     _check(out)
     assert _entries(export_dir) == []
+
+
+def _loads_by_thread(monkeypatch):
+    """Record which thread loads each entry (its file name)."""
+    seen = []
+    load = _compile._load
+
+    def recording(path, avals=None):
+        seen.append((threading.current_thread().name, path.name))
+        return load(path, avals)
+
+    monkeypatch.setattr(_compile, "_load", recording)
+    return seen
+
+
+def _wait_for_prefetch():
+    for future in list(_compile._prefetched.values()):
+        future.result()
+
+
+def test_prefetching_loads_what_the_last_block_used_in_the_background(export_dir, monkeypatch):
+    with _compile.prefetching("job"):
+        scaled(PART, POINTS[:3], factor=2.0)
+        scaled(PART, POINTS, factor=2.0)
+        scaled(PART, POINTS[:3], factor=2.0)
+    small, big = (e.name for e in sorted(_entries(export_dir), key=lambda e: e.stat().st_mtime_ns))
+    assert (export_dir / "job.programs").read_text().split() == [small, big]  # in the order first used
+    _compile.forget_loaded()  # a new process
+    seen = _loads_by_thread(monkeypatch)
+    monkeypatch.setattr(_compile, "_export", lambda *a: pytest.fail("traced again instead of loading"))
+    with _compile.prefetching("job"):
+        _wait_for_prefetch()
+        assert sorted(name for _, name in seen) == sorted([small, big])
+        assert all(thread.startswith("sqparts-prefetch") for thread, _ in seen)
+        _check(scaled(PART, POINTS, factor=2.0))
+        out = scaled(PART, POINTS[:3], factor=2.0)
+    assert len(seen) == 2  # the calls took what the background loaded
+    np.testing.assert_allclose(np.asarray(out[1]), _reference()[1][:3], rtol=1e-5, atol=1e-6)
+    assert not _compile._prefetched  # nothing left behind for a later block
+
+
+def test_prefetching_a_bad_list_or_entry_changes_no_result(export_dir, monkeypatch, caplog):
+    """Garbage, paths outside the folder, missing entries and an entry holding another
+    shape's program: each is skipped or rejected, the calls load or trace what they need,
+    and the list is rewritten to what was used."""
+    scaled(PART, POINTS[:3], factor=2.0)
+    (small,) = _entries(export_dir)
+    with _compile.prefetching("job"):
+        scaled(PART, POINTS, factor=2.0)
+    (big,) = set(_entries(export_dir)) - {small}
+    big.write_bytes(small.read_bytes())  # the name promises one shape, the program has another
+    (export_dir / "job.programs").write_text(
+        f"not an entry\n../{small.name}\n{big.name}\nscaled-{'0' * 32}.jaxexport\n\x00\xff\n"
+    )
+    _compile.forget_loaded()
+    with caplog.at_level(logging.WARNING, logger="sqparts._compile"), _compile.prefetching("job"):
+        _wait_for_prefetch()
+        _check(scaled(PART, POINTS, factor=2.0))
+    assert "argument shapes or dtypes differ" in caplog.text
+    assert (export_dir / "job.programs").read_text().split() == [big.name]
+    _compile.forget_loaded()
+    with _compile.prefetching("job"):  # the entry was exported again: now it loads
+        _wait_for_prefetch()
+        _check(scaled(PART, POINTS, factor=2.0))
+
+
+def test_prefetching_is_a_plain_block_when_exporting_is_off(tmp_path):
+    _compile.set_export_dir(None)
+    with _compile.prefetching("job"):
+        _check(scaled(PART, POINTS, factor=2.0))
+    assert not list(tmp_path.iterdir()) and not _compile._prefetched
+
+
+def test_the_command_exits_with_mains_status_and_all_its_output(tmp_path):
+    """``python -m sqparts`` ends with os._exit: the status, the streams and the files
+    must all be there as a normal exit leaves them."""
+    sqparts.save_scene(tmp_path / "scene.json", sqparts.stack_parts([PART]))
+    (tmp_path / "cam.json").write_text(json.dumps(sqparts.PinholeCamera(16, 12, 20.0, 20.0, 7.5, 5.5).to_json()))
+    env = {**os.environ, "SQPARTS_CACHE_DIR": str(tmp_path / "cache"), "JAX_PLATFORMS": "cpu"}
+    args = ["render", str(tmp_path / "scene.json"), "--camera", str(tmp_path / "cam.json"), "--out"]
+    ok = subprocess.run(
+        [sys.executable, "-m", "sqparts", *args, str(tmp_path / "d.npy")], env=env, capture_output=True, text=True
+    )
+    assert ok.returncode == 0 and "d.npy" in ok.stdout, ok.stderr
+    depth = np.load(tmp_path / "d.npy")
+    np.testing.assert_array_equal(
+        depth, np.asarray(sqparts.render_range_image(PART, sqparts.PinholeCamera(16, 12, 20.0, 20.0, 7.5, 5.5)))
+    )
+    bad = subprocess.run(
+        [sys.executable, "-m", "sqparts", *args, str(tmp_path / "d.npy")], env=env, capture_output=True, text=True
+    )
+    assert bad.returncode == 2 and bad.stderr.startswith("sqparts: error: ") and bad.stderr.count("\n") == 1
 
 
 # --- distinct programs per recovery -------------------------------------------------------

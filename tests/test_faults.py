@@ -135,10 +135,10 @@ def test_existing_output_is_never_overwritten_silently(files, capsys):
 def test_a_failing_second_write_leaves_nothing(files, capsys, monkeypatch):
     import sqparts._mesh
 
-    def broken(path, mesh):
+    def broken(path, vertices, faces):
         raise OSError(28, "No space left on device")
 
-    monkeypatch.setattr(sqparts._mesh, "save_mesh", broken)
+    monkeypatch.setattr(sqparts._mesh, "save_ply", broken)
     out = files / "out"
     assert main(["recover", str(files / "x.npy"), "--camera", str(files / "cam.json"), "--out", str(out), *FAST]) == 2
     err = capsys.readouterr().err
@@ -150,15 +150,15 @@ def test_a_failing_second_write_leaves_nothing(files, capsys, monkeypatch):
 def test_a_signal_between_writes_leaves_nothing(files, capsys, monkeypatch, signum):
     import sqparts._mesh
 
-    save = sqparts._mesh.save_mesh
+    save = sqparts._mesh.save_ply
 
-    def interrupted(path, mesh):
-        save(path, mesh)
+    def interrupted(path, vertices, faces):
+        save(path, vertices, faces)
         os.kill(os.getpid(), signum)
         time.sleep(1.0)  # the handler runs at the next bytecode
         raise AssertionError("the signal did not stop the run")
 
-    monkeypatch.setattr(sqparts._mesh, "save_mesh", interrupted)
+    monkeypatch.setattr(sqparts._mesh, "save_ply", interrupted)
     out = files / "out"
     # What the process had before (Python's default_int_handler, or SIG_IGN when started
     # in the background by a shell without job control).

@@ -168,6 +168,33 @@ def test_scene_trimesh_glb_round_trip(tmp_path, parts):
         np.testing.assert_allclose(back.geometry[f"part_{i}"].bounds.mean(0)[:2], d["position"][:2], atol=0.03)
 
 
+def test_ply_that_recover_writes_reads_back_in_trimesh_and_open3d(tmp_path, parts):
+    """model.ply is written with numpy (sqparts._mesh.save_ply); both readers must see
+    exactly trimesh's own PLY export of the same mesh: same vertices (float32), same
+    triangles in the same order, one watertight outward body per part."""
+    import trimesh
+
+    from sqparts._mesh import save_ply, scene_surface
+
+    verts, faces = scene_surface(parts, resolution=8)
+    save_ply(tmp_path / "ours.ply", verts, faces)
+    (tmp_path / "trimesh.ply").write_bytes(trimesh.Trimesh(verts, faces, process=False).export(file_type="ply"))
+    ours = trimesh.load(tmp_path / "ours.ply", process=False)
+    theirs = trimesh.load(tmp_path / "trimesh.ply", process=False)
+    np.testing.assert_array_equal(ours.vertices, theirs.vertices)
+    np.testing.assert_array_equal(ours.faces, theirs.faces)
+    np.testing.assert_allclose(ours.vertices, verts, atol=1e-6)  # float32 of the float64 surface
+    bodies = ours.split(only_watertight=False)
+    assert len(bodies) == 2 and all(b.is_watertight and b.volume > 0 for b in bodies)
+    o3d = _open3d()
+    mesh = o3d.io.read_triangle_mesh(str(tmp_path / "ours.ply"))
+    np.testing.assert_array_equal(np.asarray(mesh.vertices), theirs.vertices)
+    np.testing.assert_array_equal(np.asarray(mesh.triangles), faces)
+    with pytest.raises(ValueError, match=r"faces: got indices outside 0\.\.2, expected indices of the vertices"):
+        save_ply(tmp_path / "bad.ply", verts[:3], [[0, 1, 3]])
+    assert not (tmp_path / "bad.ply").exists()
+
+
 def test_part_colors_are_report_colors():
     import matplotlib
 
