@@ -12,10 +12,10 @@ This module is the only place the JAX core touches files for compilation. Its in
 
 * :func:`persistent_jit` (a decorator, used in place of ``jax.jit`` on entry points);
 * :func:`set_export_dir` (``None`` turns exporting off: every call is a plain ``jit``).
-* :func:`prefetching` (a block whose programs, as the last such block used them, are
-  loaded on a background thread while it runs).
   Off by default in the library; the CLI turns it on in its cache folder. The
   environment variable ``SQPARTS_EXPORT=0`` turns it off whatever is set.
+* :func:`prefetching` (a block that loads, on two background threads while it runs,
+  the programs the last block with its label used; the CLI wraps each command in one).
 
 An entry is ``<dir>/<name>-<key>.jaxexport``; the key hashes the JAX and jaxlib
 versions, the package's source files, the backend and device count, the function, its
