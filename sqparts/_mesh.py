@@ -16,6 +16,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from ._camera import Camera
+from ._compile import persistent_jit
 from ._io import atomic_write
 from ._part import Part, surface_point
 
@@ -36,7 +37,9 @@ def _quarter_angles(e: float, n: int) -> np.ndarray:
     return angles[keep]
 
 
-_surface_points = jax.jit(jax.vmap(surface_point, in_axes=(None, 0, 0)))
+@persistent_jit
+def _surface_points(part: Part, eta, omega):
+    return jax.vmap(surface_point, in_axes=(None, 0, 0))(part, eta, omega)
 
 
 def part_mesh(part: Part, *, resolution: int = 48) -> trimesh.Trimesh:
