@@ -9,6 +9,8 @@ calls interleaved, so the ratio is honest on a shared machine. Each call is a fr
 ``SQPARTS_CACHE_DIR``. The recovered parts of the two checkouts are compared.
 
     JAX_PLATFORMS=cpu python benchmarks/bench_cli.py --base /tmp/wt-base [--repeats 5 --demo-repeats 3]
+
+``--demo-repeats 0`` times ``recover`` alone.
 """
 
 from __future__ import annotations
@@ -119,7 +121,8 @@ def main():
     demo = lambda out: ["demo", "--out", str(out), "--quiet", "--overwrite"]  # noqa: E731
     times = {v: {"recover_cold": [], "recover_warm": [], "demo_cold": [], "demo_warm": []} for v in variants}
     counts = {}
-    for command, make, repeats in (("recover", recover, args.repeats), ("demo", demo, args.demo_repeats)):
+    commands = [(c, m, r) for c, m, r in (("recover", recover, args.repeats), ("demo", demo, args.demo_repeats)) if r]
+    for command, make, repeats in commands:
         for _ in range(repeats):  # cold: an empty cache each time, base and new interleaved
             for v, checkout in variants.items():
                 cache = work / f"cache-{v}-{command}-cold"
@@ -137,10 +140,11 @@ def main():
             counts.setdefault(v, {})[command] = c
             print(f"{v} {command} warm counts {c}", flush=True)
     same = {
-        c: max_difference(parts_of(work / f"out-base-{c}"), parts_of(work / f"out-new-{c}"))
-        for c in ("recover", "demo")
+        c: max_difference(parts_of(work / f"out-base-{c}"), parts_of(work / f"out-new-{c}")) for c, _, _ in commands
     }
-    summary = {v: {k: {"median_s": statistics.median(t), "all_s": t} for k, t in d.items()} for v, d in times.items()}
+    summary = {
+        v: {k: {"median_s": statistics.median(t), "all_s": t} for k, t in d.items() if t} for v, d in times.items()
+    }
     ratios = {k: summary["base"][k]["median_s"] / summary["new"][k]["median_s"] for k in summary["new"]}
     payload = {
         "image": "96x96 pinhole, one part (sqparts render of the scene below)",
