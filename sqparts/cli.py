@@ -734,8 +734,11 @@ def run() -> None:
     :func:`main` returns every output is written and closed (atomically), so the
     process has nothing left to do but flush its streams and logs."""
     status = main()
-    sys.stdout.flush()
-    sys.stderr.flush()
+    try:
+        sys.stdout.flush()
+        sys.stderr.flush()
+    except OSError:  # e.g. a reader that closed the pipe: as Python's own exit reports it
+        status = status or 120
     logging.shutdown()
     os._exit(status)
 
@@ -752,7 +755,7 @@ def main(argv=None) -> int:
                 stack.enter_context(_compile.caches_enabled())
                 # The programs this command used last time load while the rest is imported.
                 stack.enter_context(_compile.prefetching(args.func.__name__))
-                from . import _io, _mesh, _plot, _recover  # noqa: F401  (equinox, trimesh, matplotlib)
+                from . import _io, _mesh, _plot, _recover  # noqa: F401  (equinox, scipy, matplotlib)
             return args.func(args)
         except OSError as e:
             if e.strerror and e.filename:  # raised by the OS, not by us: name the file
