@@ -505,7 +505,7 @@ class _Runner:
         self.out_tree = jax.tree_util.tree_structure(out_skeleton, is_leaf=lambda x: isinstance(x, _Skeleton))
         if self.out_tree.num_leaves != len(exported.out_avals):
             raise ValueError("output tree does not match the exported program")
-        self.shapes = [(a.shape, a.dtype) for a in exported.in_avals]
+        self.shapes = _shapes(exported.in_avals)
         self.compiled = jax.jit(exported.call).lower(*exported.in_avals).compile()
 
     def __call__(self, leaves):
@@ -530,7 +530,7 @@ def _load(path: Path, avals=None):
             raise ValueError("checksum mismatch")
         serialized, out_skeleton = pickle.loads(payload)
         exported = jax.export.deserialize(bytearray(serialized))
-        if avals is not None and [(a.shape, a.dtype) for a in exported.in_avals] != _shapes(avals):
+        if avals is not None and _shapes(exported.in_avals) != _shapes(avals):
             raise ValueError("argument shapes or dtypes differ")
         return _Runner(exported, out_skeleton)
     except Exception as e:  # noqa: BLE001 - any bad entry: trace again, never fail

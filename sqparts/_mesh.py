@@ -106,8 +106,9 @@ def scene_mesh(parts: Part, *, resolution: int = 48, union: bool = False) -> tri
     (``union=True``, through manifold3d) as one watertight body."""
     import trimesh
 
-    if union and len(_parts_list(parts)) > 1:
-        meshes = [part_mesh(p, resolution=resolution) for p in _parts_list(parts)]
+    each = _parts_list(parts)
+    if union and len(each) > 1:
+        meshes = [part_mesh(p, resolution=resolution) for p in each]
         return trimesh.boolean.union(meshes, engine="manifold")  # pyright: ignore[reportReturnType]  # trimesh annotates Geometry; manifold gives a Trimesh
     return trimesh.Trimesh(*scene_surface(parts, resolution=resolution), process=False)
 
