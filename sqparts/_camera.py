@@ -60,6 +60,12 @@ def _check_finite(name: str, value, *, positive: bool = False) -> float:
     return v
 
 
+def _array(x):
+    """``x`` as an array and its module: JAX arrays (and tracers) stay JAX, anything
+    else becomes a numpy array (no device round trip for host geometry)."""
+    return (x, jnp) if isinstance(x, jax.Array) else (np.asarray(x), np)
+
+
 @dataclasses.dataclass(frozen=True)
 class _Camera:
     width: int
@@ -180,9 +186,10 @@ class PinholeCamera(_Camera):
         return {"fx": self.fx / f, "fy": self.fy / f}
 
     def project(self, points):
-        """Camera-frame points (..., 3) to pixel coordinates (..., 2) as (u, v)."""
-        p = jnp.asarray(points)
-        return jnp.stack([self.fx * p[..., 0] / p[..., 2] + self.cx, self.fy * p[..., 1] / p[..., 2] + self.cy], -1)
+        """Camera-frame points (..., 3) to pixel coordinates (..., 2) as (u, v): a host
+        (numpy) array for host points, a JAX array for JAX arrays."""
+        p, xp = _array(points)
+        return xp.stack([self.fx * p[..., 0] / p[..., 2] + self.cx, self.fy * p[..., 1] / p[..., 2] + self.cy], -1)
 
     def to_json(self) -> dict:
         k = np.array([[self.fx, 0, self.cx], [0, self.fy, self.cy], [0, 0, 1]], dtype=float)
@@ -220,8 +227,9 @@ class OrthographicCamera(_Camera):
         return {"pixel_size": self.pixel_size * f}
 
     def project(self, points):
-        p = jnp.asarray(points)
-        return jnp.stack([p[..., 0] / self.pixel_size + self.cx, p[..., 1] / self.pixel_size + self.cy], -1)
+        """As :meth:`PinholeCamera.project` (z plays no part)."""
+        p, xp = _array(points)
+        return xp.stack([p[..., 0] / self.pixel_size + self.cx, p[..., 1] / self.pixel_size + self.cy], -1)
 
     def to_json(self) -> dict:
         return {

@@ -340,16 +340,69 @@ def pad_parts(parts: Part) -> tuple[Part, int]:
     """Pad a batch to a multiple of ``PART_BUCKET`` with parts behind the camera (never hit),
     so the compiled renderer and solver only ever see batches of ``PART_BUCKET`` parts."""
     n = len(parts)
-    m = -(-n // PART_BUCKET) * PART_BUCKET
+    return host_parts(pad_vectors(part_vectors(parts), -(-n // PART_BUCKET) * PART_BUCKET)), n
+
+
+def pad_vectors(vectors: np.ndarray, m: int) -> np.ndarray:
+    """(n, 14) part vectors padded to ``m`` rows with a tiny part behind the camera (no
+    ray ever hits it)."""
     dummy = np.array([0, 0, -1e3, 0, 0, 0, 1e-3, 1e-3, 1e-3, 1, 1, 0, 0, 0], np.float32)
-    return host_parts(np.concatenate([part_vectors(parts), np.broadcast_to(dummy, (m - n, 14))])), n
+    return np.concatenate([vectors, np.broadcast_to(dummy, (m - len(vectors), 14))])
+
+
+TILE = 16
+"""Side in pixels of the square tiles :func:`render_layers` renders a part in."""
+TILE_BATCH = 64
+"""Tiles per compiled call of :func:`render_layers` (64 tiles: 16 384 rays)."""
 
 
 @persistent_jit(static_argnames=("camera", "newton_steps"))
-def _render_layers(parts, camera, newton_steps=DEFAULT_NEWTON_STEPS):
-    o, d = camera.rays()
-    t, hit = jax.vmap(cast_part, in_axes=(0, None, None, None))(parts, o, d, newton_steps)
-    return jnp.where(hit, t, jnp.inf)
+def _render_tiles(parts, corners, camera, newton_steps=DEFAULT_NEWTON_STEPS):
+    """Part i rendered in the ``TILE`` x ``TILE`` tile of the image whose top left pixel
+    is ``corners[i]`` (row, col): the same rays as those pixels of the whole image."""
+
+    def one(part, corner):
+        o, d = camera.rays((corner[0], corner[1], TILE, TILE))
+        t, hit = cast_part(part, o, d, newton_steps)
+        return jnp.where(hit, t, jnp.inf)
+
+    return jax.vmap(one)(parts, corners)
+
+
+def silhouette_boxes(vectors: np.ndarray, camera) -> np.ndarray:
+    """(n, 4) pixel rectangles (row0, col0, row1, col1), ends exclusive, that hold the
+    silhouettes of the parts with (n, 14) ``vectors``, or the whole image. A silhouette
+    lies in the projection of the part's bounding box
+    (:func:`~sqparts._part.bounding_half_extent`: no ray that misses the box can hit the
+    part, :func:`~sqparts.cast_ray`'s first test), so in the bounding rectangle of the
+    box's eight projected corners, widened by a pixel for rounding. A box that reaches
+    behind a pinhole camera, or a camera without :meth:`project` (a scanner), gives the
+    whole image."""
+    from scipy.spatial.transform import Rotation
+
+    from ._part import bounding_half_extent
+
+    v = np.asarray(vectors, np.float64).reshape(-1, 14)
+    n, h, w = len(v), camera.height, camera.width
+    whole = np.tile(np.array([0, 0, h, w], np.int64), (n, 1))
+    if n == 0 or not hasattr(camera, "project"):
+        return whole
+    signs = np.array([(i, j, k) for i in (-1, 1) for j in (-1, 1) for k in (-1, 1)], np.float64)
+    half = np.asarray(bounding_half_extent(host_parts(v)), np.float64)
+    rot = Rotation.from_rotvec(v[:, 3:6]).as_matrix()
+    corners = v[:, None, 0:3] + np.einsum("nij,nkj->nki", rot, signs[None] * half[:, None])
+    with np.errstate(divide="ignore", invalid="ignore", over="ignore"):
+        uv = camera.project(corners)
+        ok = np.isfinite(uv).all((1, 2)) & (np.abs(uv) < 1e7).all((1, 2))
+        if getattr(camera, "fx", None) is not None:  # a pinhole camera: the box in front of it
+            ok &= (corners[..., 2] > 1e-6).all(1)
+        uv = np.where(ok[:, None, None], uv, 0.0)
+    lo = np.floor(uv.min(1)).astype(np.int64) - 1  # (n, 2): (u, v)
+    hi = np.ceil(uv.max(1)).astype(np.int64) + 2
+    box = np.stack(
+        [np.clip(lo[:, 1], 0, h), np.clip(lo[:, 0], 0, w), np.clip(hi[:, 1], 0, h), np.clip(hi[:, 0], 0, w)], 1
+    )
+    return np.where(ok[:, None], box, whole)
 
 
 _LAYERS = RowMemo(256 << 20)
@@ -358,26 +411,51 @@ _LAYERS = RowMemo(256 << 20)
 
 def render_layers(vectors, camera) -> np.ndarray:
     """(k, H, W) depth of each of the (k, 14) part vectors rendered on its own (inf =
-    miss), ``PART_BUCKET`` parts per compiled call; a part this camera has rendered before
-    is looked up (:data:`_LAYERS`). A scene's rendering is their nearest hit
-    (:func:`_compose`), so a trial that adds, replaces or removes parts re-renders only
-    the parts it changes."""
+    miss); a part this camera has rendered before is looked up (:data:`_LAYERS`). A
+    scene's rendering is their nearest hit (:func:`_compose`), so a trial that adds,
+    replaces or removes parts re-renders only the parts it changes.
+
+    Each part is rendered only in the ``TILE`` x ``TILE`` tiles of the image that meet
+    the rectangle holding its silhouette (:func:`silhouette_boxes`), and missed
+    everywhere else: the same depths, bit for bit, for rays in proportion to the part's
+    size in the image rather than the image's. ``TILE_BATCH`` tiles, of any parts, per
+    compiled call: one program for every image and part."""
     vectors = part_vectors(host_parts(vectors))
     h, w = camera.height, camera.width
     out = np.full((len(vectors), h, w), np.inf, np.float32)
-    big = bucket_camera(camera)
+    big = bucket_camera(camera)  # its image a multiple of IMAGE_BUCKET, so of TILE
 
     def render(todo):
-        # Rendered on the bucketed image (the same rays, a few more of them), then cropped.
-        padded, k = pad_parts(host_parts(vectors[todo]))
-        return np.concatenate(
-            concurrently(
-                lambda j: np.asarray(_render_layers(padded[j : j + PART_BUCKET], big))[:, :h, :w],
-                range(0, len(padded), PART_BUCKET),
-            )
-        )[:k]
+        v = vectors[todo]
+        box = silhouette_boxes(v, camera)
+        t0, t1 = box[:, :2] // TILE, -(-box[:, 2:] // TILE)  # tile index ranges, rows and columns
+        counts = np.maximum(t1 - t0, 0).prod(1)
+        part = np.repeat(np.arange(len(v)), counts)
+        first = np.repeat(np.cumsum(counts) - counts, counts)
+        k = np.arange(len(part)) - first
+        span = np.maximum(t1 - t0, 1)[part, 1]
+        row, col = t0[part, 0] + k // span, t0[part, 1] + k % span
+        m = -(-len(part) // TILE_BATCH) * TILE_BATCH
+        parts_of_tiles = host_parts(pad_vectors(v[part], m))
+        corners = pad_rows(np.stack([row, col], 1).astype(np.int32) * TILE, m)
+        rows_t, cols_t = big.height // TILE, big.width // TILE
+        canvas = np.full((len(v), rows_t, cols_t, TILE, TILE), np.inf, np.float32)
+
+        def batch(j):
+            b = slice(j, j + TILE_BATCH)
+            tiles = np.asarray(_render_tiles(parts_of_tiles[b], corners[b], big))
+            real = slice(0, max(0, min(TILE_BATCH, len(part) - j)))
+            canvas[part[b][real], row[b][real], col[b][real]] = tiles[real]
+
+        concurrently(batch, range(0, m, TILE_BATCH))
+        return canvas.transpose(0, 1, 3, 2, 4).reshape(len(v), big.height, big.width)[:, :h, :w]
 
     return _LAYERS.rows([RowMemo.key(big, v) for v in vectors], out, render)
+
+
+def pad_rows(a: np.ndarray, m: int) -> np.ndarray:
+    """``a`` with zero rows appended up to ``m`` rows."""
+    return np.concatenate([a, np.zeros((m - len(a),) + a.shape[1:], a.dtype)])
 
 
 def _nearest(layers: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -481,7 +559,7 @@ class Edit:
 
 def render_edits(edits, camera) -> list[Edit]:
     """The edits with their new parts' depth layers, all of them rendered together (one
-    :func:`render_layers` call, ``PART_BUCKET`` parts a compiled call)."""
+    :func:`render_layers` call, ``TILE_BATCH`` tiles a compiled call)."""
     edits = list(edits)
     todo = [e for e in edits if e.layers is None]
     if todo:

@@ -282,14 +282,17 @@ def _validate(fields: dict, batch: tuple[int, ...]) -> None:
 # --- geometry of one part -----------------------------------------------------------
 
 
-def bounding_half_extent(part: Part) -> Float[Array, "3"]:
-    """Half-extent of an axis-aligned box in the local frame containing the deformed part."""
-    a1, a2, a3 = part.size[0], part.size[1], part.size[2]
-    grow = 1.0 + jnp.abs(part.taper)
-    hx = a1 * grow + jnp.abs(part.bend[0]) * a3
+def bounding_half_extent(part: Part) -> Float[Array, "*batch 3"]:
+    """Half-extent of an axis-aligned box in the local frame containing the deformed part
+    (batched parts: one box each; parts with host leaves (:func:`~sqparts._encoding.host_parts`)
+    give a numpy array, on the host)."""
+    xp = np if isinstance(part.size, np.ndarray) else jnp
+    a1, a2, a3 = part.size[..., 0], part.size[..., 1], part.size[..., 2]
+    grow = 1.0 + abs(part.taper)
+    hx = a1 * grow + abs(part.bend[..., 0]) * a3
     hy = a2 * grow
-    hz = a3 + jnp.abs(part.bend[1]) * hx * hx / a1
-    return jnp.stack([hx, hy, hz])
+    hz = a3 + abs(part.bend[..., 1]) * hx * hx / a1
+    return xp.stack([hx, hy, hz], -1)
 
 
 def deform(part: Part, q: Float[Array, "3"]) -> Float[Array, "3"]:

@@ -21,7 +21,7 @@ import numpy as np
 from ._camera import camera_points, camera_rays
 from ._compile import RowMemo, concurrently, persistent_jit
 from ._data import RangeData
-from ._encoding import PART_BUCKET, host_parts, pad_parts, part_vectors
+from ._encoding import PART_BUCKET, host_parts, pad_parts, pad_rows, part_vectors
 from ._part import Part, from_unconstrained, matmul, rotation_matrix, surface_distance, to_local, to_unconstrained
 from ._typing import ArrayLike, Float
 
@@ -168,10 +168,6 @@ def polish_parts(parts: Part, points, weights, steps: int, rays, ray_weights) ->
         return np.concatenate(concurrently(bucket, range(0, m, PART_BUCKET)))[:k]
 
     return host_parts(_POLISHED.rows(keys, vectors.copy(), polish))
-
-
-def pad_rows(a: np.ndarray, m: int) -> np.ndarray:
-    return np.concatenate([a, np.zeros((m - len(a),) + a.shape[1:], a.dtype)])
 
 
 # --- region growing over a whole image ------------------------------------------------

@@ -37,7 +37,16 @@ from jax.sharding import PartitionSpec as P
 from ._camera import Camera, camera_points
 from ._compile import concurrently, persistent_jit
 from ._data import RangeData, prepare
-from ._encoding import PART_BUCKET, Encoding, commission_mask, gamma_terms, host_parts, pad_parts, part_vectors
+from ._encoding import (
+    PART_BUCKET,
+    Encoding,
+    commission_mask,
+    gamma_terms,
+    host_parts,
+    pad_parts,
+    pad_rows,
+    part_vectors,
+)
 from ._grid import Grid, grid_preset, lookup_preset
 from ._part import (
     Part,
@@ -45,7 +54,7 @@ from ._part import (
     matrix_to_rotation_vector,
     rotation_matrix,
 )
-from ._polish import grow_parts, pad_rows
+from ._polish import grow_parts
 from ._render import DEFAULT_NEWTON_STEPS, cast_part
 
 SEARCH_NEWTON_STEPS = 6

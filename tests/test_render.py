@@ -287,3 +287,41 @@ def _cast_small(vector):
 
 _JACFWD = jax.jit(jax.jacfwd(_cast_small))
 _JACREV = jax.jit(jax.jacrev(_cast_small))
+
+
+@pytest.mark.parametrize(
+    "camera",
+    [
+        sqparts.PinholeCamera(50, 37, 60.0, 60.0, 24.5, 18.0),
+        sqparts.OrthographicCamera(50, 37, 0.012, 24.5, 18.0),
+        sqparts.ScannerCamera(50, 37, 0.02, 0.02, 24.5, 18.0),
+    ],
+    ids=["pinhole", "orthographic", "scanner"],
+)
+def test_tiled_layers_equal_whole_image_rendering(camera, rng):
+    """render_layers renders each part only in the tiles around its silhouette's box:
+    the depths equal every ray of the image cast against the part, for small, large,
+    deformed, off-image, border-straddling parts and parts reaching behind the camera,
+    on an image whose size is no multiple of the tile."""
+    from sqparts._encoding import render_layers, silhouette_boxes
+
+    parts = [sqparts.Part(**random_part_kwargs(rng)) for _ in range(10)]
+    vectors = np.stack([np.asarray(p.to_vector()) for p in parts])
+    vectors[0, 6:9] *= 6.0  # larger than the image
+    vectors[1, 0] += 0.35  # across the right border
+    vectors[2, 0:2] += 3.0  # out of view
+    vectors[3, 2] = 0.05  # reaching behind the camera plane
+    vectors[4, 6:9] = [0.004, 0.004, 0.004]  # a pixel or two
+    o, d = camera.rays()
+    cast = jax.jit(lambda v: cast_part(sqparts.Part.from_vector(v), o, d))
+    whole = np.stack([np.where(h, t, np.inf) for t, h in map(cast, vectors)])
+    tiled = render_layers(vectors, camera)
+    assert tiled.shape == whole.shape and np.isfinite(whole).any(axis=(1, 2)).sum() >= 6
+    np.testing.assert_array_equal(np.isfinite(tiled), np.isfinite(whole))
+    np.testing.assert_allclose(tiled[np.isfinite(tiled)], whole[np.isfinite(whole)], rtol=1e-6, atol=1e-5)
+    box = silhouette_boxes(vectors, camera)
+    area = (box[:, 2] - box[:, 0]) * (box[:, 3] - box[:, 1])
+    if isinstance(camera, sqparts.ScannerCamera):
+        assert (area == camera.width * camera.height).all()  # no projection: the whole image
+    else:
+        assert area[4] < 36 and area[2] == 0  # a tiny part's box is small, an unseen one's empty
