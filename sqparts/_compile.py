@@ -270,6 +270,28 @@ def memo_scope():
                 clear_memos()
 
 
+def workers() -> int:
+    """Threads :func:`concurrently` runs its calls on: one per usable CPU core, or
+    ``SQPARTS_THREADS``."""
+    try:
+        return int(os.environ.get("SQPARTS_THREADS", "0")) or _cores()
+    except ValueError:
+        return _cores()
+
+
+def balanced_groups(n: int, size: int) -> list[np.ndarray]:
+    """Indices 0..n-1 in consecutive groups of at most ``size``, as few as there can be
+    but at least one per :func:`workers` thread (while there are items), their sizes
+    differing by at most one: compiled calls of ``size`` padded rows, run
+    :func:`concurrently`, then finish together (12 parts: two calls of 6, not 8 and 4;
+    2 parts: two calls of one, not one of two)."""
+    if n <= 0:
+        return []
+    count = -(-n // size)
+    count = min(n, -(-count // workers()) * workers())
+    return np.array_split(np.arange(n), count)
+
+
 def concurrently(fn: Callable, items, *, progress=None) -> list:
     """``[fn(x) for x in items]``, the calls run on a pool of threads, one per usable CPU
     core (``SQPARTS_THREADS`` overrides; 1: one after another in this thread).
@@ -283,10 +305,7 @@ def concurrently(fn: Callable, items, *, progress=None) -> list:
     waited for, in order."""
     items = list(items)
     wrap = progress or (lambda it: it)
-    try:
-        threads = int(os.environ.get("SQPARTS_THREADS", "0")) or _cores()
-    except ValueError:
-        threads = _cores()
+    threads = workers()
     if threads <= 1 or len(items) <= 1:
         return [fn(x) for x in wrap(items)]
     with _pools_lock:

@@ -19,9 +19,9 @@ import jax.numpy as jnp
 import numpy as np
 
 from ._camera import camera_points, camera_rays
-from ._compile import RowMemo, concurrently, persistent_jit
+from ._compile import RowMemo, balanced_groups, concurrently, persistent_jit
 from ._data import RangeData
-from ._encoding import PART_BUCKET, host_parts, pad_parts, pad_rows, part_vectors
+from ._encoding import PART_BUCKET, host_parts, pad_parts, pad_rows, pad_vectors, part_vectors
 from ._part import Part, from_unconstrained, matmul, rotation_matrix, surface_distance, to_local, to_unconstrained
 from ._typing import ArrayLike, Float
 
@@ -151,21 +151,18 @@ def polish_parts(parts: Part, points, weights, steps: int, rays, ray_weights) ->
     keys = [RowMemo.key(calls, vectors[i], x[i], pw[i], o[i], d[i], rw[i]) for i in range(n)]
 
     def polish(todo):
-        padded, k = pad_parts(host_parts(vectors[todo]))
-        m = len(padded)
-        xs, pws, os_, ds, rws = (pad_rows(a[todo], m) for a in (x, pw, o, d, rw))
-        ds[rws == 0] = (0.0, 0.0, 1.0)  # padding rays stay finite
-
-        def bucket(j):
-            b = slice(j, j + PART_BUCKET)
-            row = part_vectors(padded[b])
+        def bucket(group):
+            rows = np.asarray(todo)[group]
+            row = pad_vectors(vectors[rows], PART_BUCKET)
+            xs, pws, os_, ds, rws = (pad_rows(a[rows], PART_BUCKET) for a in (x, pw, o, d, rw))
+            ds[rws == 0] = (0.0, 0.0, 1.0)  # padding rays stay finite
             for _ in range(calls):  # host arrays in: one program for every call
-                row = part_vectors(
-                    _polish_bucket(host_parts(row), xs[b], pws[b], os_[b], ds[b], rws[b], steps=POLISH_CALL_STEPS)
-                )
-            return row
+                row = part_vectors(_polish_bucket(host_parts(row), xs, pws, os_, ds, rws, steps=POLISH_CALL_STEPS))
+            return row[: len(rows)]
 
-        return np.concatenate(concurrently(bucket, range(0, m, PART_BUCKET)))[:k]
+        # Each part's fit does not depend on what shares its call: the parts are spread
+        # evenly over the calls that run at once.
+        return np.concatenate(concurrently(bucket, balanced_groups(len(todo), PART_BUCKET)))
 
     return host_parts(_POLISHED.rows(keys, vectors.copy(), polish))
 

@@ -470,6 +470,28 @@ def test_bucketed_polishing_on_threads_equals_one_after_another(monkeypatch):
         out[threads] = np.asarray(polish_parts(parts, points, weights, 4, rays, ray_weights).to_vector())
     np.testing.assert_array_equal(out["1"], out["2"])
     assert not np.array_equal(out["1"], np.asarray(parts.to_vector()))  # it did polish
+    # Two threads split the 20 parts into four calls of five, one thread into three of
+    # 7, 7 and 6; a part alone in its call (the rest padding) gets the same fit too.
+    for i in (0, 13):
+        alone = polish_parts(parts[i : i + 1], points, weights[i : i + 1], 4, rays, ray_weights[i : i + 1])
+        np.testing.assert_array_equal(np.asarray(alone.to_vector())[0], out["1"][i])
+
+
+def test_balanced_groups_cover_the_items_evenly_over_the_threads(monkeypatch):
+    for threads, n, sizes in (
+        (2, 12, [6, 6]),
+        (2, 2, [1, 1]),
+        (2, 1, [1]),
+        (2, 17, [5, 4, 4, 4]),
+        (1, 12, [6, 6]),
+        (1, 5, [5]),
+        (3, 20, [7, 7, 6]),
+        (2, 0, []),
+    ):
+        monkeypatch.setenv("SQPARTS_THREADS", str(threads))
+        groups = _compile.balanced_groups(n, 8)
+        assert [len(g) for g in groups] == sizes
+        assert np.array_equal(np.concatenate(groups) if groups else np.zeros(0), np.arange(n))
 
 
 def test_row_memo_looks_up_what_it_computed_and_forgets_the_oldest():
