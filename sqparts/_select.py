@@ -228,45 +228,11 @@ def _select_exact(problem: SelectionProblem, time_limit: float, node_limit: int 
     return x, status
 
 
-def conflicts(problem: SelectionProblem) -> np.ndarray:
-    """(n, n) bool: the pairs of candidates that need never be chosen together. Where
-    candidates i and j are both chosen, dropping j changes E by -(linear_j + 2 Q_ij + 2
-    Σ_k Q_jk x_k) over the others k chosen, which is never negative when linear_j + 2 Q_ij
-    + 2 Σ_k min(0, Q_jk) >= 0 (j's own pixels are mostly i's). Dropping parts this way
-    from any selection never raises E and only removes violations, so every pair marked
-    (either way round) may be excluded at once: some optimum excludes them all. These
-    are the rows x_i + x_j <= 1 of the integer program (castings: 199 of its 627
-    overlapping pairs; 1 066 branch-and-bound nodes to the proven optimum instead of
-    3 348)."""
-    drop = _droppable(problem)
-    return drop | drop.T
-
-
-def _droppable(problem: SelectionProblem) -> np.ndarray:
-    """(n, n) bool: [i, j] when j may be dropped wherever i is chosen (:func:`conflicts`)."""
-    q = problem.pairwise
-    return (q > 1e-12) & (problem.linear[None, :] + 2.0 * q + 2.0 * np.minimum(q, 0.0).sum(1)[None, :] >= 0.0)
-
-
-def _without_conflicts(problem: SelectionProblem, x: np.ndarray) -> np.ndarray:
-    """``x`` with parts dropped, one at a time, until no two :func:`conflicts` are both
-    chosen; E never rises."""
-    x = np.asarray(x, bool).copy()
-    drop = _droppable(problem)
-    while True:
-        both = np.argwhere((drop | drop.T) & np.outer(x, x))
-        if len(both) == 0:
-            return x
-        i, j = both[0]
-        x[j if drop[i, j] else i] = False
-
-
 def _select_exact_group(
     problem: SelectionProblem, time_limit: float, node_limit: int | None = None
 ) -> tuple[np.ndarray, str]:
     """One group by HiGHS: E = linear·x + Σ_{i<j} 2 Q_ij y_ij + const with y_ij = x_i x_j
-    enforced by y ≥ x_i + x_j - 1 where Q_ij > 0 and y ≤ x_i, y ≤ x_j where Q_ij < 0;
-    for the :func:`conflicts` the row x_i + x_j ≤ 1 instead (and no y: it is 0).
+    enforced by y ≥ x_i + x_j - 1 where Q_ij > 0 and y ≤ x_i, y ≤ x_j where Q_ij < 0.
     Returns (selection, how it ended, as :func:`_select_exact`)."""
     import highspy
 
@@ -274,8 +240,7 @@ def _select_exact_group(
     if n == 0:
         return np.zeros(0, bool), "exact"
     q = problem.pairwise
-    excluded = conflicts(problem)
-    pairs = [(i, j) for i, j in zip(*np.triu_indices(n, 1)) if abs(q[i, j]) > 1e-12 and not excluded[i, j]]
+    pairs = [(i, j) for i, j in zip(*np.triu_indices(n, 1)) if abs(q[i, j]) > 1e-12]
 
     def solve(start):
         with _quiet_stdout():  # highspy >= 1.16 prints a banner from its constructor
@@ -297,8 +262,6 @@ def _select_exact_group(
             else:  # y <= x_i, y <= x_j
                 h.addRow(-inf, 0.0, 2, np.array([y, i], np.int32), np.array([1.0, -1.0]))
                 h.addRow(-inf, 0.0, 2, np.array([y, j], np.int32), np.array([1.0, -1.0]))
-        for i, j in zip(*np.nonzero(np.triu(excluded))):
-            h.addRow(-inf, 1.0, 2, np.array([i, j], np.int32), np.array([1.0, 1.0]))
         if start is not None:
             sol = highspy.HighsSolution()
             sol.col_value = list(np.concatenate([start, [start[i] * start[j] for i, j in pairs]]))
@@ -323,7 +286,7 @@ def _select_exact_group(
         return x, ended, consistent
 
     # Start from the best-first selection: its E bounds the branch and bound at once.
-    greedy = _without_conflicts(problem, select_best_first(problem))
+    greedy = select_best_first(problem)
     x, ended, consistent = solve(greedy.astype(np.float64))
     if x is not None and not consistent:
         x, ended, consistent = solve(None)
