@@ -417,9 +417,9 @@ def render_layers(vectors, camera) -> np.ndarray:
 
     Each part is rendered only in the ``TILE`` x ``TILE`` tiles of the image that meet
     the rectangle holding its silhouette (:func:`silhouette_boxes`), and missed
-    everywhere else: the same depths, bit for bit, for rays in proportion to the part's
-    size in the image rather than the image's. ``TILE_BATCH`` tiles, of any parts, per
-    compiled call: one program for every image and part."""
+    everywhere else: the whole image's rays and depths, for work in proportion to the
+    part's size in the image rather than the image's. ``TILE_BATCH`` tiles, of any
+    parts, per compiled call: one program for every image and part."""
     vectors = part_vectors(host_parts(vectors))
     h, w = camera.height, camera.width
     out = np.full((len(vectors), h, w), np.inf, np.float32)
