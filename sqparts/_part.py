@@ -282,7 +282,7 @@ def _validate(fields: dict, batch: tuple[int, ...]) -> None:
 # --- geometry of one part -----------------------------------------------------------
 
 
-def bounding_half_extent(part: Part) -> Float[Array, "*batch 3"]:
+def bounding_half_extent(part: Part) -> Float[Array, "*batch 3"] | np.ndarray:
     """Half-extent of an axis-aligned box in the local frame containing the deformed part
     (batched parts: one box each; parts with host leaves (:func:`~sqparts._encoding.host_parts`)
     give a numpy array, on the host)."""
