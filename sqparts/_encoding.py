@@ -43,7 +43,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from ._camera import bucket_camera
+from ._camera import PinholeCamera, bucket_camera
 from ._compile import RowMemo, concurrently, persistent_jit
 from ._part import Part
 from ._render import DEFAULT_NEWTON_STEPS, cast_part
@@ -394,7 +394,7 @@ def silhouette_boxes(vectors: np.ndarray, camera) -> np.ndarray:
     with np.errstate(divide="ignore", invalid="ignore", over="ignore"):
         uv = camera.project(corners)
         ok = np.isfinite(uv).all((1, 2)) & (np.abs(uv) < 1e7).all((1, 2))
-        if getattr(camera, "fx", None) is not None:  # a pinhole camera: the box in front of it
+        if isinstance(camera, PinholeCamera):  # its rays start at the centre: the box in front of it
             ok &= (corners[..., 2] > 1e-6).all(1)
         uv = np.where(ok[:, None, None], uv, 0.0)
     lo = np.floor(uv.min(1)).astype(np.int64) - 1  # (n, 2): (u, v)
@@ -444,8 +444,7 @@ def render_layers(vectors, camera) -> np.ndarray:
         def batch(j):
             b = slice(j, j + TILE_BATCH)
             tiles = np.asarray(_render_tiles(parts_of_tiles[b], corners[b], big))
-            real = slice(0, max(0, min(TILE_BATCH, len(part) - j)))
-            canvas[part[b][real], row[b][real], col[b][real]] = tiles[real]
+            canvas[part[b], row[b], col[b]] = tiles[: len(part[b])]  # the rest is padding
 
         concurrently(batch, range(0, m, TILE_BATCH))
         return canvas.transpose(0, 1, 3, 2, 4).reshape(len(v), big.height, big.width)[:, :h, :w]
