@@ -142,7 +142,7 @@ def analyse() -> None:
                 f"{row['known_wrongly_rejected']:.1%} unknown rejected {row['unknown_rejected']:.1%} "
                 f"ROC {row['roc_area']:.3f} known rejected at 90% unknown {row['known_rejected_at_90pct_unknown_rejected']:.1%}"
             )
-    B.save("figure_choice", {"threshold": THRESHOLD, "exploration": EXPLORATION, "summary": summary, "rows": rows})
+    B.save("figure_choice", {"threshold": THRESHOLD, "exploration": EXPLORATION, "summary": summary})
 
 
 if __name__ == "__main__":
