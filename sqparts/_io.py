@@ -474,11 +474,21 @@ def _check_image_size(path: Path, shape: tuple[int, ...]) -> None:
 def _read_pcd(path) -> tuple[np.ndarray, PinholeCamera]:
     from pypcd4 import PointCloud  # pyright: ignore[reportPrivateImportUsage]  # pypcd4 re-exports it without `as` or __all__
 
-    pc = PointCloud.from_path(path)
-    w, h = int(pc.metadata.width), int(pc.metadata.height)
-    if h <= 1:
+    try:
+        pc = PointCloud.from_path(path)
+        w, h = int(pc.metadata.width), int(pc.metadata.height)
+        points = pc.numpy(("x", "y", "z")).astype(np.float64) if h > 1 else None
+    except Exception as e:  # pypcd4 reports malformed data as struct, zlib, lzf or index errors
+        raise ValueError(
+            f"input: got a .pcd whose data cannot be read ({type(e).__name__}: {e}), expected a valid point cloud"
+        ) from None
+    if points is None:
         raise ValueError(f"input: got height {h}, expected an organized .pcd (height > 1)")
-    xyz = pc.numpy(("x", "y", "z")).astype(np.float64).reshape(h, w, 3)
+    if points.size != h * w * 3:
+        raise ValueError(
+            f"input: got {points.size // 3} points, expected width x height = {w} x {h} (an organized .pcd)"
+        )
+    xyz = points.reshape(h, w, 3)
     return xyz[..., 2], intrinsics_from_points(xyz)
 
 

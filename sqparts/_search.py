@@ -212,9 +212,12 @@ def window_for(data: RangeData, max_size: float, *, multiple: int = 8) -> int:
     max_size = check_max_size(max_size)
     depth = float(np.nanmedian(data.image[data.figure_mask]))
     pixel = float(np.asarray(data.camera.pixel_size_at(np.float32(depth))))
+    limit = min(2 * data.pad, max(data.camera.width, data.camera.height) + multiple)
     side = 2.0 * max_size / pixel * 1.1
+    if not side < limit:  # also a max_size so large that the side overflows to inf
+        return int(limit)
     side = int(math.ceil(side / multiple) * multiple)
-    return int(min(max(side, 16), 2 * data.pad, max(data.camera.width, data.camera.height) + multiple))
+    return int(min(max(side, 16), limit))
 
 
 # --- regions --------------------------------------------------------------------------

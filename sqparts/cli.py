@@ -215,6 +215,9 @@ def _cluster(args):
         raise ValueError(f"--jobs: got {args.jobs} with --scheduler, expected one of them")
     if args.jobs is None and args.scheduler is None:
         return contextlib.nullcontext(None)
+    cores = os.cpu_count() or 1
+    if args.jobs is not None and args.jobs > cores:  # each worker is a process importing JAX
+        raise ValueError(f"--jobs: got {args.jobs}, expected at most {cores} (this machine's cores)")
     try:
         from . import _dask
     except ImportError as e:

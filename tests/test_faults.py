@@ -499,3 +499,52 @@ def test_a_complex_range_image_is_refused(files, capsys):
     assert "expected a 2-D numeric range image" in cli_error(
         capsys, ["show", str(files / "c.npy"), "--out", str(files / "p.png")]
     )
+
+
+def test_a_huge_max_size_gives_the_largest_window():
+    """--max-size 1e308 overflowed the window's side to inf (a traceback); the window is
+    now capped where any larger max_size would put it."""
+    from sqparts._data import prepare
+    from sqparts._search import window_for
+
+    cam = sqparts.PinholeCamera(32, 32, 40.0, 40.0, 15.5, 15.5)
+    depth = np.full((32, 32), np.nan, np.float32)
+    depth[8:24, 8:24] = 2.0
+    data = prepare(depth, cam)
+    assert window_for(data, 1e308) == window_for(data, 1e6) > window_for(data, 0.05)
+
+
+def test_a_pcd_with_unreadable_data_is_one_error_line(tmp_path, capsys):
+    """A .pcd declaring binary_compressed data that is not there: pypcd4's struct error
+    becomes the one-line input error, for show and recover alike (no output left)."""
+    path = tmp_path / "broken.pcd"
+    header = (
+        "# .PCD v0.7\nVERSION 0.7\nFIELDS x y z\nSIZE 4 4 4\nTYPE F F F\nCOUNT 1 1 1\n"
+        "WIDTH 4\nHEIGHT 4\nVIEWPOINT 0 0 0 1 0 0 0\nPOINTS 16\nDATA binary_compressed\n"
+    )
+    path.write_bytes(header.encode())
+    for argv in (
+        ["show", str(path), "--out", str(tmp_path / "s.png")],
+        ["recover", str(path), "--out", str(tmp_path / "r")],
+    ):
+        line = cli_error(capsys, argv)
+        assert line.startswith("sqparts: error: input: got a .pcd whose data cannot be read"), line
+    assert not (tmp_path / "s.png").exists() and not (tmp_path / "r").exists()
+
+
+def test_more_jobs_than_cores_is_refused(tmp_path, capsys):
+    """--jobs started that many local worker processes, each importing JAX (a huge value
+    ran the machine out of memory); it is bounded by the cores."""
+    import os
+
+    depth = np.full((16, 16), 2.0, np.float32)
+    np.save(tmp_path / "d.npy", depth)
+    cam = tmp_path / "cam.json"
+    cam.write_text(json.dumps(sqparts.PinholeCamera(16, 16, 20.0, 20.0, 7.5, 7.5).to_json()))
+    n = (os.cpu_count() or 1) + 1
+    line = cli_error(
+        capsys,
+        ["recover", str(tmp_path / "d.npy"), "--camera", str(cam), "--out", str(tmp_path / "o"), "--jobs", str(n)],
+    )
+    assert f"--jobs: got {n}, expected at most" in line
+    assert not (tmp_path / "o").exists()
