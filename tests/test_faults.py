@@ -535,8 +535,6 @@ def test_a_pcd_with_unreadable_data_is_one_error_line(tmp_path, capsys):
 def test_more_jobs_than_cores_is_refused(tmp_path, capsys):
     """--jobs started that many local worker processes, each importing JAX (a huge value
     ran the machine out of memory); it is bounded by the cores."""
-    import os
-
     depth = np.full((16, 16), 2.0, np.float32)
     np.save(tmp_path / "d.npy", depth)
     cam = tmp_path / "cam.json"
