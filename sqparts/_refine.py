@@ -38,6 +38,7 @@ from __future__ import annotations
 
 import dataclasses
 import math
+import warnings
 from typing import TYPE_CHECKING, ClassVar
 
 import jax
@@ -647,9 +648,15 @@ def _rim_depth(local: np.ndarray, sigma: float, *, slices: int = 8) -> float:
         if len(s) < 8:
             continue
         # The slice's own centre line (its points' across-axis midpoint), then the fit.
-        x = s[:, 1] - np.polyval(np.polyfit(s[:, 0], s[:, 1], 1), s[:, 0])
+        # A face at one depth says nothing (and fails numpy's fit); a nearly flat one
+        # makes the fit rank-deficient: numpy warns, and the checks below drop the slice.
         y = s[:, 2] - np.median(s[:, 2])
-        c2, c1, c0 = np.polyfit(y, x * x, 2)
+        if not np.ptp(y) > 0:
+            continue
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore")
+            x = s[:, 1] - np.polyval(np.polyfit(s[:, 0], s[:, 1], 1), s[:, 0])
+            c2, c1, c0 = np.polyfit(y, x * x, 2)
         disc = c1 * c1 - 4 * c2 * c0
         if c2 < 0 and disc > 0:
             depths.append(np.sqrt(disc) / (2 * -c2))

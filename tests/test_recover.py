@@ -1,4 +1,5 @@
 import json
+import warnings
 
 import numpy as np
 import pytest
@@ -509,6 +510,15 @@ def test_moments_give_a_visible_surfaces_bend_taper_and_rim_depth():
     # An elliptical cross-section 1.5 times as deep as wide: the half-depth, not the width.
     oval = np.stack([z, 0.04 * np.sin(theta), -0.06 * np.cos(theta)], 1)
     assert abs(_rim_depth(oval, 0.001) - 0.06) < 0.003
+    # A face at one depth (a plane seen by an orthographic camera): no slice says
+    # anything, so the half-depth is σ/2 (numpy's fit failed on it: LinAlgError); a nearly
+    # flat one: no numpy rank warning reaches the terminal (it did, even under --quiet).
+    flat = np.stack([z, 0.04 * np.sin(theta), np.zeros_like(z)], 1)
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        assert _rim_depth(flat, 0.001) == 0.0005
+        flat[:, 2] = 1e-7 * np.round(rng.uniform(0, 1, len(z)))
+        assert _rim_depth(flat, 0.001) >= 0.0005
 
 
 def test_refinement_redescribes_a_straight_fit_of_a_bent_tapered_part():
