@@ -38,7 +38,7 @@ import numpy as np
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 import bench_recognition as B
 
-from sqparts import Observation, describe, stack_parts
+from sqparts import Observation, describe, lead, stack_parts
 from sqparts._recognize import MatchSettings
 
 OUT = B.RESULTS / "figure_choice.json"  # the summary; the rows of each part beside it
@@ -80,8 +80,9 @@ def run(part: int, parts: int) -> None:
 
 
 def _lead(scores: dict) -> float:
+    """The top score's :func:`sqparts.lead` over the rest of ``scores``."""
     s = sorted(scores.values(), reverse=True)
-    return s[0] - float(np.mean(s[1:])) if len(s) > 1 else s[0]
+    return lead(s[0], s[1:])
 
 
 def rule_a(queries, drop=None):

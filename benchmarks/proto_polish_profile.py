@@ -14,11 +14,10 @@ for 1 / 5 / 20 / 40 steps, a bucket of 8 parts by ``lax.map`` (the package) and 
 
 from __future__ import annotations
 
-import time
-
 import jax
 import jax.numpy as jnp
 import numpy as np
+from _common import time_call
 
 import sqparts
 from sqparts._encoding import host_parts, part_vectors
@@ -27,13 +26,7 @@ from sqparts._polish import _POINTS, _RAYS, _levenberg_marquardt, polish_part, r
 
 
 def median_ms(fn, *args, repeats: int = 30) -> float:
-    jax.block_until_ready(fn(*args))
-    times = []
-    for _ in range(repeats):
-        t = time.perf_counter()
-        jax.block_until_ready(fn(*args))
-        times.append(time.perf_counter() - t)
-    return 1e3 * float(np.median(times))
+    return 1e3 * time_call(fn, *args, repeats=repeats)[1]
 
 
 def inputs():
@@ -93,12 +86,8 @@ def main():
         ("lax.map (the package)", jax.jit(lambda *a: jax.lax.map(lambda b: one(*b), a))),
         ("vmap", jax.jit(jax.vmap(one))),
     ):
-        t = time.perf_counter()
-        jax.block_until_ready(fn(*args))
-        first = time.perf_counter() - t
-        print(
-            f"bucket of 8 parts, 20 steps, {label}: {median_ms(fn, *args, repeats=7):.1f} ms (first call {first:.1f} s)"
-        )
+        first, median, _ = time_call(fn, *args, repeats=7)
+        print(f"bucket of 8 parts, 20 steps, {label}: {1e3 * median:.1f} ms (first call {first:.1f} s)")
 
     import sqparts._polish as P
 
