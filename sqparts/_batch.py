@@ -196,7 +196,7 @@ def recover_file(
     depth, camera = read_input(path, camera=camera, depth_scale=depth_scale)
     encoding = encoding_for(depth[np.isfinite(depth)], sigma=sigma) if sigma else None
     recovery = recover_scene(depth, camera, encoding=encoding, progress=progress, **options)
-    with staged_folder(target, overwrite=overwrite) as folder:
+    with staged_folder(target, overwrite=overwrite, inputs=(path,)) as folder:
         write_recovery(folder, recovery, title=path.name)
     return recovery
 
@@ -399,7 +399,7 @@ def plan_batch(
         if resume and target.exists() and _ours(target):
             replace = True  # finished but unrecorded, or a failed earlier run's: redo it
         else:
-            check_new_output(target, overwrite=overwrite)
+            check_new_output(target, overwrite=overwrite, inputs=paths)
         tasks.append(_Task(str(path), name, str(out), camera, depth_scale, sigma, dict(options), replace))
     keep = None
     if resume and results.exists():

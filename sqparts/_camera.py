@@ -49,14 +49,23 @@ def _check_positive_int(name: str, value) -> int:
     return int(value)
 
 
+def fits_float32(value) -> bool:
+    """Whether a finite ``value`` keeps its meaning in float32, the precision the package
+    computes in: not beyond its largest number (1e39 would become inf) and, unless 0,
+    not below its smallest normal one (1e-300 would become 0)."""
+    f = np.finfo(np.float32)
+    return bool(value == 0 or float(f.tiny) <= abs(float(value)) <= float(f.max))
+
+
 def _check_finite(name: str, value, *, positive: bool = False) -> float:
+    shown = value.item() if isinstance(value, np.generic) else value  # 1e+39, not np.float64(1e+39)
     try:
         v = float(value)
     except (TypeError, ValueError):
-        raise ValueError(f"{name}: got {value!r}, expected a number") from None
-    if not np.isfinite(v) or (positive and v <= 0):
+        raise ValueError(f"{name}: got {shown!r}, expected a number") from None
+    if not np.isfinite(v) or (positive and v <= 0) or not fits_float32(v):
         want = "a finite number > 0" if positive else "a finite number"
-        raise ValueError(f"{name}: got {value!r}, expected {want}")
+        raise ValueError(f"{name}: got {shown!r}, expected {want} that float32 holds")
     return v
 
 

@@ -43,7 +43,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from ._camera import PinholeCamera, bucket_camera
+from ._camera import PinholeCamera, bucket_camera, fits_float32
 from ._compile import RowMemo, concurrently, persistent_jit
 from ._part import Part
 from ._render import DEFAULT_NEWTON_STEPS, cast_part
@@ -85,8 +85,8 @@ class Encoding:
     def __post_init__(self):
         for name in ("sigma", "quantum", "depth_range", "commission_weight", "bits_per_parameter"):
             v = getattr(self, name)
-            if not (isinstance(v, (int, float, np.floating)) and math.isfinite(v) and v > 0):
-                raise ValueError(f"{name}: got {v!r}, expected a finite number > 0")
+            if not (isinstance(v, (int, float, np.floating)) and math.isfinite(v) and v > 0 and fits_float32(v)):
+                raise ValueError(f"{name}: got {v!r}, expected a finite number > 0 that float32 holds")
         if self.sigma < self.quantum:
             raise ValueError(f"sigma: got {self.sigma:.3g}, expected at least the quantum {self.quantum:.3g}")
 

@@ -59,7 +59,7 @@ def atomic_write(path, mode: str = "wb"):
     """
     path = Path(path)
     if path.parent and not path.parent.is_dir():
-        raise FileNotFoundError(f"out: got {str(path)!r}, expected a path in an existing directory")
+        raise FileNotFoundError(f"--out: got {str(path)!r}, expected a path in an existing directory")
     tmp = _temporary_name(path.parent, ".tmp")
     fd = os.open(tmp, os.O_WRONLY | os.O_CREAT | os.O_EXCL, 0o666)
     try:
@@ -72,12 +72,22 @@ def atomic_write(path, mode: str = "wb"):
         raise
 
 
-def check_new_output(path, *, overwrite: bool = False) -> Path:
+def check_new_output(path, *, overwrite: bool = False, inputs=()) -> Path:
     """``path`` if it may be written: it does not exist, is an empty folder, or
-    ``overwrite`` is set; raises ``FileExistsError`` (naming ``--out``) otherwise."""
+    ``overwrite`` is set and it holds none of the ``inputs`` (paths read to make it:
+    replacing a folder replaces everything in it); raises ``FileExistsError`` (naming
+    ``--out``) otherwise."""
     path = Path(path)
     if not overwrite and path.exists() and not (path.is_dir() and not any(path.iterdir())):
         raise FileExistsError(f"--out: got {str(path)!r}, which exists, expected a new path (or --overwrite)")
+    if path.is_dir():
+        inside = path.resolve()
+        for p in inputs:
+            if p is not None and inside in (q := Path(p).resolve(), *q.parents):
+                raise FileExistsError(
+                    f"--out: got {str(path)!r}, which holds the input {str(p)!r}, "
+                    "expected a folder apart from the inputs (--overwrite replaces it whole)"
+                )
     ancestor = next(p for p in path.absolute().parents if p.exists())
     if not ancestor.is_dir():
         raise NotADirectoryError(f"--out: got {str(path)!r}, expected a path in a folder ({str(ancestor)!r} is a file)")
@@ -85,24 +95,25 @@ def check_new_output(path, *, overwrite: bool = False) -> Path:
 
 
 @contextlib.contextmanager
-def staged_folder(path, *, overwrite: bool = False):
+def staged_folder(path, *, overwrite: bool = False, inputs=()):
     """Write a set of outputs that appear together or not at all.
 
     Yields a temporary folder beside ``path``; on success it is renamed to ``path`` in
     one step (an existing ``path`` is replaced only with ``overwrite``, or when it is
-    an empty folder); on any exception or signal the temporary folder is removed and
+    an empty folder, and never when it holds one of the ``inputs``: see
+    :func:`check_new_output`); on any exception or signal the temporary folder is removed and
     ``path`` is left as it was. The folder gets the mode the umask gives.
     """
     import shutil
 
-    path = check_new_output(path, overwrite=overwrite)
+    path = check_new_output(path, overwrite=overwrite, inputs=inputs)
     path.parent.mkdir(parents=True, exist_ok=True)
     tmp = _temporary_name(path.parent, ".tmp")
     tmp.mkdir(mode=0o777)
     old = None
     try:
         yield tmp
-        check_new_output(path, overwrite=overwrite)  # nobody made it meanwhile
+        check_new_output(path, overwrite=overwrite, inputs=inputs)  # nobody made it meanwhile
         if path.exists() and (not path.is_dir() or any(path.iterdir())):
             old = _temporary_name(path.parent, ".old")
             os.rename(path, old)
@@ -373,7 +384,9 @@ def read_range_image(path, *, depth_scale: float = 0.001) -> tuple[np.ndarray, C
             with Image.open(path) as im:
                 raw = np.asarray(im)
             if raw.ndim != 2 or raw.dtype not in (np.uint16, np.int32, np.uint8):
-                raise ValueError(f"input: got {raw.dtype} , expected a single-channel 16-bit PNGwith shape {raw.shape}")
+                raise ValueError(
+                    f"input: got a PNG of {raw.dtype} with shape {raw.shape}, expected a single-channel 16-bit PNG"
+                )
             depth = np.where(raw == 0, np.nan, raw.astype(np.float64) * depth_scale)
         elif suffix in (".tif", ".tiff"):
             import tifffile

@@ -22,7 +22,7 @@ from typing import TYPE_CHECKING
 import jax
 import numpy as np
 
-from ._camera import Camera, camera_points
+from ._camera import Camera, camera_points, fits_float32
 from ._compile import memo_scope
 from ._data import RangeData
 from ._encoding import Costs, Encoding, EncodingCost, encoding_cost, layer_errors, part_statistics, render_layers
@@ -385,8 +385,10 @@ class SceneSettings:
                 up = tuple(float(x) for x in self.up)
             except (TypeError, ValueError):
                 up = ()
-            if len(up) != 3 or not np.all(np.isfinite(up)) or not any(up):
-                raise ValueError(f"up: got {self.up!r}, expected three finite numbers (x, y, z), not all 0")
+            if len(up) != 3 or not all(np.isfinite(x) and fits_float32(x) for x in up) or not any(up):
+                raise ValueError(
+                    f"up: got {self.up!r}, expected three finite numbers (x, y, z) that float32 holds, not all 0"
+                )
             object.__setattr__(self, "up", up)
         if not (isinstance(self.max_angle, (int, float)) and 0 < self.max_angle <= 90):
             raise ValueError(f"max_angle: got {self.max_angle!r}, expected degrees in (0, 90]")

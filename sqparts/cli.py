@@ -35,7 +35,9 @@ class UsageError(ValueError):
 
 
 def _number(want: str, *, low=None, high=None, integer: bool = False, open_low: bool = False):
-    """An argparse ``type`` accepting a finite number (or integer) in [low, high]."""
+    """An argparse ``type`` accepting a finite number (or integer) in [low, high]; a
+    number also fits float32, as the package computes in it (1e308 would become inf, and
+    a positive 1e-300 zero)."""
 
     def parse(text: str):
         try:
@@ -47,6 +49,10 @@ def _number(want: str, *, low=None, high=None, integer: bool = False, open_low: 
         ok = ok and (high is None or value <= high)
         if not ok:
             raise argparse.ArgumentTypeError(f"got {text!r}, expected {want}")
+        from ._camera import fits_float32
+
+        if not integer and not fits_float32(value):
+            raise argparse.ArgumentTypeError(f"got {text!r}, expected {want} that float32 holds")
         return value
 
     return parse
@@ -167,9 +173,9 @@ def _recover_options(args) -> dict:
             max_angle=args.max_angle,
             max_bits=args.max_bits,
         )
-    except ValueError as e:  # a comma list the settings refused: name the flag and the text given
+    except ValueError as e:  # a value the settings refused: name the flag and the text given
         field, _, rest = str(e).partition(": got ")
-        if field not in ("up", "depth_range"):
+        if not hasattr(args, field):
             raise
         flag = "--" + field.replace("_", "-")
         raise ValueError(f"{flag}: got {getattr(args, field)!r}, expected {rest.partition(', expected ')[2]}") from None
@@ -235,7 +241,7 @@ def cmd_recover(args) -> int:
 
     if not _is_batch(args):
         path = _inputs(args.input)[0]
-        out = check_new_output(args.out, overwrite=args.overwrite)  # before any work
+        out = check_new_output(args.out, overwrite=args.overwrite, inputs=(path, args.camera))  # before any work
         camera = load_camera(args.camera) if args.camera else None
         opts = _recover_options(args)
         recovery = recover_file(
@@ -423,13 +429,14 @@ def cmd_recognize(args) -> int:
     inputs = _inputs(args.input)
     out = Path(args.out)
     targets = [out / name for name in output_names(inputs)]
+    kept = (*inputs, args.camera, args.db)  # never inside a folder replaced
     for target in targets:  # before any work: never overwrite silently
-        check_new_output(target, overwrite=args.overwrite)
+        check_new_output(target, overwrite=args.overwrite, inputs=kept)
     loaded = _read_inputs(args, inputs)
     progress = _progress(args, "regions", "region")
     for (path, depth, camera), target in zip(loaded, targets):
         result = recognize(depth, camera, database=db, progress=progress, **_recognition_options(args))
-        with staged_folder(target, overwrite=args.overwrite) as folder:
+        with staged_folder(target, overwrite=args.overwrite, inputs=kept) as folder:
             with atomic_write(folder / "recognition.json", "w") as f:
                 f.write(json.dumps(dict(result.to_json(), input=str(path)), indent=1) + "\n")
             with atomic_write(folder / "parts.json", "w") as f:
@@ -569,7 +576,7 @@ def build_parser() -> argparse.ArgumentParser:
     g.add_argument("--up", default=None, help="x,y,z gravity up in the camera frame (default: ground normal)")
     g.add_argument(
         "--max-angle",
-        type=_number("a number in [0, 90]", low=0, high=90),
+        type=_number("a number of degrees in (0, 90]", low=0, high=90, open_low=True),
         default=15.0,
         help="prettify parts within this many degrees",
     )

@@ -406,6 +406,10 @@ def test_huge_camera_is_refused_before_allocating(files, capsys):
         ("--depth-range", "nan,2"),
         ("--up", "0,0,0"),
         ("--up", "1,inf,0"),
+        ("--up", "1e308,0,1"),
+        ("--sigma", "1e308"),
+        ("--sigma", "1e-300"),
+        ("--max-angle", "0"),
     ],
 )
 def test_recover_numbers_are_validated_where_they_enter(files, capsys, flag, value):
@@ -546,3 +550,50 @@ def test_more_jobs_than_cores_is_refused(tmp_path, capsys):
     )
     assert f"--jobs: got {n}, expected at most" in line
     assert not (tmp_path / "o").exists()
+
+
+@pytest.mark.parametrize("fx", [1e39, 1e-300])
+def test_a_camera_float32_cannot_hold_is_refused(files, capsys, fx):
+    """fx = 1e39 passed the float64 checks and became inf in float32 (render wrote a
+    constant image, exit 0); 1e-300 became 0 (an all-NaN image). Both are one error
+    line, naming the value as given."""
+    k = list(CAMERA["intrinsic_matrix"])
+    k[0] = fx
+    (files / "big.json").write_text(json.dumps(dict(CAMERA, intrinsic_matrix=k)))
+    out = files / "d.npy"
+    err = cli_error(
+        capsys, ["render", str(files / "scene.json"), "--camera", str(files / "big.json"), "--out", str(out)]
+    )
+    assert f"fx: got {fx!r}, expected" in err and "float32" in err, err
+    assert not out.exists()
+    with pytest.raises(ValueError, match="float32"):
+        sqparts.camera_from_json(dict(CAMERA, intrinsic_matrix=k))
+
+
+def test_overwrite_never_replaces_a_folder_holding_the_input(files, capsys, monkeypatch):
+    """``recover x/a.npy --out x --overwrite`` replaced the folder x, the input with it
+    (and --camera's file beside it); it is refused before any work, and x is as it was."""
+    import shutil
+
+    import sqparts._recover
+
+    monkeypatch.setattr(sqparts._recover, "recover_scene", lambda *a, **k: pytest.fail("recovery ran"))
+    folder = files / "frames"
+    folder.mkdir()
+    shutil.copy(files / "x.npy", folder / "a.npy")
+    shutil.copy(files / "cam.json", folder / "cam.json")
+    before = sorted(p.name for p in folder.iterdir())
+    for argv in (
+        ["recover", str(folder / "a.npy"), "--camera", str(files / "cam.json"), "--out", str(folder)],
+        ["recover", str(files / "x.npy"), "--camera", str(folder / "cam.json"), "--out", str(folder)],
+    ):
+        err = cli_error(capsys, [*argv, "--overwrite"])
+        assert err.startswith(f"sqparts: error: --out: got {str(folder)!r}, which holds the input"), err
+    assert sorted(p.name for p in folder.iterdir()) == before
+    # The library's staged writer refuses it too (recover_file, a batch's sub-folders).
+    from sqparts._io import staged_folder
+
+    with pytest.raises(FileExistsError, match="holds the input"):
+        with staged_folder(folder, overwrite=True, inputs=[folder / "a.npy"]):
+            pass
+    assert sorted(p.name for p in folder.iterdir()) == before
