@@ -18,8 +18,7 @@ E. The moves, in :meth:`RefineSettings.moves`'s order:
 - :class:`GrowParts`: region growing over all parts at once: every part takes the figure
   pixels where it is visible plus the unexplained pixels next to them that lie near its
   surface, and is polished on them (optimistix Levenberg-Marquardt on radial surface
-  distances, batched over parts) while the background rays around it must miss it; a
-  quarter and half of the way to each fit are tried too (a line search on E);
+  distances, batched over parts) while the background rays around it must miss it;
 - :class:`SplitParts`: a part that spans two (a torso with its pelvis) split in two along
   its axis;
 - :class:`FillGaps`: blobs of unexplained pixels searched again at their own scale for the
@@ -179,29 +178,11 @@ class Move:
         raise NotImplementedError
 
 
-def toward(a: np.ndarray, b: np.ndarray, t: float) -> np.ndarray:
-    """The parts ``t`` of the way from the (n, 14) vectors ``a`` to ``b``: position,
-    squareness, bend and taper linearly, sizes geometrically, and the orientation along
-    the shortest rotation between the two (spherical linear interpolation)."""
-    from scipy.spatial.transform import Rotation
-
-    a, b = np.asarray(a, np.float64), np.asarray(b, np.float64)
-    out = a + t * (b - a)
-    out[:, 6:9] = a[:, 6:9] ** (1 - t) * b[:, 6:9] ** t
-    ra = Rotation.from_rotvec(a[:, 3:6])
-    out[:, 3:6] = (ra * Rotation.from_rotvec(t * (ra.inv() * Rotation.from_rotvec(b[:, 3:6])).as_rotvec())).as_rotvec()
-    return out.astype(np.float32)
-
-
 @dataclasses.dataclass(frozen=True, kw_only=True)
 class GrowParts(Move):
     """Region growing over all parts at once (:func:`_grow_inputs`, :func:`_grow`:
     ``steps`` solver steps on each part's support, which takes the unexplained pixels
-    within ``grow`` pixels and ``tolerance`` σ); each part's new fit is an edit, and so
-    is each part ``between`` of the way to it (:func:`toward`). The fit minimises radial
-    distances, which E only approximates, so a shorter step can lower E where the whole
-    one does not: a line search on E along the way to the fit, which keeps the descent
-    from stalling on a part every full fit of which was refused."""
+    within ``grow`` pixels and ``tolerance`` σ); each part's new fit is an edit."""
 
     name: ClassVar[str] = "polish"
     numbered: ClassVar[bool] = True
@@ -209,12 +190,6 @@ class GrowParts(Move):
     steps: int = 20
     tolerance: float = 2.0
     grow: int = 2
-    between: tuple = (0.25, 0.5)
-
-    def __post_init__(self):
-        super().__post_init__()
-        if not all(isinstance(t, (int, float)) and 0 < t < 1 for t in self.between):
-            raise ValueError(f"between: got {self.between!r}, expected fractions in (0, 1)")
 
     def propose(self, vectors, cost, data, costs, step):
         n = len(vectors)
@@ -222,8 +197,7 @@ class GrowParts(Move):
             return [[]]
         inputs = _grow_inputs(host_parts(vectors), data, cost, np.arange(n), tolerance=self.tolerance, grow=self.grow)
         new = _grow(data, [inputs], steps=self.steps)
-        steps = [new, *(toward(vectors, new, t) for t in self.between)]
-        return [[Edit((i,), v[i : i + 1]) for v in steps for i in range(n)]]
+        return [[Edit((i,), new[i : i + 1]) for i in range(n)]]
 
 
 @dataclasses.dataclass(frozen=True, kw_only=True)

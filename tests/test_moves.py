@@ -85,46 +85,6 @@ def test_grow_parts_alone_pulls_shifted_parts_back(image):
     assert [s for s, _ in history] == ["initial", "polish 1", "polish 2"]
 
 
-def test_toward_interpolates_each_parameter_as_its_closed_form():
-    from scipy.spatial.transform import Rotation, Slerp
-
-    from sqparts._refine import toward
-
-    rng = np.random.default_rng(3)
-    a, b = (TRUTH + rng.normal(0, 0.3, TRUTH.shape)).astype(np.float32), TRUTH.copy()
-    a[:, 6:9], b[:, 6:9] = np.abs(a[:, 6:9]) + 0.01, np.abs(b[:, 6:9]) + 0.01
-    np.testing.assert_allclose(toward(a, b, 0.0), a, atol=1e-6)
-    np.testing.assert_allclose(toward(a, b, 1.0), b, atol=1e-5)
-    t = 0.3
-    mid = toward(a, b, t).astype(np.float64)
-    np.testing.assert_allclose(mid[:, :3], (1 - t) * a[:, :3] + t * b[:, :3], rtol=1e-6)
-    np.testing.assert_allclose(mid[:, 6:9], np.exp((1 - t) * np.log(a[:, 6:9]) + t * np.log(b[:, 6:9])), rtol=1e-5)
-    np.testing.assert_allclose(mid[:, 9:], (1 - t) * a[:, 9:] + t * b[:, 9:], rtol=1e-5, atol=1e-7)
-    for i in range(len(a)):  # scipy's spherical interpolation between the two orientations
-        slerp = Slerp([0.0, 1.0], Rotation.from_rotvec(np.stack([a[i, 3:6], b[i, 3:6]]).astype(np.float64)))
-        want = slerp([t]).as_matrix()[0]
-        np.testing.assert_allclose(Rotation.from_rotvec(mid[i, 3:6]).as_matrix(), want, atol=1e-5)
-
-
-def test_grow_parts_keeps_a_shorter_step_when_the_whole_fit_overshoots(image, monkeypatch):
-    """A fit that overshoots (four times the way to the truth): the edit a quarter of
-    the way, exactly the truth, is the one kept; without ``between`` no step lowers E."""
-    import sqparts._refine as refine
-
-    data, costs = image
-    start = TRUTH + SHIFT / 4
-    monkeypatch.setattr(refine, "_grow", lambda data, inputs, *, steps: start + 4 * (TRUTH - start))
-    cost = _cost(start, data, costs)
-    for between, want in (((0.25,), TRUTH), ((), start)):
-        (edits,) = sqparts.GrowParts(between=between).propose(start, cost, data, costs, 0)
-        assert len(edits) == len(start) * (1 + len(between))
-        vectors, final = sqparts.accept_edits(start, cost, edits, data, costs)
-        np.testing.assert_allclose(vectors, want, atol=1e-6)
-    assert final.total == cost.total  # the overshoot alone was refused
-    with pytest.raises(ValueError, match="between: got"):
-        sqparts.GrowParts(between=(1.0,))
-
-
 @dataclasses.dataclass(frozen=True, kw_only=True)
 class _Alternatives(sqparts.Move):
     """Two alternative batches: part 1 replaced by the truth, or by a shifted copy."""
