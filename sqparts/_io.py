@@ -405,8 +405,11 @@ def read_range_image(path, *, depth_scale: float = 0.001) -> tuple[np.ndarray, C
             f"input: got {str(path)!r}, expected a readable range image ({type(e).__name__}: {e})"
         ) from None
     depth = np.asarray(depth)
-    if depth.ndim != 2 or not (np.issubdtype(depth.dtype, np.integer) or np.issubdtype(depth.dtype, np.floating)):
-        raise ValueError(f"input: got {depth.dtype} with shape {depth.shape}, expected a 2-D numeric range image")
+    numeric = np.issubdtype(depth.dtype, np.integer) or np.issubdtype(depth.dtype, np.floating)
+    if depth.ndim != 2 or not numeric or 0 in depth.shape:
+        raise ValueError(
+            f"input: got {depth.dtype} with shape {depth.shape}, expected a 2-D numeric range image with pixels"
+        )
     depth = depth.astype(np.float32)
     depth[~np.isfinite(depth) | (depth <= 0)] = np.nan
     return depth, camera

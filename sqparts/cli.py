@@ -419,6 +419,7 @@ def cmd_learn(args) -> int:
 def cmd_recognize(args) -> int:
     import json
 
+    from ._batch import RESULTS_NAME, _ResultsLog, error_message
     from ._database import ModelDatabase, recognize
     from ._io import atomic_write, check_new_output, staged_folder
     from ._plot import save_recognition_report
@@ -429,20 +430,57 @@ def cmd_recognize(args) -> int:
     inputs = _inputs(args.input)
     out = Path(args.out)
     targets = [out / name for name in output_names(inputs)]
+    # Several inputs are a batch, as for recover: one line each in results.jsonl, a
+    # failing input recorded and the rest recognised, exit status 1 if any failed.
+    results = out / RESULTS_NAME if len(inputs) > 1 else None
+    if results is not None and results.exists() and not args.overwrite:
+        raise FileExistsError(
+            f"--out: got {str(out)!r}, which holds the {RESULTS_NAME} of an earlier run, "
+            "expected a new folder (or --overwrite)"
+        )
     kept = (*inputs, args.camera, args.db)  # never inside a folder replaced
     for target in targets:  # before any work: never overwrite silently
         check_new_output(target, overwrite=args.overwrite, inputs=kept)
     loaded = _read_inputs(args, inputs)
     progress = _progress(args, "regions", "region")
-    for (path, depth, camera), target in zip(loaded, targets):
-        result = recognize(depth, camera, database=db, progress=progress, **_recognition_options(args))
-        with staged_folder(target, overwrite=args.overwrite, inputs=kept) as folder:
-            with atomic_write(folder / "recognition.json", "w") as f:
-                f.write(json.dumps(dict(result.to_json(), input=str(path)), indent=1) + "\n")
-            with atomic_write(folder / "parts.json", "w") as f:
-                f.write(json.dumps(result.recovery.scene_dict(), indent=2) + "\n")
-            save_recognition_report(folder / "report.png", result, title=path.name)
-        _say(args, f"{path.name}: {result.summary()}\n  wrote {target}/recognition.json, parts.json, report.png")
+    log = _ResultsLog(results, keep=()) if results is not None else None
+    failed = []
+    try:
+        for (path, depth, camera), target in zip(loaded, targets):
+            t0 = time.perf_counter()
+            try:
+                result = recognize(depth, camera, database=db, progress=progress, **_recognition_options(args))
+                with staged_folder(target, overwrite=args.overwrite, inputs=kept) as folder:
+                    with atomic_write(folder / "recognition.json", "w") as f:
+                        f.write(json.dumps(dict(result.to_json(), input=str(path)), indent=1) + "\n")
+                    with atomic_write(folder / "parts.json", "w") as f:
+                        f.write(json.dumps(result.recovery.scene_dict(), indent=2) + "\n")
+                    save_recognition_report(folder / "report.png", result, title=path.name)
+            except Exception as e:
+                if log is None:
+                    raise
+                error = error_message(e)
+                failed.append((path, error))
+                record = {"status": "error", "best": None, "evidence": None, "error": error}
+                _say(args, f"{path.name}: {error}")
+            else:
+                record = {"status": "ok", "best": result.best, "evidence": float(result.evidence), "error": None}
+                _say(
+                    args, f"{path.name}: {result.summary()}\n  wrote {target}/recognition.json, parts.json, report.png"
+                )
+            if log is not None:
+                seconds = round(time.perf_counter() - t0, 3)
+                log.append({"input": str(path), "output": str(target.relative_to(out)), **record, "seconds": seconds})
+    finally:
+        if log is not None:
+            log.close()
+    if failed:
+        print(
+            f"sqparts: error: input: got {len(failed)} of {len(inputs)} inputs failing (first {str(failed[0][0])!r}: "
+            f"{failed[0][1]}), expected each to be recognised; see {results}",
+            file=sys.stderr,
+        )
+        return 1
     return 0
 
 

@@ -498,11 +498,14 @@ def test_an_output_under_a_file_is_refused_before_any_work(files, capsys, monkey
     assert "is a file" in err
 
 
-def test_a_complex_range_image_is_refused(files, capsys):
-    np.save(files / "c.npy", np.ones((24, 32), complex))
+@pytest.mark.parametrize("array", [np.ones((24, 32), complex), np.ones((0, 32), np.float32)])
+def test_a_complex_or_empty_range_image_is_refused(files, capsys, array):
+    """A complex image, and one without pixels (shown as a blank picture before)."""
+    np.save(files / "c.npy", array)
     assert "expected a 2-D numeric range image" in cli_error(
         capsys, ["show", str(files / "c.npy"), "--out", str(files / "p.png")]
     )
+    assert not (files / "p.png").exists()
 
 
 def test_a_huge_max_size_gives_the_largest_window():

@@ -403,6 +403,31 @@ def test_learn_and_recognize_from_the_command_line(tmp_path, capsys):
         == 2
     )
     assert "which exists, expected a new path (or --overwrite)" in capsys.readouterr().err
+    # Several inputs are a batch: an input that fails (no returns at all) gets its line
+    # in results.jsonl and the others are recognised; exit status 1.
+    np.save(tmp_path / "empty.npy", np.full((CAMERA["height"], CAMERA["width"]), np.nan, np.float32))
+    batch = tmp_path / "batch"
+    argv = [
+        "recognize",
+        str(tmp_path / "empty.npy"),
+        str(tmp_path / "query.npy"),
+        "--camera",
+        str(tmp_path / "cam.json"),
+    ]
+    capsys.readouterr()
+    assert main([*argv, "--db", str(tmp_path / "db"), "--out", str(batch), *FAST]) == 1
+    err = capsys.readouterr().err.strip().splitlines()[-1]
+    assert err.startswith("sqparts: error: input: got 1 of 2 inputs failing (first ") and "results.jsonl" in err
+    lines = [json.loads(line) for line in (batch / "results.jsonl").read_text().splitlines()]
+    assert [(r["output"], r["status"], r["best"]) for r in lines] == [
+        ("empty", "error", None),
+        ("query", "ok", "cigar"),
+    ]
+    assert lines[0]["error"] and lines[1]["error"] is None
+    assert sorted(p.name for p in batch.iterdir()) == ["query", "results.jsonl"]
+    # An earlier run's results.jsonl is never replaced silently.
+    assert main([*argv, "--db", str(tmp_path / "db"), "--out", str(batch), *FAST]) == 2
+    assert "results.jsonl of an earlier run" in capsys.readouterr().err
 
 
 def test_recognize_with_an_empty_database_is_one_line(tmp_path, capsys):
