@@ -387,6 +387,11 @@ def plan_batch(
             f"--out: got {str(out)!r}, which holds the {RESULTS_NAME} of an earlier run, "
             "expected a new folder (or --resume to finish it, or --overwrite)"
         )
+    if resume and not earlier and any((out / name).exists() for name in OUTPUT_FILES):
+        raise FileExistsError(
+            f"--out: got {str(out)!r}, which holds one recovery's outputs, "
+            f"expected a batch's folder to resume (with its {RESULTS_NAME}) or a new one"
+        )
     latest = {(r["input"], r["output"]): r for r in earlier} if resume else {}
     tasks, skipped = [], []
     for path, name in zip(paths, names):

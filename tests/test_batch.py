@@ -112,6 +112,22 @@ def test_resume_redoes_nothing_on_a_complete_run(batch, capsys, monkeypatch):
     assert stamps(batch / "out") == before
 
 
+def test_resume_refuses_a_single_recoverys_folder(batch, capsys, monkeypatch):
+    """--resume into the folder of one input's recovery (its three files, no
+    results.jsonl) wrote a batch's sub-folder and results.jsonl beside them; it is
+    refused before any work, the folder as it was."""
+    out = batch / "out"
+    out.mkdir()
+    for name in _batch.OUTPUT_FILES:
+        (out / name).write_text("")
+    before = stamps(out)
+    monkeypatch.setattr(_batch, "recover_file", lambda *a, **k: pytest.fail("recovery ran"))
+    assert main(recover_argv(batch, batch / "in" / "f0.npy") + ["--resume"]) == 2
+    err = capsys.readouterr().err.strip()
+    assert err.startswith("sqparts: error: --out: got") and "one recovery's outputs" in err and "\n" not in err
+    assert stamps(out) == before
+
+
 def test_resume_ignores_a_torn_last_line(batch):
     argv = recover_argv(batch, batch / "in")
     assert main(argv) == 0
