@@ -80,8 +80,9 @@ def downsample_mask(mask, factor: int) -> np.ndarray:
 
 
 def auto_factor(shape, target: int = 160) -> int:
-    """The binning factor that brings an image's longest side to about ``target``."""
-    return max(1, int(max(shape)) // int(target))
+    """The binning factor that brings an image's longest side to about ``target``, at
+    most its shortest side (a long strip keeps one row)."""
+    return max(1, min(int(max(shape)) // int(target), int(min(shape))))
 
 
 # --- 2. sensor clean-up --------------------------------------------------------------
