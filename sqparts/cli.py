@@ -424,6 +424,10 @@ def cmd_recognize(args) -> int:
     from ._io import atomic_write, check_new_output, staged_folder
     from ._plot import save_recognition_report
 
+    if not Path(args.db).is_dir():
+        raise FileNotFoundError(
+            f"--db: got {args.db!r}, which is not a folder, expected a database made by sqparts learn"
+        )
     db = ModelDatabase(args.db)
     if not db.objects:
         raise ValueError(f"--db: got {args.db!r} with no objects, expected a database made by sqparts learn")

@@ -435,24 +435,14 @@ def test_recognize_with_an_empty_database_is_one_line(tmp_path, capsys):
     (tmp_path / "cam.json").write_text(
         json.dumps({"width": 4, "height": 4, "intrinsic_matrix": [4.0, 0, 0, 0, 4.0, 0, 1.5, 1.5, 1]})
     )
-    assert (
-        main(
-            [
-                "recognize",
-                str(tmp_path / "x.npy"),
-                "--camera",
-                str(tmp_path / "cam.json"),
-                "--db",
-                str(tmp_path / "none"),
-                "--out",
-                str(tmp_path / "o"),
-            ]
-        )
-        == 2
-    )
-    err = capsys.readouterr().err.strip()
-    assert err.startswith("sqparts: error: --db: got") and "expected a database made by sqparts learn" in err
-    assert not (tmp_path / "o").exists()
+    (tmp_path / "empty").mkdir()
+    for db, says in (("none", "which is not a folder"), ("empty", "with no objects")):
+        argv = ["recognize", str(tmp_path / "x.npy"), "--camera", str(tmp_path / "cam.json")]
+        assert main([*argv, "--db", str(tmp_path / db), "--out", str(tmp_path / "o")]) == 2
+        err = capsys.readouterr().err.strip()
+        assert err.startswith("sqparts: error: --db: got") and says in err, err
+        assert "expected a database made by sqparts learn" in err and "\n" not in err
+        assert not (tmp_path / "o").exists()
 
 
 @pytest.mark.parametrize(
