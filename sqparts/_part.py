@@ -353,6 +353,7 @@ def gauge(part: Part, local_point: Float[Array, "3"]) -> Float[Array, ""]:
     return abs_pow(f, part.squareness[0] / 2.0) - 1.0
 
 
+@jax.custom_jvp
 def surface_distance(part: Part, point: Float[ArrayLike, "3"]) -> Float[Array, ""]:
     """Signed radial distance of a camera-frame point from the part's surface (< 0 inside).
 
@@ -360,14 +361,37 @@ def surface_distance(part: Part, point: Float[ArrayLike, "3"]) -> Float[Array, "
     the ray from the part's centre through the point (exact for spheres; Gross & Boult's
     radial Euclidean distance). Unlike the algebraic inside-outside value it hardly
     favours small parts or points near the ends of long axes.
+
+    Its derivatives (a custom JVP, the same in every mode): the gradient of the distance
+    in the part's frame with respect to the local point and the part's shape, taken once
+    per point in reverse mode, then applied to the tangents of the local point (the pose,
+    and the point itself). Forward mode through the formula carries every tangent through
+    every step of it; polishing's Jacobians (14 tangents per point) cost about 4x less
+    this way.
     """
-    q = undeform(part, to_local(part, point))
+    return _local_distance(part, to_local(part, point))
+
+
+def _local_distance(part: Part, local: Float[Array, "3"]) -> Float[Array, ""]:
+    """:func:`surface_distance` of a point already in the part's (deformed) local frame."""
+    q = undeform(part, local)
     # At the centre the direction is undefined: step off it by a millionth of a1.
     tiny = 1e-6 * part.size[0]
     q = jnp.where(jnp.sum(q * q) < tiny * tiny, q + jnp.stack([tiny, 0.0 * tiny, 0.0 * tiny]), q)
     norm = abs_pow(superquadric_function(part, q), part.squareness[0] / 2.0)
     length = jnp.sqrt(jnp.sum(q * q))
     return length - length / norm
+
+
+@surface_distance.defjvp
+def _surface_distance_jvp(primals, tangents):
+    part, point = primals
+    dpart, dpoint = tangents
+    local, dlocal = jax.jvp(to_local, (part, jnp.asarray(point)), (dpart, jnp.asarray(dpoint)))
+    value, (g_part, g_local) = jax.value_and_grad(_local_distance, argnums=(0, 1))(part, local)
+    # Position and orientation enter through the local point only (their gradients here are 0).
+    shape = sum(jnp.sum(g * d) for g, d in zip(jax.tree.leaves(g_part), jax.tree.leaves(dpart)))
+    return value, shape + jnp.sum(g_local * dlocal)
 
 
 def surface_point(part: Part, eta: ArrayLike, omega: ArrayLike) -> Float[Array, "3"]:

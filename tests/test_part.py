@@ -159,3 +159,53 @@ def test_surface_distance_closed_forms():
     # Finite value and gradient at the centre itself.
     g = jax.grad(lambda p: sqparts.surface_distance(sphere, p))(jnp.asarray(c, jnp.float32))
     assert np.all(np.isfinite(np.asarray(g)))
+
+
+def test_surface_distance_derivatives_equal_autodiff_through_the_formula():
+    """surface_distance's custom JVP (local reverse-mode gradients applied to the local
+    point's tangents) against plain forward and reverse mode through the formula, and a
+    sphere's closed form: every part parameter and the point, forward and reverse."""
+    from sqparts._part import _local_distance, to_local
+
+    def custom(v, x):
+        return sqparts.surface_distance(sqparts.Part.from_vector(v), x)
+
+    def plain(v, x):
+        part = sqparts.Part.from_vector(v)
+        return _local_distance(part, to_local(part, x))
+
+    rng = np.random.default_rng(3)
+    checked = 0
+    for i in range(12):
+        kw = random_part_kwargs(rng, deform=i % 2 == 1)
+        if i % 3 == 0:
+            kw["squareness"] = [0.15, 0.2]  # boxy
+        v = sqparts.Part(**kw).to_vector()
+        c = np.asarray(v[:3])
+        x = jnp.asarray(c + rng.normal(size=(16, 3)) * 0.2, jnp.float32)
+        want_v, want_x = jax.vmap(jax.jacfwd(plain, argnums=(0, 1)), (None, 0))(v, x)
+        for mode in (jax.jacfwd, jax.jacrev):
+            got_v, got_x = jax.vmap(mode(custom, argnums=(0, 1)), (None, 0))(v, x)
+            for got, want in ((got_v, want_v), (got_x, want_x)):
+                got, want = np.asarray(got), np.asarray(want)
+                assert np.all(np.isfinite(got))
+                # Plain forward mode overflows on some points of boxy parts (|q|^(2/ε) far
+                # out): compare where it is finite, which must be most points.
+                ok = np.isfinite(want).all(-1)
+                checked += ok.sum()
+                scale = np.abs(want[ok]).max(axis=-1, keepdims=True) + 1e-3
+                np.testing.assert_allclose(got[ok] / scale, want[ok] / scale, atol=2e-5)
+        np.testing.assert_array_equal(jax.vmap(custom, (None, 0))(v, x), jax.vmap(plain, (None, 0))(v, x))
+    assert checked >= 0.8 * 12 * 16 * 2 * 2
+    # A sphere: the distance |x - c| - r; its gradient is u = (x - c)/|x - c| in the
+    # point, -u in the position, and -u_i² in semi-axis a_i (u_i in the part's frame: the
+    # radius along u of an ellipsoid is (Σ u_i²/a_i²)^(-1/2)).
+    sphere = sqparts.Part(size=[0.3, 0.3, 0.3], position=[0.1, -0.2, 2.0], orientation=[0.3, -1.0, 0.5]).to_vector()
+    x = jnp.asarray([0.5, 0.1, 2.3], jnp.float32)
+    unit = np.asarray(x - sphere[:3]) / np.linalg.norm(np.asarray(x - sphere[:3]))
+    g_v, g_x = jax.grad(custom, argnums=(0, 1))(sphere, x)
+    np.testing.assert_allclose(np.asarray(g_x), unit, atol=1e-5)
+    np.testing.assert_allclose(np.asarray(g_v[:3]), -unit, atol=1e-5)
+    local = np.asarray(sqparts.rotation_matrix(sphere[3:6])).T @ unit
+    np.testing.assert_allclose(np.asarray(g_v[6:9]), -(local**2), atol=1e-5)
+    np.testing.assert_allclose(np.asarray(g_v[3:6]), 0.0, atol=1e-5)  # turning a sphere moves nothing
