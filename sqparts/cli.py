@@ -466,7 +466,8 @@ def cmd_recognize(args) -> int:
                 error = error_message(e)
                 failed.append((path, error))
                 record = {"status": "error", "best": None, "evidence": None, "error": error}
-                _say(args, f"{path.name}: {error}")
+                if not args.quiet:
+                    print(f"{path}: {error}", file=sys.stderr)  # as recover's batch reports a failure
             else:
                 record = {"status": "ok", "best": result.best, "evidence": float(result.evidence), "error": None}
                 _say(
