@@ -318,9 +318,12 @@ class FillGaps(Move):
 
     Proposes the innermost searches' additions and, if the skeleton points' searches add
     to them, all additions, as alternatives: a part that pays here can still stop a
-    merge that would have paid more."""
+    merge that would have paid more. Up to ``passes`` passes while they lower E: at most
+    ``blobs`` members are started per pass, and a gate's six two-pixel members need more
+    than one."""
 
     name: ClassVar[str] = "fill gaps"
+    passes: int = 4
     search: SearchSettings | None = None
     steps: int = 20
     rounds: int = 3
@@ -804,8 +807,8 @@ class OnGain:
 def run_moves(moves, vectors: np.ndarray, cost: EncodingCost, data: RangeData, costs: Costs):
     """The refinement loop: each of ``moves`` (:class:`Move` or :class:`OnGain`) in turn,
     pass after pass while its passes lower E, each pass's edits accepted by
-    :func:`accept_edits`. A pass that proposes alternatives has the rest of the moves
-    finish each, and the shorter description is kept. Returns (vectors, cost, history of
+    :func:`accept_edits`. A pass that proposes alternatives has the rest (the move's own
+    passes left, then the other moves) finish each, and the shorter description is kept. Returns (vectors, cost, history of
     (stage, E))."""
     history = []
     for m, move in enumerate(moves):
@@ -826,7 +829,10 @@ def run_moves(moves, vectors: np.ndarray, cost: EncodingCost, data: RangeData, c
                 if not any(np.array_equal(end[0], v) for v, _ in ends):  # False for different part counts too
                     ends.append(end)
             if len(ends) > 1:
-                finished = [run_moves(moves[m + 1 :], v, c, data, costs) for v, c in ends]
+                rest = moves[m + 1 :]
+                if step + 1 < move.passes:  # the move's own passes left come first
+                    rest = (dataclasses.replace(move, passes=move.passes - step - 1), *rest)
+                finished = [run_moves(rest, v, c, data, costs) for v, c in ends]
                 k = min(range(len(ends)), key=lambda k: finished[k][1].total)
                 vectors, cost, stages = finished[k]
                 return vectors, cost, [*history, (move.name, ends[k][1].total), *stages]

@@ -119,6 +119,35 @@ def test_the_loop_finishes_each_alternative_and_keeps_the_shorter(image):
     assert [s for s, _ in history] == ["initial", "alternatives", "count"]
 
 
+@dataclasses.dataclass(frozen=True, kw_only=True)
+class _AlternativesThenCount(sqparts.Move):
+    """Pass 1: the two alternatives of :class:`_Alternatives`; later passes: recorded,
+    nothing proposed."""
+
+    name: ClassVar[str] = "alternatives"
+    calls: list = dataclasses.field(default_factory=list)
+
+    def propose(self, vectors, cost, data, costs, step):
+        self.calls.append(step)
+        if len(self.calls) == 1:
+            return _Alternatives().propose(vectors, cost, data, costs, step)
+        return [[]]
+
+
+def test_alternatives_are_finished_by_the_moves_own_passes_left(image):
+    """A move of three passes whose first proposes alternatives: each alternative is
+    finished by the move's second pass (which keeps nothing, ending the move), then the
+    rest."""
+    data, costs = image
+    start = TRUTH + np.stack([np.zeros(14, np.float32), 2 * SHIFT])
+    move, count = _AlternativesThenCount(passes=3), _Count(passes=5)
+    parts, cost, history = sqparts.refine_moves(sqparts.Part.from_vector(start), data, costs, [move, count])
+    np.testing.assert_array_equal(part_vectors(parts), TRUTH)
+    assert move.calls == [0, 0, 0]  # the first pass, then one more in each of the two finishes
+    assert count.calls == [2, 2]
+    assert [s for s, _ in history] == ["initial", "alternatives", "alternatives", "count"]
+
+
 def test_on_gain_runs_its_moves_only_after_a_gain(image):
     data, costs = image
     stray = TRUTH[0] + np.r_[0.0, 0.15, 0.0, np.zeros(11)].astype(np.float32)
