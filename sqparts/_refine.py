@@ -318,9 +318,10 @@ class FillGaps(Move):
 
     Proposes the innermost searches' additions and, if the skeleton points' searches add
     to them, all additions, as alternatives: a part that pays here can still stop a
-    merge that would have paid more. Up to ``passes`` passes while they lower E: at most
-    ``blobs`` members are started per pass, and a gate's six two-pixel members need more
-    than one."""
+    merge that would have paid more. Up to ``passes`` passes while they lower E: the
+    unexplained pixels regroup once a pass has added parts (a gate's six two-pixel
+    members need more than one pass). Each pass that proposes two alternatives doubles
+    the work of the passes after it."""
 
     name: ClassVar[str] = "fill gaps"
     passes: int = 4
@@ -808,8 +809,8 @@ def run_moves(moves, vectors: np.ndarray, cost: EncodingCost, data: RangeData, c
     """The refinement loop: each of ``moves`` (:class:`Move` or :class:`OnGain`) in turn,
     pass after pass while its passes lower E, each pass's edits accepted by
     :func:`accept_edits`. A pass that proposes alternatives has the rest (the move's own
-    passes left, then the other moves) finish each, and the shorter description is kept. Returns (vectors, cost, history of
-    (stage, E))."""
+    passes left, then the other moves) finish each, and the shorter description is
+    kept. Returns (vectors, cost, history of (stage, E))."""
     history = []
     for m, move in enumerate(moves):
         if isinstance(move, OnGain):
