@@ -320,8 +320,9 @@ class FillGaps(Move):
     to them, all additions, as alternatives: a part that pays here can still stop a
     merge that would have paid more. Up to ``passes`` passes while they lower E: the
     unexplained pixels regroup once a pass has added parts (a gate's six two-pixel
-    members need more than one pass). Each pass that proposes two alternatives doubles
-    the work of the passes after it."""
+    members need more than one pass). The first pass that proposes two alternatives
+    doubles the work after it; later passes keep their alternative of lowest E
+    (:func:`run_moves`)."""
 
     name: ClassVar[str] = "fill gaps"
     passes: int = 4
@@ -805,22 +806,25 @@ class OnGain:
             raise ValueError(f"repeat: got {r!r}, expected an integer in [1, {MAX_PASSES}]")
 
 
-def run_moves(moves, vectors: np.ndarray, cost: EncodingCost, data: RangeData, costs: Costs):
+def run_moves(moves, vectors: np.ndarray, cost: EncodingCost, data: RangeData, costs: Costs, *, branch: bool = True):
     """The refinement loop: each of ``moves`` (:class:`Move` or :class:`OnGain`) in turn,
     pass after pass while its passes lower E, each pass's edits accepted by
-    :func:`accept_edits`. A pass that proposes alternatives has the rest (the move's own
-    passes left, then the other moves) finish each, and the shorter description is
-    kept. Returns (vectors, cost, history of (stage, E))."""
+    :func:`accept_edits`. The first pass that proposes alternatives (when ``branch``) has
+    the rest (the move's own passes left, then the other moves) finish each, and the
+    shorter description is kept; within those finishes (``branch`` False) a pass keeps
+    its alternative of lowest E and goes on, so a refinement finishes at most as many
+    descriptions as that one pass proposed, however many passes propose alternatives.
+    Returns (vectors, cost, history of (stage, E))."""
     history = []
     for m, move in enumerate(moves):
         if isinstance(move, OnGain):
             for _ in range(move.repeat):
                 before = cost.total
-                vectors, cost, stages = run_moves((move.move,), vectors, cost, data, costs)
+                vectors, cost, stages = run_moves((move.move,), vectors, cost, data, costs, branch=branch)
                 history += stages
                 if cost.total >= before:
                     break
-                vectors, cost, stages = run_moves(move.then, vectors, cost, data, costs)
+                vectors, cost, stages = run_moves(move.then, vectors, cost, data, costs, branch=branch)
                 history += [(f"{stage} after {move.move.name}", e) for stage, e in stages]
             continue
         for step in range(move.passes):
@@ -829,16 +833,17 @@ def run_moves(moves, vectors: np.ndarray, cost: EncodingCost, data: RangeData, c
                 end = accept_edits(vectors, cost, edits, data, costs)
                 if not any(np.array_equal(end[0], v) for v, _ in ends):  # False for different part counts too
                     ends.append(end)
-            if len(ends) > 1:
+            if len(ends) > 1 and branch:
                 rest = moves[m + 1 :]
                 if step + 1 < move.passes:  # the move's own passes left come first
                     rest = (dataclasses.replace(move, passes=move.passes - step - 1), *rest)
-                finished = [run_moves(rest, v, c, data, costs) for v, c in ends]
+                finished = [run_moves(rest, v, c, data, costs, branch=False) for v, c in ends]
                 k = min(range(len(ends)), key=lambda k: finished[k][1].total)
                 vectors, cost, stages = finished[k]
                 return vectors, cost, [*history, (move.name, ends[k][1].total), *stages]
-            improved = ends[0][1].total < cost.total
-            vectors, cost = ends[0]
+            end = min(ends, key=lambda e: e[1].total)
+            improved = end[1].total < cost.total
+            vectors, cost = end
             if move.numbered:
                 history.append((f"{move.name} {step + 1}", cost.total))
             if not improved:

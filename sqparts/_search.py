@@ -35,7 +35,7 @@ from jax.sharding import Mesh
 from jax.sharding import PartitionSpec as P
 
 from ._camera import Camera, camera_points
-from ._compile import concurrently, persistent_jit
+from ._compile import RowMemo, concurrently, persistent_jit
 from ._data import RangeData, prepare
 from ._encoding import (
     PART_BUCKET,
@@ -529,11 +529,45 @@ class _Chosen(eqx.Module):
     max_size: float
 
 
+_CHOSEN = RowMemo(4 << 20)
+"""Each region's chosen hypotheses by image, settings and centre (see
+:class:`~sqparts._compile.RowMemo`): filling gaps searches a blob again on each pass and
+in each alternative while the blob is unchanged."""
+
+
 def _choose(data: RangeData, settings: SearchSettings, centre) -> _Chosen:
     """Score every hypothesis at one region (on a subsample when ``prune``), rescore the
     survivors at full resolution and keep the ``max(top_k, polish_candidates)`` best
-    distinct ones (:func:`_distinct`)."""
+    distinct ones (:func:`_distinct`); a region chosen before in this recovery is looked
+    up (:data:`_CHOSEN`)."""
     hyp = _grid_arrays(settings.grid)
+    key = RowMemo.key(
+        np.asarray(data.depth),
+        np.asarray(data.figure),
+        data.pad,
+        data.camera,
+        data.encoding,
+        settings,
+        tuple(int(c) for c in centre),
+    )
+    row = _CHOSEN.get(key)
+    if row is None:
+        row = _choose_row(data, settings, centre, hyp)
+        _CHOSEN.put(key, row)
+    k = (len(row) - 1) // 2
+    chosen = row[:k].astype(np.int64)
+    return _Chosen(
+        hyp["orientation"][chosen],
+        hyp["shape"][chosen],
+        row[k : 2 * k].astype(np.float32),
+        float(row[-1]),
+        float(settings.max_size),  # pyright: ignore[reportArgumentType]  # resolved settings: a float
+    )
+
+
+def _choose_row(data: RangeData, settings: SearchSettings, centre, hyp) -> np.ndarray:
+    """:func:`_choose`'s result as one row: the chosen hypotheses' indices in the grid,
+    their offsets, the ratio (float64)."""
     n = len(hyp["orientation"])
     if settings.prune and settings.lattice > 1 and settings.survivors < n:
         gam = np.empty(n, np.float32)
@@ -557,14 +591,7 @@ def _choose(data: RangeData, settings: SearchSettings, centre) -> _Chosen:
     best = ranked[
         _distinct(hyp["orientation"][index[ranked]], hyp["shape"][index[ranked]], max(k, settings.polish_candidates))
     ]
-    chosen = index[best]
-    return _Chosen(
-        hyp["orientation"][chosen],
-        hyp["shape"][chosen],
-        np.asarray(off_full)[best],
-        ratio,
-        float(settings.max_size),  # pyright: ignore[reportArgumentType]  # resolved settings: a float
-    )
+    return np.concatenate([index[best], np.asarray(off_full, np.float64)[best], [ratio]]).astype(np.float64)
 
 
 class _Scored(eqx.Module):

@@ -148,6 +148,30 @@ def test_fit_regions_batched_equals_one_region_at_a_time(data):
     assert sqparts.fit_regions(data, st, np.zeros((0, 2), int)) == []
 
 
+def test_a_region_searched_again_in_one_recovery_is_looked_up(data):
+    """Inside a recovery's memo scope a region's grid search is kept by image, settings
+    and centre: searching it again (filling gaps, pass after pass) gives what a fresh
+    search gives, without scoring the grid again; another scale is searched anew."""
+    from sqparts._compile import memo_scope
+    from sqparts._search import _CHOSEN
+
+    search = dataclasses.replace(sqparts.SEARCH_PRESETS["region"], grid=SMALL, max_size=0.25, polish_rounds=1)
+    st = search.resolve(data)
+    centres = np.array([_centre(data)])
+    fresh = sqparts.fit_regions(data, st, centres)[0]
+    with memo_scope():
+        sqparts.fit_regions(data, st, centres)
+        hits = _CHOSEN.hits
+        again = sqparts.fit_regions(data, st, centres)[0]
+        assert _CHOSEN.hits == hits + 1
+        smaller = sqparts.fit_regions(data, st, centres, max_sizes=[0.1])[0]
+        assert _CHOSEN.hits == hits + 1
+    np.testing.assert_array_equal(np.asarray(again.parts.to_vector()), np.asarray(fresh.parts.to_vector()))
+    np.testing.assert_array_equal(np.asarray(again.gamma), np.asarray(fresh.gamma))
+    assert again.ratio == fresh.ratio
+    assert not np.array_equal(np.asarray(smaller.parts.to_vector()), np.asarray(fresh.parts.to_vector()))
+
+
 _SHARD_SCRIPT = r"""
 import json, sys, numpy as np, jax
 import sqparts
