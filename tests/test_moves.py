@@ -148,6 +148,33 @@ def test_alternatives_are_finished_by_the_moves_own_passes_left(image):
     assert [s for s, _ in history] == ["initial", "alternatives", "alternatives", "count"]
 
 
+@dataclasses.dataclass(frozen=True, kw_only=True)
+class _AlternativesEveryPass(sqparts.Move):
+    """Every pass: the two alternatives of :class:`_Alternatives` (recorded)."""
+
+    name: ClassVar[str] = "alternatives"
+    calls: list = dataclasses.field(default_factory=list)
+
+    def propose(self, vectors, cost, data, costs, step):
+        self.calls.append(step)
+        return _Alternatives().propose(vectors, cost, data, costs, step)
+
+
+def test_only_the_first_pass_with_alternatives_branches(image):
+    """A move whose every pass proposes two alternatives: the first pass's two are
+    finished, and within each finish a pass keeps its alternative of lowest E (the
+    truth), so the rest runs twice, not once per path through the passes (2^passes)."""
+    data, costs = image
+    start = TRUTH + np.stack([np.zeros(14, np.float32), 2 * SHIFT])
+    move, count = _AlternativesEveryPass(passes=4), _Count(passes=5)
+    parts, _, _ = sqparts.refine_moves(sqparts.Part.from_vector(start), data, costs, [move, count])
+    np.testing.assert_array_equal(part_vectors(parts), TRUTH)
+    assert count.calls == [2, 2]
+    # The shifted start's finish keeps the truth on its first pass and nothing on its
+    # second; the truth's finish keeps nothing on its first.
+    assert move.calls == [0, 0, 1, 0]
+
+
 def test_on_gain_runs_its_moves_only_after_a_gain(image):
     data, costs = image
     stray = TRUTH[0] + np.r_[0.0, 0.15, 0.0, np.zeros(11)].astype(np.float32)
