@@ -88,6 +88,8 @@ def expand_inputs(paths, *, recursive: bool = False) -> list[Path]:
             out.extend(found)
         elif not p.exists():
             raise FileNotFoundError(f"input: got {text!r}, expected an existing file or folder, or a glob pattern")
+        elif p.suffix.lower() not in RANGE_IMAGE_SUFFIXES:  # every input's name checked before any work
+            raise ValueError(f"input: got {text!r}, expected a range image ending in {wanted}")
         else:
             out.append(p)
     seen = {}
@@ -195,7 +197,14 @@ def recover_file(
     path = Path(path)
     depth, camera = read_input(path, camera=camera, depth_scale=depth_scale)
     encoding = encoding_for(depth[np.isfinite(depth)], sigma=sigma) if sigma else None
-    recovery = recover_scene(depth, camera, encoding=encoding, progress=progress, **options)
+    try:
+        recovery = recover_scene(depth, camera, encoding=encoding, progress=progress, **options)
+    except ValueError as e:  # the image's depths refused: name the file
+        got, sep, rest = str(e).partition(": ")
+        if got != "depth" or not rest.startswith("got "):
+            raise
+        found, _, expected = rest.partition(", expected ")
+        raise ValueError(f"input: {found} in {str(path)!r}" + (f", expected {expected}" if expected else "")) from None
     with staged_folder(target, overwrite=overwrite, inputs=(path,)) as folder:
         write_recovery(folder, recovery, title=path.name)
     return recovery
@@ -391,6 +400,11 @@ def plan_batch(
         raise FileExistsError(
             f"--out: got {str(out)!r}, which holds one recovery's outputs, "
             f"expected a batch's folder to resume (with its {RESULTS_NAME}) or a new one"
+        )
+    if resume and not earlier and out.is_dir() and any(not p.name.startswith(".sqparts-") for p in out.iterdir()):
+        raise FileExistsError(
+            f"--resume: got --out {str(out)!r}, which holds no {RESULTS_NAME} of an earlier run, "
+            "expected a batch's folder to resume or a new one"
         )
     latest = {(r["input"], r["output"]): r for r in earlier} if resume else {}
     tasks, skipped = [], []

@@ -322,6 +322,14 @@ def check_range_image(depth, camera: Camera) -> np.ndarray:
         return np.where(np.isfinite(d) & (d > 0), d, np.nan)
 
 
+def json_numbers(value) -> bool:
+    """Whether a JSON value is a number or nested lists of numbers (not true/false,
+    which Python counts as integers, nor strings)."""
+    if isinstance(value, list):
+        return all(json_numbers(v) for v in value)
+    return isinstance(value, (int, float, np.integer, np.floating)) and not isinstance(value, bool)
+
+
 def camera_from_json(data: dict) -> Camera:
     """Build a camera from its JSON dict (Open3D pinhole, orthographic or scanner)."""
     if not isinstance(data, dict):
@@ -332,8 +340,8 @@ def camera_from_json(data: dict) -> Camera:
         "orthographic": {"model", "width", "height", "pixel_size", "cx", "cy"},
         "scanner": {"model", "width", "height", "azimuth_step", "elevation_step", "cx", "cy"},
     }
-    if model not in known:
-        raise ValueError(f"camera.model: got {model!r}, expected one of {sorted(known)}")
+    if not isinstance(model, str) or model not in known:
+        raise ValueError(f"camera.model: got {model!r:.60}, expected one of {sorted(known)}")
     required = known[model] - {"model"}
     missing = sorted(required - set(data))
     if missing:
@@ -343,6 +351,21 @@ def camera_from_json(data: dict) -> Camera:
         raise ValueError(
             f"camera: got unknown key(s) {unknown}, expected only {sorted(known[model])} for a {model} camera"
         )
+    try:
+        return _camera_of_model(model, data)
+    except ValueError as e:  # a field's check: name it as the file does
+        name, _, rest = str(e).partition(": ")
+        if name in ("fx", "fy", "cx", "cy") and model == "pinhole":
+            raise ValueError(f"camera.intrinsic_matrix: {rest} ({name})") from None
+        if name in known[model]:
+            raise ValueError(f"camera.{name}: {rest}") from None
+        raise
+
+
+def _camera_of_model(model: str, data: dict) -> Camera:
+    for key, value in data.items():
+        if key != "model" and not json_numbers(value):
+            raise ValueError(f"camera.{key}: got {value!r:.60}, expected numbers")
     if model == "pinhole":
         try:
             k = np.asarray(data["intrinsic_matrix"], dtype=float)

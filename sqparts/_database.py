@@ -288,13 +288,13 @@ class ModelDatabase:
                     f"database: got {str(index)!r} without format {DATABASE_FORMAT!r}, expected a sqparts database"
                 )
             t = data.get("threshold", DEFAULT_THRESHOLD)
-            if not isinstance(t, (int, float)) or not np.isfinite(t):
+            if isinstance(t, bool) or not isinstance(t, (int, float)) or not np.isfinite(t):
                 raise ValueError(f"database.threshold: got {t!r}, expected a finite number")
             statistic = data.get("statistic", "score")
             if statistic not in STATISTICS:
                 raise ValueError(f"database.statistic: got {statistic!r}, expected one of {', '.join(STATISTICS)}")
             self.threshold, self.statistic = float(t), statistic
-            self.calibration = data.get("calibration", {})
+            self.calibration = _checked_calibration(data.get("calibration", {}))
         for file in sorted(self.path.glob("*.json")):
             if file.name == INDEX or file.name.startswith("."):
                 continue
@@ -309,6 +309,10 @@ class ModelDatabase:
                     f"{where}: got {type(data).__name__}, expected an object with format {MODEL_FORMAT!r} and views"
                 )
             name = check_name(data.get("name"))
+            if name != file.stem:
+                raise ValueError(
+                    f"{where}: got name {name!r}, expected {file.stem!r} (one file per object, named by it)"
+                )
             views = []
             for k, v in enumerate(data["views"]):
                 w = f"{where}.views[{k}]"
@@ -515,6 +519,38 @@ class ModelDatabase:
         self.threshold = calibrate_threshold(genuine, impostor, default=DEFAULT_THRESHOLD)
         self.calibration = {"genuine": sorted(genuine), "impostor": sorted(impostor), "views": list(views_scores)}
         return self.threshold
+
+
+def _checked_calibration(data) -> dict:
+    """database.json's ``calibration`` as :meth:`ModelDatabase.calibrate` writes it:
+    ``{"settings": ..., "objects": {name: digest}, "views": [{"object", "view",
+    "scores": {name: score}}]}`` (every key optional); anything else is refused by name."""
+
+    def number(x):
+        return isinstance(x, (int, float)) and not isinstance(x, bool) and bool(np.isfinite(x))
+
+    def fail(what, got):
+        raise ValueError(f"database.calibration{what}: got {got!r:.60}, expected what sqparts calibrate writes")
+
+    if not isinstance(data, dict):
+        fail("", data)
+    objects = data.get("objects", {})
+    if not isinstance(objects, dict) or not all(isinstance(v, str) for v in objects.values()):
+        fail(".objects", objects)
+    views = data.get("views", [])
+    if not isinstance(views, list):
+        fail(".views", views)
+    for k, v in enumerate(views):
+        if (
+            not isinstance(v, dict)
+            or not isinstance(v.get("object"), str)
+            or isinstance(v.get("view"), bool)
+            or not isinstance(v.get("view"), int)
+            or not isinstance(v.get("scores"), dict)
+            or not all(number(x) for x in v["scores"].values())
+        ):
+            fail(f".views[{k}]", v)
+    return data
 
 
 def calibration_values(views_scores, statistic: str) -> tuple[list[float], list[float]]:

@@ -29,6 +29,7 @@ from scipy.spatial import KDTree
 from scipy.spatial.distance import pdist
 from scipy.special import beta
 
+from ._camera import json_numbers
 from ._part import Part, matrix_to_rotation_vector, stack_parts
 
 ATTRIBUTES = ("size_1", "size_2", "size_3", "squareness_1", "squareness_2", "taper", "bend", "volume")
@@ -312,7 +313,8 @@ class Description:
 
         def number(value, field, shape=()):
             try:
-                a = np.asarray(value, float)
+                flag = isinstance(value, bool) and field.endswith(".touch")  # written as true/false
+                a = np.asarray(value, float) if json_numbers(value) or flag else None
             except (TypeError, ValueError):
                 a = None
             if a is None or a.shape != shape or not np.all(np.isfinite(a)):
@@ -331,6 +333,11 @@ class Description:
                 raise ValueError(f"{where}.nodes[{i}]: got {type(node).__name__}, expected an object")
             for k, key in enumerate(ATTRIBUTES):
                 attributes[i, k] = number(node.get(key), f"nodes[{i}].{key}")
+                positive = key.startswith(("size", "squareness"))
+                if attributes[i, k] < 0 or (positive and attributes[i, k] == 0):
+                    raise ValueError(
+                        f"{where}.nodes[{i}].{key}: got {node.get(key)!r:.60}, expected a number {'>' if positive else '>='} 0"
+                    )
             positions[i] = number(node.get("position"), f"nodes[{i}].position", (3,))
             rotations[i] = number(node.get("rotation"), f"nodes[{i}].rotation", (3, 3))
             names.append(str(node.get("name", "")))

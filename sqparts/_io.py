@@ -18,11 +18,12 @@ from __future__ import annotations
 import contextlib
 import json
 import os
+import zipfile
 from pathlib import Path
 
 import numpy as np
 
-from ._camera import MAX_PIXELS, MAX_SIDE, Camera, PinholeCamera, camera_from_json
+from ._camera import MAX_PIXELS, MAX_SIDE, Camera, PinholeCamera, camera_from_json, json_numbers
 from ._part import Part, rotation_vector, stack_parts
 
 PART_KEYS = {"size", "squareness", "position", "rotation", "bend", "taper"}
@@ -72,25 +73,36 @@ def atomic_write(path, mode: str = "wb"):
         raise
 
 
-def check_new_output(path, *, overwrite: bool = False, inputs=()) -> Path:
+def check_new_output(path, *, overwrite: bool = False, inputs=(), argument: str = "--out") -> Path:
     """``path`` if it may be written: it does not exist, is an empty folder, or
     ``overwrite`` is set and it holds none of the ``inputs`` (paths read to make it:
     replacing a folder replaces everything in it); raises ``FileExistsError`` (naming
-    ``--out``) otherwise."""
+    ``argument``, the flag that gave it) otherwise."""
     path = Path(path)
     if not overwrite and path.exists() and not (path.is_dir() and not any(path.iterdir())):
-        raise FileExistsError(f"--out: got {str(path)!r}, which exists, expected a new path (or --overwrite)")
+        raise FileExistsError(f"{argument}: got {str(path)!r}, which exists, expected a new path (or --overwrite)")
     if path.is_dir():
         inside = path.resolve()
         for p in inputs:
             if p is not None and inside in (q := Path(p).resolve(), *q.parents):
                 raise FileExistsError(
-                    f"--out: got {str(path)!r}, which holds the input {str(p)!r}, "
+                    f"{argument}: got {str(path)!r}, which holds the input {str(p)!r}, "
                     "expected a folder apart from the inputs (--overwrite replaces it whole)"
                 )
     ancestor = next(p for p in path.absolute().parents if p.exists())
     if not ancestor.is_dir():
-        raise NotADirectoryError(f"--out: got {str(path)!r}, expected a path in a folder ({str(ancestor)!r} is a file)")
+        raise NotADirectoryError(
+            f"{argument}: got {str(path)!r}, expected a path in a folder ({str(ancestor)!r} is a file)"
+        )
+    try:  # before any work: a file made and removed where the output's folders will go
+        import tempfile
+
+        with tempfile.TemporaryFile(dir=ancestor, prefix=".sqparts-"):
+            pass
+    except OSError as e:
+        raise ValueError(
+            f"{argument}: got {str(path)!r}, expected a path in a folder this user can write ({str(ancestor)!r}: {e.strerror})"
+        ) from None
     return path
 
 
@@ -142,7 +154,7 @@ def _load_json(path, what: str):
     if size > MAX_JSON_BYTES:
         raise ValueError(f"{what}: got a file of {size} bytes, expected at most {MAX_JSON_BYTES}")
     try:
-        return json.loads(path.read_bytes(), parse_constant=_reject_constant)
+        return json.loads(path.read_bytes(), parse_constant=_reject_constant, parse_int=_parse_int)
     except RecursionError:
         raise ValueError(
             f"{what}: got JSON nested too deeply to parse in {str(path)!r}, expected a {what} file"
@@ -153,6 +165,13 @@ def _load_json(path, what: str):
 
 def _reject_constant(name: str):
     raise ValueError(f"got {name}, expected finite numbers")
+
+
+def _parse_int(text: str):
+    """A JSON integer; one of more than 18 digits as a float (inf beyond float64's
+    range), so the checks of the value it fills refuse it by name instead of an
+    OverflowError where it is converted."""
+    return float(text) if len(text.lstrip("-")) > 18 else int(text)
 
 
 # --- scenes ------------------------------------------------------------------------
@@ -175,21 +194,26 @@ def part_from_dict(d: dict, *, index: int = 0) -> tuple[Part, dict]:
             f"{where}: got no {', '.join(missing)}, expected keys {sorted(PART_KEYS)} (size, squareness and position required)"
         )
 
-    def numbers(key, default=None):
+    def numbers(key, default, shape):
+        if key in d and not json_numbers(d[key]):
+            raise ValueError(f"{where}.{key}: got {d[key]!r:.60}, expected numbers")
         try:
-            return np.asarray(d.get(key, default), dtype=np.float64)
+            value = np.asarray(d.get(key, default), dtype=np.float64)
         except (TypeError, ValueError):
             raise ValueError(f"{where}.{key}: got {d[key]!r:.60}, expected numbers") from None
+        if value.shape != shape:
+            raise ValueError(f"{where}.{key}: got shape {value.shape}, expected {shape}")
+        return value
 
     fields = {
-        key: numbers(key, default)
-        for key, default in (
-            ("size", None),
-            ("squareness", None),
-            ("position", None),
-            ("rotation", np.eye(3)),
-            ("bend", [0.0, 0.0]),
-            ("taper", 0.0),
+        key: numbers(key, default, shape)
+        for key, default, shape in (
+            ("size", None, (3,)),
+            ("squareness", None, (2,)),
+            ("position", None, (3,)),
+            ("rotation", np.eye(3), (3, 3)),
+            ("bend", [0.0, 0.0], (2,)),
+            ("taper", 0.0, ()),
         )
     }
     try:
@@ -333,9 +357,14 @@ def camera_from_realsense(data: dict) -> PinholeCamera:
     for key in ("fx", "fy", "ppx", "ppy"):
         if not isinstance(intr[key], (int, float)) or isinstance(intr[key], bool):
             raise ValueError(f"camera.{key}: got {intr[key]!r:.40}, expected a number")
-    return PinholeCamera(
-        intr["width"], intr["height"], float(intr["fx"]), float(intr["fy"]), float(intr["ppx"]), float(intr["ppy"])
-    )
+    try:
+        return PinholeCamera(
+            intr["width"], intr["height"], float(intr["fx"]), float(intr["fy"]), float(intr["ppx"]), float(intr["ppy"])
+        )
+    except ValueError as e:  # a field's check: name it as the file does
+        name, _, rest = str(e).partition(": ")
+        name = {"cx": "ppx", "cy": "ppy"}.get(name, name)
+        raise ValueError(f"camera.{name}: {rest}" if name in REALSENSE_KEYS else str(e)) from None
 
 
 def save_camera(path, camera: Camera) -> None:
@@ -378,20 +407,24 @@ def read_range_image(path, *, depth_scale: float = 0.001) -> tuple[np.ndarray, C
         _check_image_size(path, _declared_shape(path, suffix))
         if suffix == ".npy":
             depth = np.load(path, allow_pickle=False)
+            if np.issubdtype(depth.dtype, np.integer) and depth.ndim == 2:  # sensor units, as a PNG's
+                depth = np.where(depth == 0, np.nan, depth.astype(np.float64) * depth_scale)
         elif suffix == ".png":
             from PIL import Image
 
             with Image.open(path) as im:
-                raw = np.asarray(im)
-            if raw.ndim != 2 or raw.dtype not in (np.uint16, np.int32, np.uint8):
+                raw, mode = np.asarray(im), im.mode
+            if raw.ndim != 2 or raw.dtype not in (np.uint16, np.int32, np.uint8) or mode in ("P", "PA", "1"):
                 raise ValueError(
-                    f"input: got a PNG of {raw.dtype} with shape {raw.shape}, expected a single-channel 16-bit PNG"
+                    f"input: got a PNG (mode {mode}) of {raw.dtype} with shape {raw.shape}, expected a single-channel 16-bit PNG"
                 )
             depth = np.where(raw == 0, np.nan, raw.astype(np.float64) * depth_scale)
         elif suffix in (".tif", ".tiff"):
             import tifffile
 
             raw = tifffile.imread(path)
+            if raw.dtype == bool:
+                raise ValueError(f"input: got a TIFF of bool with shape {raw.shape}, expected depths")
             depth = raw if np.issubdtype(raw.dtype, np.floating) else raw * depth_scale
         elif suffix == ".exr":
             depth = _read_exr(path, depth_scale)
@@ -409,6 +442,11 @@ def read_range_image(path, *, depth_scale: float = 0.001) -> tuple[np.ndarray, C
     if depth.ndim != 2 or not numeric or 0 in depth.shape:
         raise ValueError(
             f"input: got {depth.dtype} with shape {depth.shape}, expected a 2-D numeric range image with pixels"
+        )
+    finite = np.abs(depth[np.isfinite(depth)]) if numeric else np.zeros(0)
+    if finite.size and float(finite.max()) > float(np.finfo(np.float32).max):
+        raise ValueError(
+            f"input: got depths up to {float(finite.max()):.3g} in {str(path)!r}, expected depths that float32 holds"
         )
     depth = depth.astype(np.float32)
     depth[~np.isfinite(depth) | (depth <= 0)] = np.nan
@@ -622,7 +660,7 @@ def load_view_data(folder) -> dict:
         try:
             with np.load(folder / "pixels.npz", allow_pickle=False) as z:
                 pixels = {k: np.asarray(z[k]) for k in ("status", "model", "labels")}
-        except (OSError, ValueError, KeyError, EOFError) as e:
+        except (OSError, ValueError, KeyError, EOFError, zipfile.BadZipFile) as e:
             raise ValueError(
                 f"pixels.npz: got {str(folder / 'pixels.npz')!r}, expected status, model and labels arrays ({e})"
             ) from None
@@ -634,6 +672,9 @@ def load_view_data(folder) -> dict:
     if (folder / "report.png").is_file():
         from PIL import Image
 
-        with Image.open(folder / "report.png") as im:
-            data["report"] = np.asarray(im.convert("RGB"))
+        try:
+            with Image.open(folder / "report.png") as im:
+                data["report"] = np.asarray(im.convert("RGB"))
+        except (OSError, ValueError, SyntaxError) as e:  # PIL's UnidentifiedImageError is an OSError
+            raise ValueError(f"report.png: got {str(folder / 'report.png')!r}, expected a PNG picture ({e})") from None
     return data

@@ -30,8 +30,15 @@ def range_image_rgb(depth, *, vmin=None, vmax=None, cmap: str = "viridis_r") -> 
     return (rgb * 255).astype(np.uint8)
 
 
+def _printable(text: str | None) -> str | None:
+    """``text`` as a title can show it: a file name that is not UTF-8 (kept by Python as
+    surrogate escapes) gets replacement characters."""
+    return None if text is None else text.encode("utf-8", "surrogateescape").decode("utf-8", "replace")
+
+
 def save_range_image_png(path, depth, *, title: str | None = None) -> None:
     """Save a range image as a PNG picture with a colour bar (atomic)."""
+    title = _printable(title)
     d = np.asarray(depth, np.float32)
     fig, ax = _subplots(figsize=(5, 5 * d.shape[0] / max(d.shape[1], 1) + 0.6), dpi=100)
     im = ax.imshow(np.ma.masked_invalid(d), cmap="viridis_r", interpolation="nearest")
@@ -69,6 +76,7 @@ def save_report(path, recovery, *, title: str | None = None) -> None:
     """Report PNG in the spirit of Figures 7-11: the data, the initial explanation (parts
     chosen by selection), the final model (parts after refinement), the model's range
     image against the data, and the residual R* - R; with a one-line summary."""
+    title = _printable(title)
     depth = recovery.depth
     fig_mask = recovery.figure
     ok = np.isfinite(depth)
@@ -112,6 +120,7 @@ def _wrap(text: str, width: int = 150) -> str:
 def save_residual_report(path, recovery, model, *, title: str | None = None) -> None:
     """Figure 11 panels for a :class:`~sqparts.ResidualModel`: the residual R - R*, its
     variogram with the fractal fit, the parts' range image and parts plus residual model."""
+    title = _printable(title)
     f = model.fractal
     fig, ax = _subplots(1, 4, figsize=(16, 4), dpi=90)
     sigma = recovery.settings["sigma"]
@@ -145,6 +154,7 @@ def save_recognition_report(path, recognition, *, title: str | None = None) -> N
     """Report PNG of a recognition: the input, its recovered parts and the best-matching
     stored object's parts placed by the estimated pose, corresponding parts in the same
     colour (unmatched recovered parts grey); with the scores of the top matches."""
+    title = _printable(title)
     from ._render import render_range_image
 
     rec = recognition.recovery

@@ -598,7 +598,7 @@ def recover_scene(
         masks = fg.figures
         if not masks:
             raise ValueError(
-                "depth: got no figure left after removing the background, expected at least one (try figure_ground=False or a smaller min_figure_pixels)"
+                "depth: got no figure left after removing the background, expected at least one (try --no-figure-ground or a smaller --min-figure-pixels; in Python figure_ground=False or min_figure_pixels)"
             )
     else:
         masks = [np.isfinite(d) | missing_returns(d, camera, np.isfinite(d), holes=st.holes, tear=tear)]

@@ -393,10 +393,13 @@ def _recognition_options(args) -> dict:
 
 def cmd_learn(args) -> int:
     from ._database import ModelDatabase, check_name, view_from_recovery
+    from ._io import check_new_output
     from ._recover import recover_scene
 
     check_name(args.name)
     db = ModelDatabase(args.db)  # read and checked before any work
+    if not db.path.exists():
+        check_new_output(db.path, argument="--db")  # a folder that can be made
     inputs = _inputs(args.input)
     loaded = _read_inputs(args, inputs)
     progress = _progress(args, "regions", "region")
@@ -796,6 +799,16 @@ def run() -> None:
     os._exit(status)
 
 
+def _as_typed(message: str, argv) -> str:
+    """An error of a setting named as the library names it (``sigma: got ...``) named by
+    the flag the user typed for it (``--sigma: got ...``)."""
+    field, sep, rest = message.partition(": got ")
+    flag = "--" + field.replace("_", "-")
+    if sep and field.isidentifier() and any(a == flag or a.startswith(flag + "=") for a in argv):
+        return f"{flag}: got {rest}"
+    return message
+
+
 def main(argv=None) -> int:
     """Run the command line; returns the exit status (0, 2 for a user error, 130/143
     when interrupted by SIGINT/SIGTERM)."""
@@ -817,7 +830,7 @@ def main(argv=None) -> int:
                 )
             return _error(str(e) or type(e).__name__)
         except (ValueError, TypeError) as e:
-            return _error(str(e) or type(e).__name__)
+            return _error(_as_typed(str(e) or type(e).__name__, sys.argv[1:] if argv is None else argv))
         except MemoryError:
             return _error(
                 "memory: got an input too large for this machine's memory, expected a smaller image or fewer parts"

@@ -128,6 +128,25 @@ def test_resume_refuses_a_single_recoverys_folder(batch, capsys, monkeypatch):
     assert stamps(out) == before
 
 
+def test_resume_refuses_a_folder_of_no_earlier_run(batch, capsys, monkeypatch):
+    """--resume into a folder of the user's own files (no results.jsonl) wrote a batch
+    layout among them; it is refused before any work, the folder as it was. A folder
+    holding only an interrupted run's staging folders is resumed."""
+    out = batch / "out"
+    out.mkdir()
+    (out / "notes.txt").write_text("mine")
+    before = stamps(out)
+    monkeypatch.setattr(_batch, "recover_file", lambda *a, **k: pytest.fail("recovery ran"))
+    assert main(recover_argv(batch, batch / "in") + ["--resume"]) == 2
+    err = capsys.readouterr().err.strip()
+    assert err.startswith("sqparts: error: --resume: got --out") and "no results.jsonl" in err and "\n" not in err
+    assert stamps(out) == before
+    (out / "notes.txt").unlink()
+    (out / ".sqparts-0123.tmp").mkdir()
+    plan = _batch.plan_batch([batch / "in"], out=out, camera=batch / "cam.json", resume=True)
+    assert len(plan.tasks) == len(list((batch / "in").iterdir()))
+
+
 def test_resume_ignores_a_torn_last_line(batch):
     argv = recover_argv(batch, batch / "in")
     assert main(argv) == 0

@@ -342,7 +342,7 @@ def test_deeply_nested_camera_json_is_one_line(files, capsys):
         capsys,
         ["render", str(files / "scene.json"), "--camera", str(files / "deep.json"), "--out", str(files / "d.npy")],
     )
-    assert err.startswith("sqparts: error: camera:")
+    assert err.startswith("sqparts: error: --camera: got JSON nested too deeply"), err
     (files / "deep.json").write_text('{"parts": ' + "[" * 100_000 + "]" * 100_000 + "}")
     assert "scene:" in cli_error(
         capsys, ["render", str(files / "deep.json"), "--camera", str(files / "cam.json"), "--out", str(files / "d.npy")]
@@ -567,7 +567,8 @@ def test_a_camera_float32_cannot_hold_is_refused(files, capsys, fx):
     err = cli_error(
         capsys, ["render", str(files / "scene.json"), "--camera", str(files / "big.json"), "--out", str(out)]
     )
-    assert f"fx: got {fx!r}, expected" in err and "float32" in err, err
+    assert err.startswith(f"sqparts: error: camera.intrinsic_matrix: got {fx!r}, expected") and "float32" in err, err
+    assert err.endswith("(fx)"), err
     assert not out.exists()
     with pytest.raises(ValueError, match="float32"):
         sqparts.camera_from_json(dict(CAMERA, intrinsic_matrix=k))
@@ -600,3 +601,197 @@ def test_overwrite_never_replaces_a_folder_holding_the_input(files, capsys, monk
         with staged_folder(folder, overwrite=True, inputs=[folder / "a.npy"]):
             pass
     assert sorted(p.name for p in folder.iterdir()) == before
+
+
+# --- session 40's fuzzing: numbers as JSON gives them, names as the user typed them -----
+
+
+def _camera_error(files, capsys, camera, text=None) -> str:
+    path = files / "c.json"
+    path.write_text(text if text is not None else json.dumps(camera))
+    out = files / "d.npy"
+    err = cli_error(capsys, ["render", str(files / "scene.json"), "--camera", str(path), "--out", str(out)])
+    assert not out.exists()
+    return err
+
+
+@pytest.mark.parametrize(
+    "change, start",
+    [
+        ({"intrinsic_matrix": [0, 0, 0, 0, 40, 0, 15.5, 11.5, 1]}, "camera.intrinsic_matrix: got 0.0"),
+        ({"intrinsic_matrix": [True, 0, 0, 0, 40, 0, 15.5, 11.5, 1]}, "camera.intrinsic_matrix: got [True"),
+        ({"width": "32"}, "camera.width: got '32'"),
+        ({"model": ["pinhole"]}, "camera.model: got ['pinhole']"),
+        ({"model": "orthographic", "pixel_size": True, "cx": 1, "cy": 1}, "camera.pixel_size: got True"),
+        ({"model": "orthographic", "pixel_size": -0.01, "cx": 1, "cy": 1}, "camera.pixel_size: got -0.01"),
+    ],
+)
+def test_a_camera_field_is_named_as_the_file_names_it(files, capsys, change, start):
+    """A camera's field was named by the constructor's argument (``fx:``, ``width:``),
+    a list as its model gave Python's ``unhashable type``, and true/"0.01" were read as
+    numbers; each is now one line naming the field of the --camera file."""
+    camera = dict(CAMERA, **change)
+    if camera.get("model") == "orthographic":
+        del camera["intrinsic_matrix"]
+    err = _camera_error(files, capsys, camera)
+    assert err.startswith(f"sqparts: error: {start}"), err
+
+
+def test_a_json_integer_beyond_float64_is_one_error_line(files, capsys):
+    """An integer of 401 digits in a JSON file raised OverflowError (a traceback) where
+    it became a float; it now reads as inf, which the field's own check refuses."""
+    huge = "1" + "0" * 400
+    text = json.dumps(CAMERA).replace("40.0, 0, 0, 0, 40.0", f"{huge}, 0, 0, 0, 40.0")
+    err = _camera_error(files, capsys, None, text)
+    assert err.startswith("sqparts: error: camera.intrinsic_matrix: got [[inf"), err
+    scene = files / "big.json"
+    scene.write_text(json.dumps(SCENE).replace('"size": [0.2,', f'"size": [{huge},', 1))
+    with pytest.raises(ValueError, match=r"parts\[0\]\.size: got \[inf, "):
+        sqparts.load_scene(scene)
+
+
+@pytest.mark.parametrize(
+    "size, match",
+    [
+        ([[0.1, 0.1, 0.1]], r"parts\[0\]\.size: got shape \(1, 3\), expected \(3,\)"),
+        (["0.1", "0.1", "0.1"], r"parts\[0\]\.size: got \['0.1'"),
+        ([True, True, True], r"parts\[0\]\.size: got \[True"),
+    ],
+)
+def test_a_part_field_is_checked_by_its_own_name(size, match):
+    """A nested size blamed the position (``position: got shape (3,), expected (1, 3)``)
+    and strings or true/false were read as numbers."""
+    part = {"size": size, "squareness": [0.5, 0.5], "position": [0, 0, 1]}
+    with pytest.raises(ValueError, match=match):
+        sqparts.scene_from_dict({"parts": [part]})
+
+
+def test_errors_name_the_flag_the_user_typed(files, capsys):
+    """Settings refused by the library were named by their Python name (``sigma:``,
+    ``depth_scale:``); an image without returns was ``depth:``; a library hint named
+    keyword arguments only."""
+    err = cli_error(
+        capsys,
+        [
+            "recover",
+            str(files / "x.npy"),
+            "--camera",
+            str(files / "cam.json"),
+            "--out",
+            str(files / "o"),
+            "--sigma",
+            "1e-37",
+        ],
+    )
+    assert err.startswith("sqparts: error: --sigma: got 1e-37, expected"), err
+    err = cli_error(
+        capsys,
+        [
+            "render",
+            str(files / "scene.json"),
+            "--camera",
+            str(files / "cam.json"),
+            "--out",
+            str(files / "o.png"),
+            "--depth-scale",
+            "10",
+        ],
+    )
+    assert err.startswith("sqparts: error: --depth-scale: got 10.0, expected"), err
+    np.save(files / "nan.npy", np.full((24, 32), np.nan, np.float32))
+    err = cli_error(
+        capsys, ["recover", str(files / "nan.npy"), "--camera", str(files / "cam.json"), "--out", str(files / "o")]
+    )
+    assert err.startswith(f"sqparts: error: input: got 0 returns in {str(files / 'nan.npy')!r}, expected"), err
+    np.save(files / "flat.npy", np.ones((24, 32), np.float32))
+    err = cli_error(
+        capsys, ["recover", str(files / "flat.npy"), "--camera", str(files / "cam.json"), "--out", str(files / "o")]
+    )
+    assert "--no-figure-ground" in err and "--min-figure-pixels" in err, err
+    assert not (files / "o").exists()
+
+
+def test_outputs_that_cannot_be_written_are_refused_before_any_work(files, capsys, monkeypatch):
+    """An --out in a folder nobody may write failed after the whole recovery, naming the
+    tool's own temporary file; ``learn --db`` under a file failed after recovery too."""
+    import sqparts._recover
+
+    monkeypatch.setattr(sqparts._recover, "recover_scene", lambda *a, **k: pytest.fail("recovery ran"))
+    err = cli_error(
+        capsys, ["recover", str(files / "x.npy"), "--camera", str(files / "cam.json"), "--out", "/proc/sqparts-out"]
+    )
+    assert err.startswith(
+        "sqparts: error: --out: got '/proc/sqparts-out', expected a path in a folder this user can write"
+    ), err
+    (files / "afile").write_text("")
+    err = cli_error(
+        capsys,
+        ["learn", "x", str(files / "x.npy"), "--camera", str(files / "cam.json"), "--db", str(files / "afile" / "db")],
+    )
+    assert err.startswith(f"sqparts: error: --db: got {str(files / 'afile' / 'db')!r}, expected a path in a folder"), (
+        err
+    )
+
+
+def test_every_input_name_is_checked_before_any_work(files, capsys, monkeypatch):
+    import sqparts._recover
+
+    monkeypatch.setattr(sqparts._recover, "recover_scene", lambda *a, **k: pytest.fail("recovery ran"))
+    (files / "y.jpg").write_bytes(b"")
+    argv = [
+        "recover",
+        str(files / "x.npy"),
+        str(files / "y.jpg"),
+        "--camera",
+        str(files / "cam.json"),
+        "--out",
+        str(files / "o"),
+    ]
+    err = cli_error(capsys, argv)
+    assert err.startswith(f"sqparts: error: input: got {str(files / 'y.jpg')!r}, expected a range image ending in"), err
+    assert not (files / "o").exists()
+
+
+def test_array_inputs_are_read_as_their_type_says(files):
+    """Depths float32 cannot hold were turned into 'no return' with two RuntimeWarnings;
+    an integer .npy (millimetres) was taken as metres, unlike an integer PNG or TIFF."""
+    np.save(files / "huge.npy", np.full((24, 32), 1e300))
+    with pytest.raises(
+        ValueError, match=r"input: got depths up to 1e\+300 in .*huge.npy', expected depths that float32 holds"
+    ):
+        sqparts.read_range_image(files / "huge.npy")
+    mm = np.array([[0, 1500], [2000, 65535]], np.uint16)
+    np.save(files / "mm.npy", mm)
+    depth, _ = sqparts.read_range_image(files / "mm.npy", depth_scale=0.001)
+    np.testing.assert_allclose(depth, [[np.nan, 1.5], [2.0, 65.535]], rtol=1e-6)
+
+
+def test_a_broken_view_folder_is_one_error_line(files, capsys, tmp_path):
+    """A corrupt pixels.npz raised zipfile.BadZipFile (a traceback); a corrupt report.png
+    was PIL's message without an argument."""
+    folder = tmp_path / "v"
+    folder.mkdir()
+    (folder / "parts.json").write_text(json.dumps(SCENE))
+    (folder / "pixels.npz").write_bytes(b"PK\x03\x04garbage")
+    with pytest.raises(ValueError, match=r"^pixels.npz: got .*, expected status, model and labels arrays"):
+        sqparts._io.load_view_data(folder)
+    (folder / "pixels.npz").unlink()
+    (folder / "report.png").write_bytes(b"\x89PNG x")
+    with pytest.raises(ValueError, match=r"^report.png: got .*, expected a PNG picture"):
+        sqparts._io.load_view_data(folder)
+
+
+def test_a_file_name_that_is_not_utf8_gets_its_report(files, capsys):
+    """A file name the file system allows but UTF-8 cannot spell failed in matplotlib's
+    title after the whole recovery."""
+    import os
+
+    name = os.fsdecode(b"in\xfd.npy")
+    try:
+        (files / name).write_bytes((files / "x.npy").read_bytes())
+    except (OSError, UnicodeEncodeError):
+        pytest.skip("this file system refuses the name")
+    from sqparts.cli import main
+
+    assert main(["show", str(files / name), "--out", str(files / "s.png")]) == 0
+    assert (files / "s.png").stat().st_size > 0

@@ -293,6 +293,40 @@ def test_a_broken_model_file_is_named(tmp_path):
         ModelDatabase(tmp_path)
 
 
+def test_a_hand_edited_database_is_refused_by_name(tmp_path):
+    """Session 40's fuzzing: a calibration that is not an object raised AttributeError
+    in ``learn`` after the new model file was written; ``"threshold": true`` was read as
+    1; a model file naming another object replaced it silently; a negative size in a
+    stored description failed deep in matching."""
+    db = ModelDatabase(tmp_path)
+    db.add_view("chair", view_from_parts(sqparts.builtin_scene("chair").parts))
+    index, model = tmp_path / "database.json", tmp_path / "chair.json"
+    good, data = json.loads(index.read_text()), json.loads(model.read_text())
+    for calibration, match in (
+        ("abc", r"database.calibration: got 'abc'"),
+        ({"objects": [1]}, r"database.calibration.objects: got \[1\]"),
+        ({"views": [{"object": "chair", "view": True, "scores": {}}]}, r"database.calibration.views\[0\]"),
+    ):
+        index.write_text(json.dumps(dict(good, calibration=calibration)))
+        with pytest.raises(ValueError, match=match):
+            ModelDatabase(tmp_path)
+    index.write_text(json.dumps(dict(good, threshold=True)))
+    with pytest.raises(ValueError, match=r"database.threshold: got True"):
+        ModelDatabase(tmp_path)
+    index.write_text(json.dumps(good))
+    model.write_text(json.dumps(dict(data, name="box")))
+    with pytest.raises(ValueError, match=r"chair.json: got name 'box', expected 'chair'"):
+        ModelDatabase(tmp_path)
+    for value, match in ((-1, r"size_1: got -1, expected a number > 0"), (True, r"size_1: got True")):
+        bad = json.loads(json.dumps(data))
+        bad["views"][0]["main"]["description"]["nodes"][0]["size_1"] = value
+        model.write_text(json.dumps(bad))
+        with pytest.raises(ValueError, match=r"chair.json.views\[0\].main.description.nodes\[0\]." + match):
+            ModelDatabase(tmp_path)
+    model.write_text(json.dumps(data))
+    assert ModelDatabase(tmp_path).names == ["chair"]
+
+
 @pytest.mark.parametrize("pose", sorted(sqparts.HUMAN_POSES))
 def test_posed_human_keeps_its_limbs(pose):
     s = sqparts.posed_human(pose, resolution=48)
