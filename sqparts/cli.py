@@ -18,6 +18,7 @@ from __future__ import annotations
 import argparse
 import contextlib
 import logging
+import math
 import os
 import signal
 import sys
@@ -42,9 +43,9 @@ def _number(want: str, *, low=None, high=None, integer: bool = False, open_low: 
     def parse(text: str):
         try:
             value = int(text) if integer else float(text)
-        except ValueError:
-            value = None
-        ok = value is not None and np.isfinite(value)
+            ok = math.isfinite(value)  # an integer beyond float64 raises OverflowError
+        except (ValueError, OverflowError):
+            value, ok = None, False
         ok = ok and (low is None or (value > low if open_low else value >= low))
         ok = ok and (high is None or value <= high)
         if not ok:
@@ -75,7 +76,7 @@ def _argparse_message(message: str) -> str:
     if m := re.match(r"argument (\S+?)(?:/\S+)?: invalid \S+ value: (.*)", message):
         return f"{m[1]}: got {m[2]}, expected a number"
     if m := re.match(r"argument (\S+?)(?:/\S+)?: expected (.*)", message):
-        return f"{m[1]}: got nothing, expected {m[2]}"
+        return f"{m[1]}: got nothing, expected {m[2]} (a value starting with '-' goes as {m[1]}=VALUE)"
     if m := re.match(r"argument (\S+?)(?:/\S+)?: ignored explicit argument (.*)", message):
         return f"{m[1]}: got {m[2]}, expected no value"
     if m := re.match(r"ambiguous option: (\S+) could match (.*)", message):

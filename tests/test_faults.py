@@ -431,6 +431,14 @@ def test_recover_numbers_are_validated_where_they_enter(files, capsys, flag, val
         (["mesh", "s.json", "--out", "m.ply", "--resolution", "two"], "--resolution: got 'two'"),
         (["demo", "--quiet=yes"], "--quiet: got 'yes'"),
         ([], "COMMAND: got nothing"),
+        (
+            ["recover", "x.npy", "--out", "o", "--up", "-1,0,0"],
+            "--up: got nothing, expected one argument (a value starting with '-' goes as --up=VALUE)",
+        ),
+        (
+            ["recover", "x.npy", "--out", "o", "--planes", "1" + "0" * 400],
+            "--planes: got '1" + "0" * 400 + "', expected an integer in [0, 16]",
+        ),
     ],
 )
 def test_argparse_errors_are_in_the_one_style(capsys, argv, start):
