@@ -154,7 +154,9 @@ def _load_json(path, what: str):
     if size > MAX_JSON_BYTES:
         raise ValueError(f"{what}: got a file of {size} bytes, expected at most {MAX_JSON_BYTES}")
     try:
-        return json.loads(path.read_bytes(), parse_constant=_reject_constant, parse_int=_parse_int)
+        return json.loads(
+            path.read_bytes(), parse_constant=_reject_constant, parse_int=_parse_int, object_pairs_hook=_unique_keys
+        )
     except RecursionError:
         raise ValueError(
             f"{what}: got JSON nested too deeply to parse in {str(path)!r}, expected a {what} file"
@@ -165,6 +167,16 @@ def _load_json(path, what: str):
 
 def _reject_constant(name: str):
     raise ValueError(f"got {name}, expected finite numbers")
+
+
+def _unique_keys(pairs) -> dict:
+    """A JSON object, refused when it gives one key twice (Python would keep the last
+    silently)."""
+    out = dict(pairs)
+    if len(out) != len(pairs):
+        twice = sorted({k for k, _ in pairs if sum(1 for q, _ in pairs if q == k) > 1})
+        raise ValueError(f"got the key(s) {twice} twice in one object, expected each key once")
+    return out
 
 
 def _parse_int(text: str):
@@ -530,7 +542,7 @@ def _read_pcd(path) -> tuple[np.ndarray, PinholeCamera]:
 
     try:
         pc = PointCloud.from_path(path)
-        w, h = int(pc.metadata.width), int(pc.metadata.height)
+        w, h, declared = int(pc.metadata.width), int(pc.metadata.height), int(pc.metadata.points)
         points = pc.numpy(("x", "y", "z")).astype(np.float64) if h > 1 else None
     except Exception as e:  # pypcd4 reports malformed data as struct, zlib, lzf or index errors
         raise ValueError(
@@ -538,9 +550,9 @@ def _read_pcd(path) -> tuple[np.ndarray, PinholeCamera]:
         ) from None
     if points is None:
         raise ValueError(f"input: got height {h}, expected an organized .pcd (height > 1)")
-    if points.size != h * w * 3:
+    if points.size != h * w * 3 or declared != h * w:
         raise ValueError(
-            f"input: got {points.size // 3} points, expected width x height = {w} x {h} (an organized .pcd)"
+            f"input: got {points.size // 3} points (POINTS {declared}), expected width x height = {w} x {h} (an organized .pcd)"
         )
     xyz = points.reshape(h, w, 3)
     return xyz[..., 2], intrinsics_from_points(xyz)

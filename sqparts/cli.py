@@ -437,6 +437,10 @@ def cmd_recognize(args) -> int:
         raise ValueError(f"--db: got {args.db!r} with no objects, expected a database made by sqparts learn")
     inputs = _inputs(args.input)
     out = Path(args.out)
+    if db.path.resolve() in (out.resolve(), *out.resolve().parents):
+        raise ValueError(
+            f"--out: got {args.out!r}, which is in --db {args.db!r}, expected a folder apart from the database"
+        )
     targets = [out / name for name in output_names(inputs)]
     # Several inputs are a batch, as for recover: one line each in results.jsonl, a
     # failing input recorded and the rest recognised, exit status 1 if any failed.

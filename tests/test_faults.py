@@ -547,6 +547,28 @@ def test_a_pcd_with_unreadable_data_is_one_error_line(tmp_path, capsys):
     assert not (tmp_path / "s.png").exists() and not (tmp_path / "r").exists()
 
 
+def test_a_pcd_whose_points_disagree_with_its_size_is_refused(tmp_path):
+    """POINTS 5 with WIDTH x HEIGHT = 64 rows of data was read as the 64 rows."""
+    path = tmp_path / "odd.pcd"
+    rows = "".join(f"{0.01 * (c - 4)} {0.01 * (r - 4)} 1.0\n" for r in range(8) for c in range(8))
+    header = (
+        "# .PCD v0.7\nVERSION 0.7\nFIELDS x y z\nSIZE 4 4 4\nTYPE F F F\nCOUNT 1 1 1\n"
+        "WIDTH 8\nHEIGHT 8\nVIEWPOINT 0 0 0 1 0 0 0\nPOINTS {}\nDATA ascii\n"
+    )
+    path.write_text(header.format(64) + rows)
+    depth, _ = sqparts.read_range_image(path)
+    assert depth.shape == (8, 8)
+    path.write_text(header.format(5) + rows)
+    with pytest.raises(ValueError, match=r"input: got .* points \(POINTS 5\), expected width x height = 8 x 8"):
+        sqparts.read_range_image(path)
+
+
+def test_a_json_object_giving_a_key_twice_is_refused(files, capsys):
+    text = json.dumps(CAMERA).replace('{"width": 32,', '{"width": 32, "width": 64,')
+    err = _camera_error(files, capsys, None, text)
+    assert "got the key(s) ['width'] twice in one object" in err, err
+
+
 def test_more_jobs_than_cores_is_refused(tmp_path, capsys):
     """--jobs started that many local worker processes, each importing JAX (a huge value
     ran the machine out of memory); it is bounded by the cores."""

@@ -462,6 +462,12 @@ def test_learn_and_recognize_from_the_command_line(tmp_path, capsys):
     # An earlier run's results.jsonl is never replaced silently.
     assert main([*argv, "--db", str(tmp_path / "db"), "--out", str(batch), *FAST]) == 2
     assert "results.jsonl of an earlier run" in capsys.readouterr().err
+    # Outputs never go into the database's folder (sub-folders beside its model files).
+    before = sorted(p.name for p in (tmp_path / "db").iterdir())
+    for inside in (tmp_path / "db", tmp_path / "db" / "o"):
+        assert main([*argv, "--db", str(tmp_path / "db"), "--out", str(inside), "--overwrite", *FAST]) == 2
+        assert "which is in --db" in capsys.readouterr().err
+    assert sorted(p.name for p in (tmp_path / "db").iterdir()) == before
 
 
 def test_recognize_with_an_empty_database_is_one_line(tmp_path, capsys):
