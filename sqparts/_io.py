@@ -17,6 +17,7 @@ from __future__ import annotations
 
 import contextlib
 import json
+import math
 import os
 import zipfile
 from pathlib import Path
@@ -99,9 +100,9 @@ def check_new_output(path, *, overwrite: bool = False, inputs=(), argument: str 
 
         with tempfile.TemporaryFile(dir=ancestor, prefix=".sqparts-"):
             pass
-    except OSError as e:
+    except OSError:
         raise ValueError(
-            f"{argument}: got {str(path)!r}, expected a path in a folder this user can write ({str(ancestor)!r}: {e.strerror})"
+            f"{argument}: got {str(path)!r}, expected a path in a folder this user can write ({str(ancestor)!r} is not)"
         ) from None
     return path
 
@@ -529,10 +530,11 @@ def _read_exr(path: Path, depth_scale: float) -> np.ndarray:
 
 
 def _check_image_size(path: Path, shape: tuple[int, ...]) -> None:
-    pixels = int(np.prod(shape, dtype=np.float64)) if shape else 0
+    shape = tuple(int(n) for n in shape)  # Python integers: a header may declare any size
+    pixels = math.prod(shape) if shape else 0
     if pixels > MAX_PIXELS or any(n > MAX_SIDE for n in shape):
         raise ValueError(
-            f"input: got an image of shape {tuple(shape)} in {str(path)!r}, expected at most "
+            f"input: got an image of shape {str(shape):.80} in {str(path)!r}, expected at most "
             f"{MAX_PIXELS} pixels and {MAX_SIDE} per side"
         )
 
@@ -662,7 +664,10 @@ def load_view_data(folder) -> dict:
     elif isinstance(meta.get("camera"), dict):
         data["camera"] = camera_from_json(meta["camera"])
     if (folder / "range.npy").is_file():
-        data["depth"], _ = read_range_image(folder / "range.npy")
+        try:
+            data["depth"], _ = read_range_image(folder / "range.npy")
+        except ValueError as e:  # named as the folder's file, not as an input
+            raise ValueError(f"range.npy: {str(e).partition(': ')[2]}") from None
         camera = data.get("camera")
         if camera is not None and data["depth"].shape != (camera.height, camera.width):
             raise ValueError(
@@ -672,9 +677,9 @@ def load_view_data(folder) -> dict:
         try:
             with np.load(folder / "pixels.npz", allow_pickle=False) as z:
                 pixels = {k: np.asarray(z[k]) for k in ("status", "model", "labels")}
-        except (OSError, ValueError, KeyError, EOFError, zipfile.BadZipFile) as e:
+        except (OSError, ValueError, KeyError, EOFError, zipfile.BadZipFile):
             raise ValueError(
-                f"pixels.npz: got {str(folder / 'pixels.npz')!r}, expected status, model and labels arrays ({e})"
+                f"pixels.npz: got {str(folder / 'pixels.npz')!r}, expected status, model and labels arrays (as sqparts recover writes)"
             ) from None
         if "depth" in data and any(v.shape != data["depth"].shape for v in pixels.values()):
             raise ValueError(

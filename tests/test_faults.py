@@ -561,6 +561,11 @@ def test_a_pcd_whose_points_disagree_with_its_size_is_refused(tmp_path):
     path.write_text(header.format(5) + rows)
     with pytest.raises(ValueError, match=r"input: got .* points \(POINTS 5\), expected width x height = 8 x 8"):
         sqparts.read_range_image(path)
+    # A header declaring a size of 400 digits: the size check, not an OverflowError.
+    huge = "1" + "0" * 399
+    path.write_text(header.replace("WIDTH 8", f"WIDTH {huge}").format(huge) + rows)
+    with pytest.raises(ValueError, match=r"input: got an image of shape \(8, 1000.*expected at most"):
+        sqparts.read_range_image(path)
 
 
 def test_a_json_object_giving_a_key_twice_is_refused(files, capsys):
@@ -791,7 +796,14 @@ def test_a_broken_view_folder_is_one_error_line(files, capsys, tmp_path):
     (folder / "pixels.npz").write_bytes(b"PK\x03\x04garbage")
     with pytest.raises(ValueError, match=r"^pixels.npz: got .*, expected status, model and labels arrays"):
         sqparts._io.load_view_data(folder)
+    (folder / "pixels.npz").write_text("garbage")  # not a zip: numpy's pickle hint is not passed on
+    with pytest.raises(ValueError, match=r"^pixels.npz: got .*\(as sqparts recover writes\)$"):
+        sqparts._io.load_view_data(folder)
     (folder / "pixels.npz").unlink()
+    np.save(folder / "range.npy", np.ones(3))
+    with pytest.raises(ValueError, match=r"^range.npy: got float64 with shape \(3,\)"):
+        sqparts._io.load_view_data(folder)
+    (folder / "range.npy").unlink()
     (folder / "report.png").write_bytes(b"\x89PNG x")
     with pytest.raises(ValueError, match=r"^report.png: got .*, expected a PNG picture"):
         sqparts._io.load_view_data(folder)
