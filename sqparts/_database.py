@@ -38,6 +38,7 @@ from scipy.spatial.transform import Rotation
 if TYPE_CHECKING:
     from ._recover import Recovery, SceneRecovery
 
+from ._camera import json_numbers
 from ._describe import Description, describe, merged_alternatives, part_volume, surface_cloud
 from ._io import _load_json, atomic_write, scene_from_dict, scene_to_dict
 from ._part import Part, stack_parts
@@ -526,9 +527,6 @@ def _checked_calibration(data) -> dict:
     ``{"settings": ..., "objects": {name: digest}, "views": [{"object", "view",
     "scores": {name: score}}]}`` (every key optional); anything else is refused by name."""
 
-    def number(x):
-        return isinstance(x, (int, float)) and not isinstance(x, bool) and bool(np.isfinite(x))
-
     def fail(what, got):
         raise ValueError(f"database.calibration{what}: got {got!r:.60}, expected what sqparts calibrate writes")
 
@@ -547,7 +545,7 @@ def _checked_calibration(data) -> dict:
             or isinstance(v.get("view"), bool)
             or not isinstance(v.get("view"), int)
             or not isinstance(v.get("scores"), dict)
-            or not all(number(x) for x in v["scores"].values())
+            or not all(json_numbers(x) and not isinstance(x, list) and np.isfinite(x) for x in v["scores"].values())
         ):
             fail(f".views[{k}]", v)
     return data

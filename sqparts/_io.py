@@ -15,6 +15,7 @@ metadata.
 
 from __future__ import annotations
 
+import collections
 import contextlib
 import json
 import math
@@ -175,7 +176,7 @@ def _unique_keys(pairs) -> dict:
     silently)."""
     out = dict(pairs)
     if len(out) != len(pairs):
-        twice = sorted({k for k, _ in pairs if sum(1 for q, _ in pairs if q == k) > 1})
+        twice = sorted(k for k, n in collections.Counter(k for k, _ in pairs).items() if n > 1)
         raise ValueError(f"got the key(s) {twice} twice in one object, expected each key once")
     return out
 

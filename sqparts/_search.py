@@ -54,7 +54,7 @@ from ._part import (
     matrix_to_rotation_vector,
     rotation_matrix,
 )
-from ._polish import grow_parts
+from ._polish import grow_parts, once_per_image
 from ._render import DEFAULT_NEWTON_STEPS, cast_part
 
 SEARCH_NEWTON_STEPS = 6
@@ -535,21 +535,19 @@ _CHOSEN = RowMemo(4 << 20)
 in each alternative while the blob is unchanged."""
 
 
+@once_per_image
+def _image_key(data: RangeData) -> bytes:
+    """Digest of what a region's search reads of the image (hashed once per image)."""
+    return RowMemo.key(np.asarray(data.depth), np.asarray(data.figure), data.pad, data.camera, data.encoding)
+
+
 def _choose(data: RangeData, settings: SearchSettings, centre) -> _Chosen:
     """Score every hypothesis at one region (on a subsample when ``prune``), rescore the
     survivors at full resolution and keep the ``max(top_k, polish_candidates)`` best
     distinct ones (:func:`_distinct`); a region chosen before in this recovery is looked
     up (:data:`_CHOSEN`)."""
     hyp = _grid_arrays(settings.grid)
-    key = RowMemo.key(
-        np.asarray(data.depth),
-        np.asarray(data.figure),
-        data.pad,
-        data.camera,
-        data.encoding,
-        settings,
-        tuple(int(c) for c in centre),
-    )
+    key = RowMemo.key(_image_key(data), settings, tuple(int(c) for c in centre))
     row = _CHOSEN.get(key)
     if row is None:
         row = _choose_row(data, settings, centre, hyp)
