@@ -432,6 +432,11 @@ def read_range_image(path, *, depth_scale: float = 0.001) -> tuple[np.ndarray, C
                 raise ValueError(
                     f"input: got a PNG (mode {mode}) of {raw.dtype} with shape {raw.shape}, expected a single-channel 16-bit PNG"
                 )
+            if raw.dtype == np.uint8:  # 255 levels: a picture of depth (a visualisation), not sensor units
+                raise ValueError(
+                    f"input: got an 8-bit PNG (mode {mode}) in {str(path)!r}, expected a 16-bit depth PNG "
+                    "(an 8-bit picture of depth holds 255 grey levels, not depths)"
+                )
             depth = np.where(raw == 0, np.nan, raw.astype(np.float64) * depth_scale)
         elif suffix in (".tif", ".tiff"):
             import tifffile
@@ -499,9 +504,14 @@ def _declared_shape(path: Path, suffix: str) -> tuple[int, ...]:
             if words[:1] == ["DATA"] or len(header) > 32:
                 break
     try:
-        return (int(header["HEIGHT"][0]), int(header["WIDTH"][0]))
+        shape = (int(header["HEIGHT"][0]), int(header["WIDTH"][0]))
     except (KeyError, IndexError, ValueError):
         raise ValueError(f"input: got {str(path)!r}, expected a .pcd header with WIDTH and HEIGHT") from None
+    if min(shape) < 1:
+        raise ValueError(
+            f"input: got WIDTH {shape[1]} and HEIGHT {shape[0]} in {str(path)!r}, expected positive integers"
+        )
+    return shape
 
 
 def _open_exr(path: Path, *, header_only: bool = False):

@@ -109,8 +109,10 @@ def rotation_vector(matrix: Float[ArrayLike, "3 3"]) -> np.ndarray:
     to 1e-4).
     """
     m = np.asarray(matrix, dtype=np.float64)
-    if m.shape != (3, 3) or not np.all(np.isfinite(m)):
+    if m.shape != (3, 3):
         raise ValueError(f"rotation: got shape {m.shape}, expected a finite 3x3 matrix")
+    if not np.all(np.isfinite(m)):
+        raise ValueError(f"rotation: got {m.tolist()}, expected a finite 3x3 matrix")
     err = np.abs(m @ m.T - np.eye(3)).max()
     if err > 1e-4 or np.linalg.det(m) < 0:
         raise ValueError(

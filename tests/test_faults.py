@@ -572,6 +572,10 @@ def test_a_pcd_whose_points_disagree_with_its_size_is_refused(tmp_path):
     path.write_text(header.replace("WIDTH 8", f"WIDTH {huge}").format(huge) + rows)
     with pytest.raises(ValueError, match=r"input: got an image of shape \(8, 1000.*expected at most"):
         sqparts.read_range_image(path)
+    # A negative WIDTH: named with HEIGHT, not pypcd4's first line of validation.
+    path.write_text(header.replace("WIDTH 8", "WIDTH -8").format(64) + rows)
+    with pytest.raises(ValueError, match=r"input: got WIDTH -8 and HEIGHT 8 in .*, expected positive integers"):
+        sqparts.read_range_image(path)
 
 
 def test_a_json_object_giving_a_key_twice_is_refused(files, capsys):

@@ -146,6 +146,24 @@ def test_kinect_png_zero_is_no_return(tmp_path):
     np.testing.assert_allclose(depth, [[np.nan, 1.0], [2.5, np.nan]], equal_nan=True)
 
 
+def test_png_that_is_not_16_bit_depth_is_refused(tmp_path):
+    """An 8-bit grey PNG (a picture of depth) was read as 1..255 sensor units; palette
+    and RGB PNGs were refused already. Each is one input error naming the file."""
+    from PIL import Image
+
+    depth = np.array([[0, 100], [200, 255]], np.uint8)
+    Image.fromarray(depth).save(tmp_path / "grey8.png")
+    with pytest.raises(ValueError, match=r"input: got an 8-bit PNG \(mode L\) in '.*grey8.png', expected a 16-bit"):
+        sqparts.read_range_image(tmp_path / "grey8.png")
+    Image.fromarray(depth).convert("P").save(tmp_path / "palette.png")
+    Image.fromarray(np.stack([depth] * 3, -1)).save(tmp_path / "rgb.png")
+    for name in ("palette.png", "rgb.png"):
+        with pytest.raises(
+            ValueError, match=r"input: got a PNG \(mode (P|RGB)\).*expected a single-channel 16-bit PNG"
+        ):
+            sqparts.read_range_image(tmp_path / name)
+
+
 def test_range_image_errors(tmp_path):
     with pytest.raises(ValueError, match=r"input: got .*, expected a range image ending in"):
         sqparts.read_range_image(tmp_path / "x.jpg")

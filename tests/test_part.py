@@ -87,6 +87,12 @@ def test_rotation_matches_scipy(rng):
     np.testing.assert_allclose(sqparts.rotation_matrix(jnp.zeros(3)), np.eye(3))
     with pytest.raises(ValueError, match=r"rotation: got .*, expected an orthonormal matrix"):
         rotation_vector(np.diag([1.0, 1.0, -1.0]))
+    with pytest.raises(
+        ValueError, match=r"rotation: got \[\[1\.0, 0\.0, 0\.0\], \[0\.0, inf, 0\.0\], .*\], expected a finite 3x3"
+    ):
+        rotation_vector(np.diag([1.0, np.inf, 1.0]))
+    with pytest.raises(ValueError, match=r"rotation: got shape \(2, 2\), expected a finite 3x3"):
+        rotation_vector(np.eye(2))
 
 
 @settings(deadline=None, max_examples=15)
