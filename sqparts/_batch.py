@@ -113,10 +113,30 @@ def output_names(paths) -> list[str]:
     stems = [r.stem for r in relative]
     bare = [str(r.with_suffix("")) for r in relative]
     stem_count, bare_count = collections.Counter(stems), collections.Counter(bare)
-    return [
+    names = [
         stem if stem_count[stem] == 1 else name if bare_count[name] == 1 else str(r)
         for stem, name, r in zip(stems, bare, relative)
     ]
+    # A short name may still meet another input's (``x.npy.png``'s stem is ``x.npy``) or
+    # hold it (``b.npy``'s ``b`` beside ``b/x.npy``'s ``b/x``): those take their whole
+    # relative path, until none clash (whole paths of distinct files never do).
+    while clashing := _clashing(names):
+        names = [str(r) if i in clashing else n for i, (n, r) in enumerate(zip(names, relative))]
+    return names
+
+
+def _clashing(names) -> set[int]:
+    """Indices of output names equal to another's or holding another (a folder of it)."""
+    index = collections.defaultdict(list)
+    for i, n in enumerate(names):
+        index[n].append(i)
+    bad = {i for group in index.values() if len(group) > 1 for i in group}
+    for i, n in enumerate(names):
+        for up in Path(n).parents:
+            if str(up) != "." and str(up) in index:
+                bad.add(i)
+                bad.update(index[str(up)])
+    return bad
 
 
 # --- one input ---------------------------------------------------------------------------
@@ -190,14 +210,16 @@ def recover_file(
     """
     import numpy as np
 
+    from ._camera import check_range_image
     from ._encoding import encoding_for
     from ._io import staged_folder
     from ._recover import recover_scene
 
     path = Path(path)
     depth, camera = read_input(path, camera=camera, depth_scale=depth_scale)
-    encoding = encoding_for(depth[np.isfinite(depth)], sigma=sigma) if sigma else None
     try:
+        check_range_image(depth, camera)  # the image's depths before --sigma is checked against them
+        encoding = encoding_for(depth[np.isfinite(depth)], sigma=sigma) if sigma else None
         recovery = recover_scene(depth, camera, encoding=encoding, progress=progress, **options)
     except ValueError as e:  # the image's depths refused: name the file
         got, sep, rest = str(e).partition(": ")

@@ -31,6 +31,10 @@ from ._typing import Array, Float
 
 MAX_SIDE = 32768
 """Longest image side a camera or range image may have."""
+DEPTH_RANGE = (1e-9, 1e9)
+"""Depths a recovery takes, in scene units: squares and reciprocals of depths, and the
+quantisation step of the nearest, stay normal float32 numbers (a figure at 3e38 overflowed
+and one at 1e-42 underflowed deep in the recovery)."""
 MAX_PIXELS = 2**24
 """Most pixels a camera or range image may have (4096 x 4096): rendering allocates a
 few hundred bytes per pixel, so larger images are refused before anything is allocated."""
@@ -313,13 +317,24 @@ def check_range_image(depth, camera: Camera) -> np.ndarray:
     without a return (NaN, inf, 0 or negative)."""
     if not isinstance(camera, _Camera):
         raise TypeError(f"camera: got {type(camera).__name__}, expected a sqparts camera")
-    d = np.asarray(depth, np.float64)
+    raw = np.asarray(depth) if not isinstance(depth, (str, bytes)) else np.asarray(None)
+    if not (np.issubdtype(raw.dtype, np.integer) or np.issubdtype(raw.dtype, np.floating)):
+        raise TypeError(f"depth: got {type(depth).__name__} of {raw.dtype}, expected an array of real depths")
+    d = raw.astype(np.float64)
     if d.ndim != 2:
         raise ValueError(f"depth: got shape {d.shape}, expected a 2-D range image")
     if d.shape != (camera.height, camera.width):
         raise ValueError(f"depth: got shape {d.shape}, expected {(camera.height, camera.width)} to match the camera")
     with np.errstate(invalid="ignore"):
-        return np.where(np.isfinite(d) & (d > 0), d, np.nan)
+        d = np.where(np.isfinite(d) & (d > 0), d, np.nan)
+    if np.isfinite(d).any():
+        lo, hi = float(np.nanmin(d)), float(np.nanmax(d))
+        if lo < DEPTH_RANGE[0] or hi > DEPTH_RANGE[1]:
+            raise ValueError(
+                f"depth: got returns from {lo:.3g} to {hi:.3g}, expected depths in "
+                f"[{DEPTH_RANGE[0]:g}, {DEPTH_RANGE[1]:g}] scene units (rescale the image)"
+            )
+    return d
 
 
 def json_numbers(value) -> bool:

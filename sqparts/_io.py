@@ -77,19 +77,20 @@ def atomic_write(path, mode: str = "wb"):
 
 def check_new_output(path, *, overwrite: bool = False, inputs=(), argument: str = "--out") -> Path:
     """``path`` if it may be written: it does not exist, is an empty folder, or
-    ``overwrite`` is set and it holds none of the ``inputs`` (paths read to make it:
-    replacing a folder replaces everything in it); raises ``FileExistsError`` (naming
+    ``overwrite`` is set and it neither is nor holds one of the ``inputs`` (paths read
+    to make it: replacing a folder replaces everything in it); raises ``FileExistsError`` (naming
     ``argument``, the flag that gave it) otherwise."""
     path = Path(path)
     if not overwrite and path.exists() and not (path.is_dir() and not any(path.iterdir())):
         raise FileExistsError(f"{argument}: got {str(path)!r}, which exists, expected a new path (or --overwrite)")
-    if path.is_dir():
+    if path.exists():
         inside = path.resolve()
         for p in inputs:
             if p is not None and inside in (q := Path(p).resolve(), *q.parents):
+                what = "is" if inside == q else "holds"
                 raise FileExistsError(
-                    f"{argument}: got {str(path)!r}, which holds the input {str(p)!r}, "
-                    "expected a folder apart from the inputs (--overwrite replaces it whole)"
+                    f"{argument}: got {str(path)!r}, which {what} the input {str(p)!r}, "
+                    "expected a path apart from the inputs (--overwrite replaces it whole)"
                 )
     ancestor = next(p for p in path.absolute().parents if p.exists())
     if not ancestor.is_dir():
@@ -587,9 +588,20 @@ def intrinsics_from_points(xyz: np.ndarray) -> PinholeCamera:
 
 def write_range_image(path, depth, *, depth_scale: float = 0.001) -> None:
     """Write a range image atomically: .npy (float32, NaN kept), .png (uint16 of
-    depth / depth_scale, 0 = no return) or .tif (float32)."""
+    depth / depth_scale, 0 = no return) or .tif (float32). Pixels without a return
+    (NaN, inf, 0 or negative) are written as NaN (0 in a PNG), as reading gives them."""
+    if not isinstance(path, (str, os.PathLike)):
+        raise TypeError(f"path: got {type(path).__name__}, expected a file path")
     path = Path(path)
-    depth = np.asarray(depth, dtype=np.float32)
+    raw = np.asarray(depth)
+    real = np.issubdtype(raw.dtype, np.integer) or np.issubdtype(raw.dtype, np.floating)
+    if raw.ndim != 2 or 0 in raw.shape or not real:
+        raise ValueError(f"depth: got {raw.dtype} with shape {raw.shape}, expected a 2-D range image with pixels")
+    with np.errstate(invalid="ignore"):
+        returns = np.isfinite(raw) & (raw > 0)
+    if returns.any() and float(raw[returns].max()) > float(np.finfo(np.float32).max):
+        raise ValueError(f"depth: got depths up to {float(raw[returns].max()):.3g}, expected depths that float32 holds")
+    depth = np.where(returns, raw, np.nan).astype(np.float32)  # no return: NaN, as read back
     suffix = path.suffix.lower()
     if suffix == ".npy":
         with atomic_write(path) as f:

@@ -240,7 +240,12 @@ class Part(eqx.Module):
 def _as_float_array(x) -> Array:
     def convert(xp, a):
         a = xp.asarray(a)
-        return a if xp.issubdtype(a.dtype, xp.floating) else a.astype(jnp.result_type(float))
+        if xp.issubdtype(a.dtype, xp.complexfloating):
+            raise ValueError(f"size: got {a.dtype}, expected real numbers")
+        if xp.issubdtype(a.dtype, xp.floating) and a.dtype.itemsize >= 4:
+            return a
+        # Integers, and float16/bfloat16 (whose rays would miss every part): float32 or wider.
+        return a.astype(jnp.result_type(float))
 
     return _host_op(convert, x)
 

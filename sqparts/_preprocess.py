@@ -382,12 +382,7 @@ def fit_plane(
         raise ValueError(f"points: got {p.shape}, expected at least 3 points of shape (N, 3)")
     rng = np.random.default_rng(seed)
     test = p if len(p) <= sample else p[rng.choice(len(p), sample, replace=False)]
-    tri = p[rng.integers(0, len(p), (iterations, 3)) if triples is None else np.asarray(triples)]
-    n = np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0])
-    norm = np.linalg.norm(n, axis=1)
-    ok = norm > 1e-12
-    n = n[ok] / norm[ok, None]
-    off = -np.einsum("ij,ij->i", n, tri[ok, 0])
+    n, off = _planes_through(p[rng.integers(0, len(p), (iterations, 3)) if triples is None else np.asarray(triples)])
     if len(n) == 0:
         raise ValueError("points: got collinear samples, expected points spanning a plane")
     score = (np.abs(test @ n.T + off) <= threshold).sum(axis=0)
@@ -405,6 +400,16 @@ def fit_plane(
         normal, offset = -normal, -offset
     plane = Plane(normal / np.linalg.norm(normal), float(offset))
     return plane, np.abs(plane.distance(p)) <= threshold
+
+
+def _planes_through(tri: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Unit normals and offsets of the planes through point triples (k, 3, 3), leaving
+    out collinear ones."""
+    n = np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0])
+    norm = np.linalg.norm(n, axis=1)
+    ok = norm > 1e-12
+    n = n[ok] / norm[ok, None]
+    return n, -np.einsum("ij,ij->i", n, tri[ok, 0])
 
 
 def _frame_triples(rest: np.ndarray, frame: np.ndarray, *, iterations: int = 256, seed: int = 0) -> np.ndarray | None:
@@ -542,7 +547,7 @@ def figure_ground(
         if (rest & frame).sum() < 3:
             break
         triples = _frame_triples(rest, frame, seed=seed + len(found))
-        if triples is None:
+        if triples is None or len(_planes_through(pts[rest][triples])[0]) == 0:  # e.g. one row: no plane
             break
         plane, _ = fit_plane(pts[rest], threshold=plane_threshold, seed=seed + len(found), triples=triples)
         with np.errstate(invalid="ignore"):

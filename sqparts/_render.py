@@ -27,7 +27,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from ._camera import Camera, _Camera
+from ._camera import MAX_PIXELS, MAX_SIDE, Camera, _Camera
 from ._part import Part, bounding_half_extent, gauge, matmul, rotation_matrix
 from ._typing import Array, Bool, Float
 
@@ -280,6 +280,23 @@ left unconverged (IoU 0.86 at 4 steps, 0.77 at 3, 0 at 1, measured against 24 st
 MAX_NEWTON_STEPS = 64
 
 
+def _check_window(window) -> tuple[jax.Array, tuple[int, int]]:
+    """(corner, (rows, cols)) of a ``window`` (row0, col0, rows, cols): integers, at
+    least one row and column, and no more pixels than a camera may have (the window's
+    rays are allocated)."""
+    values = list(window) if isinstance(window, (tuple, list, np.ndarray)) else []
+    ok = len(values) == 4 and all(
+        not isinstance(v, bool) and isinstance(v, (int, np.integer)) and abs(int(v)) <= MAX_SIDE for v in values
+    )
+    rows, cols = (int(values[2]), int(values[3])) if ok else (0, 0)
+    if min(rows, cols) < 1 or rows * cols > MAX_PIXELS:
+        raise ValueError(
+            f"window: got {window!r:.80}, expected (row0, col0, rows, cols): integers with rows, cols >= 1, "
+            f"at most {MAX_SIDE} each and {MAX_PIXELS} pixels"
+        )
+    return jnp.asarray(values[:2], jnp.float32), (rows, cols)
+
+
 def _check_newton_steps(newton_steps) -> int:
     if (
         isinstance(newton_steps, bool)
@@ -348,10 +365,7 @@ def render_range_image(
     if window is None:
         corner, shape = jnp.zeros(2, jnp.float32), None
     else:
-        if len(window) != 4:
-            raise ValueError(f"window: got {window!r}, expected (row0, col0, rows, cols)")
-        corner = jnp.asarray(window[:2], jnp.float32)
-        shape = (int(window[2]), int(window[3]))
+        corner, shape = _check_window(window)
     depth, labels = _render_scene(scene, camera, corner, shape, newton_steps)
     return (depth, labels.astype(jnp.int32)) if return_labels else depth
 

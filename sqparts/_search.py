@@ -55,7 +55,7 @@ from ._part import (
     rotation_matrix,
 )
 from ._polish import grow_parts, once_per_image
-from ._render import DEFAULT_NEWTON_STEPS, cast_part
+from ._render import DEFAULT_NEWTON_STEPS, _check_newton_steps, cast_part
 
 SEARCH_NEWTON_STEPS = 6
 """Newton steps when scoring hypotheses (grazing silhouette pixels barely move Γ)."""
@@ -115,7 +115,8 @@ class SearchSettings:
 
     def __post_init__(self):
         object.__setattr__(self, "grid", grid_preset(self.grid))
-        for name in ("top_k", "stride", "survivors", "batch_size", "newton_steps"):
+        object.__setattr__(self, "newton_steps", _check_newton_steps(self.newton_steps))  # as the renderer's
+        for name in ("top_k", "stride", "survivors", "batch_size"):
             v = getattr(self, name)
             if name == "stride" and v is None:
                 continue
@@ -146,6 +147,8 @@ class SearchSettings:
         if window > 2 * data.pad:
             raise ValueError(f"window: got {window}, expected at most {2 * data.pad} pixels (twice the padding)")
         stride = DEFAULT_STRIDE if self.stride is None else self.stride
+        if stride // 2 >= window:  # the lattice would hold no pixel of the window
+            raise ValueError(f"stride: got {stride}, expected at most {2 * window - 1} (the window is {window} pixels)")
         return dataclasses.replace(self, max_size=max_size, window=window, stride=stride)
 
     @property

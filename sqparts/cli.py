@@ -101,10 +101,10 @@ def _range_out(path: str) -> Path:
     return p
 
 
-def _new_file(args, path) -> Path:
+def _new_file(args, path, inputs) -> Path:
     from ._io import check_new_output
 
-    path = check_new_output(path, overwrite=args.overwrite)
+    path = check_new_output(path, overwrite=args.overwrite, inputs=inputs)
     if path.is_dir():
         raise IsADirectoryError(f"--out: got {str(path)!r}, which is a folder, expected a file path")
     return path
@@ -114,7 +114,7 @@ def cmd_render(args) -> int:
     from ._io import load_camera, load_scene, write_range_image
     from ._render import render_range_image
 
-    out = _new_file(args, _range_out(args.out))
+    out = _new_file(args, _range_out(args.out), (args.scene, args.camera))
     parts = load_scene(args.scene)
     camera = load_camera(args.camera)
     depth = render_range_image(parts, camera)
@@ -129,7 +129,7 @@ def cmd_mesh(args) -> int:
 
     if Path(args.out).suffix.lower() not in MESH_SUFFIXES:
         raise ValueError(f"--out: got {args.out!r}, expected a mesh path ending in {', '.join(MESH_SUFFIXES)}")
-    out = _new_file(args, args.out)
+    out = _new_file(args, args.out, (args.scene,))
     parts = load_scene(args.scene)
     mesh = scene_mesh(parts, resolution=args.resolution, union=args.union)
     save_mesh(out, mesh)
@@ -143,7 +143,7 @@ def cmd_show(args) -> int:
 
     if Path(args.out).suffix.lower() != ".png":
         raise ValueError(f"--out: got {args.out!r}, expected a path ending in .png")
-    out = _new_file(args, args.out)
+    out = _new_file(args, args.out, (args.input,))
     depth, _ = read_range_image(args.input, depth_scale=args.depth_scale)
     save_range_image_png(out, depth, title=Path(args.input).name)
     _say(args, f"wrote {out}")

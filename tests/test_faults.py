@@ -65,6 +65,39 @@ def test_output_names_keep_inputs_apart(tmp_path):
     assert cli.output_names([a / "x.npy", b / "x.npy"]) == ["a/x", "b/x"]
     assert cli.output_names([a / "x.npy", a / "x.png"]) == ["x.npy", "x.png"]
     assert cli.output_names([a / "x.npy", a / "y.npy", b / "x.png"]) == ["a/x", "y", "b/x"]
+    # A stem that is another input's folder name, and a folder that would hold another's:
+    # these used to fail after the other inputs' work, or nest one result in another.
+    assert cli.output_names([a / "x.npy", a / "x.png", a / "x.npy.png"]) == ["x.npy", "x.png", "x.npy.png"]
+    assert cli.output_names([a / "x.npy", b / "x.npy", tmp_path / "b.npy"]) == ["a/x", "b/x.npy", "b.npy"]
+    assert cli.output_names([tmp_path / "b.npy", b / "x.npy", a / "x.npy"]) == ["b.npy", "b/x.npy", "a/x"]
+    assert cli.output_names([tmp_path / "b.npy", tmp_path / "b.npy" / "x.npy"]) == ["b", "x"]
+
+
+def test_an_output_that_is_an_input_is_refused_with_overwrite(files, capsys):
+    """``--out`` naming the input image (or --camera's file) with --overwrite replaced
+    it with the result folder; ``show``'s picture could replace its input likewise."""
+    victim = files / "victim.npy"
+    victim.write_bytes((files / "x.npy").read_bytes())
+    before = victim.read_bytes()
+    for argv in (
+        ["recover", str(victim), "--camera", str(files / "cam.json"), "--out", str(victim), "--overwrite"],
+        [
+            "recover",
+            str(files / "x.npy"),
+            "--camera",
+            str(files / "cam.json"),
+            "--out",
+            str(files / "cam.json"),
+            "--overwrite",
+        ],
+    ):
+        line = cli_error(capsys, argv)
+        assert "which is the input" in line and "expected a path apart from the inputs" in line, line
+    assert victim.read_bytes() == before and (files / "cam.json").is_file()
+    picture = files / "p.png"
+    sqparts.write_range_image(picture, np.load(files / "x.npy"))
+    line = cli_error(capsys, ["show", str(picture), "--out", str(picture), "--overwrite"])
+    assert line.startswith(f"sqparts: error: --out: got {str(picture)!r}, which is the input"), line
 
 
 def test_inputs_sharing_a_stem_each_get_their_folder(files, capsys):
@@ -833,3 +866,34 @@ def test_a_file_name_that_is_not_utf8_gets_its_report(files, capsys):
 
     assert main(["show", str(files / name), "--out", str(files / "s.png")]) == 0
     assert (files / "s.png").stat().st_size > 0
+
+
+def test_depths_beyond_float32_arithmetic_are_refused_by_name(files, capsys):
+    """A figure at 3e38 (float32 holds it, its square does not) printed a numpy overflow
+    warning before an unrelated error; one at 1e-42 failed on an internal 'quantum'."""
+    depth = np.load(files / "x.npy")
+    for value in (3e38, 1e-42):
+        path = files / f"far{value:g}.npy"
+        np.save(path, np.where(np.isfinite(depth), np.float32(value), np.nan).astype(np.float32))
+        for extra in ([], ["--sigma", "0.01"]):
+            line = cli_error(
+                capsys, ["recover", str(path), "--camera", str(files / "cam.json"), "--out", str(files / "o"), *extra]
+            )
+            assert line.startswith(f"sqparts: error: input: got returns from {value:.3g} to {value:.3g} in "), line
+            assert "expected depths in [1e-09, 1e+09] scene units" in line
+    cam = sqparts.PinholeCamera(16, 16, 20.0, 20.0, 7.5, 7.5)
+    for bad in ("x.npy", np.ones((16, 16), complex)):  # were numpy's "could not convert" / a discarded imaginary part
+        with pytest.raises(TypeError, match=r"depth: got .*, expected an array of real depths"):
+            sqparts.recover(bad, cam)
+    with pytest.raises(ValueError, match=r"depth: got returns from 2e\+09 to 2e\+09, expected depths in"):
+        sqparts.prepare(np.full((16, 16), 2e9), sqparts.PinholeCamera(16, 16, 20.0, 20.0, 7.5, 7.5))
+    assert not (files / "o").exists()
+
+
+def test_an_image_of_one_row_has_no_background_plane():
+    """Its returns lie on a line, so no plane can be fitted: figure/ground now removes
+    none, where it used to fail with 'points: got collinear samples'."""
+    cam = sqparts.OrthographicCamera(width=48, height=1, pixel_size=0.05, cx=23.5, cy=0.0)
+    depth = np.full((1, 48), 3.0, np.float32)
+    fg = sqparts.figure_ground(depth, cam, min_pixels=16)
+    assert fg.planes == [] and fg.background.sum() == 0 and len(fg.figures) == 1

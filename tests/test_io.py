@@ -234,3 +234,21 @@ def test_render_teapot_mesh():
     depth = sqparts.render_mesh(mesh, cam)
     assert 0.1 < np.isfinite(depth).mean() < 0.9
     assert np.nanmin(depth) > 1.4 * extent and np.nanmax(depth) < 2.6 * extent
+
+
+def test_writing_a_range_image_checks_it(tmp_path):
+    """write_range_image wrote 3-D and empty arrays (unreadable back) and depths float32
+    cannot hold (as inf); pixels without a return are written as reading gives them."""
+    for bad in (np.ones((4, 4, 3)), np.zeros((0, 0)), np.array([["a"]])):
+        with pytest.raises(ValueError, match=r"depth: got .* with shape .*, expected a 2-D range image with pixels"):
+            sqparts.write_range_image(tmp_path / "w.npy", bad)
+    with pytest.raises(ValueError, match=r"depth: got depths up to 1e\+39, expected depths that float32 holds"):
+        sqparts.write_range_image(tmp_path / "w.npy", np.full((4, 4), 1e39))
+    with pytest.raises(TypeError, match=r"path: got int, expected a file path"):
+        sqparts.write_range_image(3, np.ones((4, 4)))
+    assert not list(tmp_path.iterdir())
+    depth = np.array([[1.0, np.inf], [-2.0, 0.0]])
+    sqparts.write_range_image(tmp_path / "w.npy", depth)
+    back, _ = sqparts.read_range_image(tmp_path / "w.npy")
+    np.testing.assert_array_equal(np.load(tmp_path / "w.npy"), back)
+    np.testing.assert_array_equal(back, [[1.0, np.nan], [np.nan, np.nan]])

@@ -215,3 +215,16 @@ def test_surface_distance_derivatives_equal_autodiff_through_the_formula():
     local = np.asarray(sqparts.rotation_matrix(sphere[3:6])).T @ unit
     np.testing.assert_allclose(np.asarray(g_v[6:9]), -(local**2), atol=1e-5)
     np.testing.assert_allclose(np.asarray(g_v[3:6]), 0.0, atol=1e-5)  # turning a sphere moves nothing
+
+
+def test_half_precision_fields_are_widened_and_complex_refused():
+    """A float16 part kept float16 fields, and its rays missed it: no pixel rendered."""
+    cam = sqparts.OrthographicCamera(width=16, height=16, pixel_size=0.05, cx=7.5, cy=7.5)
+    want = np.isfinite(np.asarray(sqparts.render_range_image(sqparts.Part(size=[0.3] * 3, position=[0, 0, 3.0]), cam)))
+    assert want.sum() > 50
+    for dtype in (np.float16, jnp.bfloat16):
+        part = sqparts.Part(size=np.full(3, 0.3, dtype), position=np.array([0, 0, 3.0], dtype))
+        assert part.size.dtype == np.float32 and part.position.dtype == np.float32
+        np.testing.assert_array_equal(np.isfinite(np.asarray(sqparts.render_range_image(part, cam))), want)
+    with pytest.raises(ValueError, match=r"size: got complex128, expected real numbers"):
+        sqparts.Part(size=[1 + 1j, 1, 1])

@@ -223,6 +223,10 @@ def test_render_errors():
         sqparts.render_range_image([part], PINHOLE)
     with pytest.raises(ValueError, match=r"window: got .*, expected \(row0, col0, rows, cols\)"):
         sqparts.render_range_image(part, PINHOLE, window=(1, 2))
+    # A window past the pixel limit aborted the process in XLA; an empty one returned (0, 5).
+    for window in [(0, 0, 100000, 100000), (0, 0, 0, 5), (0, 0, -3, 5), 5, "abcd", (0, 0, 2.5, 4), (0, 0, True, 4)]:
+        with pytest.raises(ValueError, match=r"window: got .*, expected \(row0, col0, rows, cols\): integers"):
+            sqparts.render_range_image(part, PINHOLE, window=window)
     with pytest.raises(ValueError, match=r"batch_size: got .*, expected a positive integer"):
         sqparts.render_each(part, PINHOLE, batch_size=0)
     o, d = PINHOLE.rays()

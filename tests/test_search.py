@@ -228,6 +228,13 @@ def test_search_errors(data):
         sqparts.make_settings(data, grid=SMALL, max_size=0.2, top_k=0)
     with pytest.raises(ValueError, match=r"window: got .*, expected at most 128 pixels"):
         sqparts.make_settings(data, grid=SMALL, max_size=0.2, window=300)
+    # A stride whose lattice misses the whole window divided by zero deep in the search;
+    # Newton steps beyond the renderer's range ran for minutes.
+    with pytest.raises(ValueError, match=r"stride: got 1000000, expected at most 47 \(the window is 24 pixels\)"):
+        sqparts.make_settings(data, grid=SMALL, max_size=0.2, window=24, stride=10**6)
+    for steps in (1, 1000):
+        with pytest.raises(ValueError, match=rf"newton_steps: got {steps}, expected an integer in \[5, 64\]"):
+            sqparts.SearchSettings(newton_steps=steps)
 
 
 def test_ray_penetration_sphere():
