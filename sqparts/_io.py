@@ -407,6 +407,8 @@ def read_range_image(path, *, depth_scale: float = 0.001) -> tuple[np.ndarray, C
     RealSense PNGs hold the device's depth scale (usually 0.001), its intrinsics read by
     :func:`load_camera`.
     """
+    if not isinstance(path, (str, os.PathLike)):
+        raise TypeError(f"input: got {type(path).__name__}, expected a file path")
     path = Path(path)
     suffix = path.suffix.lower()
     if suffix not in RANGE_IMAGE_SUFFIXES:

@@ -157,14 +157,17 @@ class Part(eqx.Module):
         dtype = size.dtype
         batch = size.shape[:-1]
 
-        def field(x, default_shape):
-            return _host_op(lambda xp, a: xp.asarray(a, dtype), np.zeros(default_shape, dtype) if x is None else x)
+        def field(name, x, default_shape):
+            try:
+                return _host_op(lambda xp, a: xp.asarray(a, dtype), np.zeros(default_shape, dtype) if x is None else x)
+            except (TypeError, ValueError):  # strings, objects, ragged lists
+                raise ValueError(f"{name}: got {x!r:.60}, expected numbers") from None
 
-        position = field(position, None)
-        squareness = field(squareness, None)
-        orientation = field(orientation, batch + (3,))
-        bend = field(bend, batch + (2,))
-        taper = field(taper, batch)
+        position = field("position", position, None)
+        squareness = field("squareness", squareness, None)
+        orientation = field("orientation", orientation, batch + (3,))
+        bend = field("bend", bend, batch + (2,))
+        taper = field("taper", taper, batch)
         fields = dict(
             position=position,
             orientation=orientation,
@@ -238,6 +241,14 @@ class Part(eqx.Module):
 
 
 def _as_float_array(x) -> Array:
+    dtype = getattr(x, "dtype", None)  # an array's, read without a transfer; else a host probe
+    try:
+        dtype = np.asarray(x).dtype if dtype is None else dtype
+    except (TypeError, ValueError):  # a ragged list
+        dtype = np.dtype(object)
+    if not (jnp.issubdtype(dtype, jnp.number) or jnp.issubdtype(dtype, jnp.bool_)):
+        raise ValueError(f"size: got {x!r:.60}, expected numbers")
+
     def convert(xp, a):
         a = xp.asarray(a)
         if xp.issubdtype(a.dtype, xp.complexfloating):

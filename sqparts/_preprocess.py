@@ -37,8 +37,11 @@ DEFAULT_TEAR = 8.0
 """Depth jump, in pixel footprints, that tears the rubber sheet."""
 
 
-def _check_positive(name: str, value, *, integer: bool = False):
+def check_positive(name: str, value, *, integer: bool = False):
+    """``value``, a finite number > 0 (an integer with ``integer``; never a bool), or
+    ``ValueError`` naming ``name``."""
     ok = isinstance(value, (int, np.integer)) if integer else isinstance(value, (int, float, np.number))
+    ok = ok and not isinstance(value, (bool, np.bool_))
     if not ok or not math.isfinite(value) or value <= 0:
         kind = "an integer" if integer else "a finite number"
         raise ValueError(f"{name}: got {value!r}, expected {kind} > 0")
@@ -56,7 +59,7 @@ def footprint(depth, camera: Camera) -> np.ndarray:
 def downsample(depth, camera: Camera, factor: int) -> tuple[np.ndarray, Camera]:
     """Bin ``factor`` × ``factor`` blocks to their median valid depth (NaN if none is
     valid), cropping the image to a multiple of ``factor``; returns (depth, camera)."""
-    _check_positive("factor", factor, integer=True)
+    check_positive("factor", factor, integer=True)
     d = _check_depth(depth, camera)
     cam = camera.downsampled(int(factor))
     f = int(factor)
@@ -105,7 +108,7 @@ def flying_pixels(depth, camera: Camera, *, tear: float = DEFAULT_TEAR) -> np.nd
     footprints away, and each of those gaps is more than twice the step between that
     neighbour and the next one out: the surfaces either side are continuous and the pixel
     belongs to neither (a steep ramp, where every step is alike, is not flagged)."""
-    _check_positive("tear", tear)
+    check_positive("tear", tear)
     d = _check_depth(depth, camera)
     thr = footprint(d, camera) * tear
     out = np.zeros(d.shape, bool)
@@ -124,7 +127,7 @@ def torn_components(depth, camera: Camera, mask=None, *, tear: float = DEFAULT_T
     """The rubber sheet: 4-neighbours in ``mask`` (default: every return) are joined
     unless their depths differ by more than ``tear`` footprints; returns the labels of
     the pieces (0, 1, ... by decreasing size; -1 outside the mask)."""
-    _check_positive("tear", tear)
+    check_positive("tear", tear)
     d = _check_depth(depth, camera)
     m = np.isfinite(d) if mask is None else (np.asarray(mask, bool) & np.isfinite(d))
     h, w = d.shape
@@ -235,7 +238,7 @@ def clean_range_image(
     """Clean a sensor's range image: missing returns to NaN, drop returns outside
     ``depth_range`` (near, far), remove flying pixels (:func:`flying_pixels`) and
     isolated outliers (pieces of the rubber sheet under ``min_pixels``)."""
-    _check_positive("min_pixels", min_pixels, integer=True)
+    check_positive("min_pixels", min_pixels, integer=True)
     raw = np.asarray(depth, np.float64)
     d = _check_depth(raw, camera)
     missing = int((~np.isfinite(d)).sum())
@@ -376,7 +379,7 @@ def fit_plane(
     (distance ≤ ``threshold``); returns (plane, inlier mask). Deterministic for a seed.
     The candidate planes pass through ``iterations`` random triples of the points, or
     through the given ``triples`` (k, 3) of indices into them."""
-    _check_positive("threshold", threshold)
+    check_positive("threshold", threshold)
     p = np.asarray(points, np.float64)
     if p.ndim != 2 or p.shape[1] != 3 or len(p) < 3:
         raise ValueError(f"points: got {p.shape}, expected at least 3 points of shape (N, 3)")
@@ -530,10 +533,10 @@ def figure_ground(
     if plane_threshold is None:
         q = estimate_quantum(d) or 0.0
         plane_threshold = max(0.01 * float(np.median(d[valid])), 3 * q)
-    _check_positive("plane_threshold", plane_threshold)
+    check_positive("plane_threshold", plane_threshold)
     if min_pixels is None:
         min_pixels = max(16, int(0.0025 * valid.sum()))
-    _check_positive("min_pixels", min_pixels, integer=True)
+    check_positive("min_pixels", min_pixels, integer=True)
     if not (isinstance(max_border_fraction, (int, float, np.integer, np.floating)) and 0 <= max_border_fraction <= 1):
         raise ValueError(f"max_border_fraction: got {max_border_fraction!r}, expected a number in [0, 1]")
     pts = camera_points(camera, d)
@@ -561,7 +564,7 @@ def figure_ground(
             background |= valid & (ground.distance(pts) <= plane_threshold)
     ground = max(found, key=lambda p: -p.normal[1]) if found else None
     if ground is not None and max_height is not None:
-        _check_positive("max_height", max_height)
+        check_positive("max_height", max_height)
         with np.errstate(invalid="ignore"):
             background |= valid & (ground.distance(pts) > max_height)
     # A figure's rim: drop one-pixel slivers the planes leave along the objects' bases.

@@ -112,6 +112,19 @@ class MatchSettings:
     verification_tolerance: float | None = 0.1
 
     def __post_init__(self):
+        def number(v) -> bool:
+            return isinstance(v, (int, float, np.integer, np.floating)) and not isinstance(v, bool) and np.isfinite(v)
+
+        for name in ("size_tolerance", "squareness_tolerance", "deformation_tolerance", "distance_tolerance"):
+            if not (number(getattr(self, name)) and getattr(self, name) > 0):
+                raise ValueError(f"{name}: got {getattr(self, name)!r}, expected a finite number > 0")
+        if not (number(self.angle_tolerance) and self.angle_tolerance > 0):
+            raise ValueError(f"angle_tolerance: got {self.angle_tolerance!r}, expected radians > 0")
+        if not (number(self.min_similarity) and 0 <= self.min_similarity <= 1):
+            raise ValueError(f"min_similarity: got {self.min_similarity!r}, expected a number in [0, 1]")
+        k = self.iterations
+        if isinstance(k, bool) or not isinstance(k, (int, np.integer)) or k < 0:
+            raise ValueError(f"iterations: got {k!r}, expected an integer >= 0")
         if self.weighting not in ("fraction", "volume"):
             raise ValueError(f"weighting: got {self.weighting!r}, expected 'fraction' or 'volume'")
         t = self.shape_tolerance

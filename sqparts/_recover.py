@@ -363,9 +363,21 @@ class SceneSettings:
     max_bits: float = 56.0
 
     def __post_init__(self):
-        from ._preprocess import check_holes
+        from ._preprocess import check_holes, check_positive
 
         check_holes(self.holes)
+        for name, integer in (
+            ("tear", False),
+            ("plane_threshold", False),
+            ("min_figure_pixels", True),
+            ("max_figures", True),
+            ("max_height", False),
+        ):
+            if getattr(self, name) is not None:
+                check_positive(name, getattr(self, name), integer=integer)
+        p = self.planes
+        if isinstance(p, bool) or not isinstance(p, (int, np.integer)) or p < 0:
+            raise ValueError(f"planes: got {p!r}, expected an integer >= 0")
         r = self.resolution
         if r is not None and (isinstance(r, bool) or not isinstance(r, (int, np.integer)) or r < 0):
             raise ValueError(f"resolution: got {r!r}, expected an integer >= 0 or None")
@@ -390,9 +402,13 @@ class SceneSettings:
                     f"up: got {self.up!r}, expected three finite numbers (x, y, z) that float32 holds, not all 0"
                 )
             object.__setattr__(self, "up", up)
-        if not (isinstance(self.max_angle, (int, float)) and 0 < self.max_angle <= 90):
+        if isinstance(self.max_angle, bool) or not (
+            isinstance(self.max_angle, (int, float)) and 0 < self.max_angle <= 90
+        ):
             raise ValueError(f"max_angle: got {self.max_angle!r}, expected degrees in (0, 90]")
-        if not (isinstance(self.max_bits, (int, float)) and np.isfinite(self.max_bits) and self.max_bits >= 0):
+        if isinstance(self.max_bits, bool) or not (
+            isinstance(self.max_bits, (int, float)) and np.isfinite(self.max_bits) and self.max_bits >= 0
+        ):
             raise ValueError(f"max_bits: got {self.max_bits!r}, expected a finite number >= 0")
         if not (isinstance(self.max_border_fraction, (int, float)) and 0 <= self.max_border_fraction <= 1):
             raise ValueError(f"max_border_fraction: got {self.max_border_fraction!r}, expected a number in [0, 1]")

@@ -132,6 +132,8 @@ class SearchSettings:
             not isinstance(self.window, (int, np.integer)) or isinstance(self.window, bool) or self.window <= 0
         ):
             raise ValueError(f"window: got {self.window!r}, expected a positive integer or None")
+        if not isinstance(self.prune, (bool, np.bool_)):
+            raise ValueError(f"prune: got {self.prune!r}, expected True or False")
         if self.region_method not in ("skeleton", "grid", "both"):
             raise ValueError(f"region_method: got {self.region_method!r}, expected 'skeleton', 'grid' or 'both'")
         if self.spacing is not None and not (
@@ -813,8 +815,14 @@ def fit_image(
     :class:`SearchSettings` or preset name): returns the region fits, the prepared data and
     the resolved settings. ``centres`` (n, 2) replaces the regions' centres;
     ``progress`` wraps the region iterator (e.g. ``tqdm.tqdm``)."""
+    if progress is not None and not callable(progress):
+        raise TypeError(f"progress: got {type(progress).__name__}, expected a callable wrapping an iterable or None")
     data = prepare(depth, camera, figure=figure, encoding=encoding)
     settings = search_preset(search).resolve(data)
+    if centres is not None:
+        given = np.asarray(centres)
+        if given.ndim != 2 or given.shape[1] != 2 or not np.issubdtype(given.dtype, np.number):
+            raise ValueError(f"centres: got shape {given.shape} of {given.dtype}, expected (n, 2) pixel (row, col)")
     if centres is None:
         px = settings.side / 2.2
         spacing = settings.spacing or max(3.0, px / 3)

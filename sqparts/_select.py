@@ -353,7 +353,9 @@ class SelectSettings:
             raise ValueError(f"method: got {self.method!r}, expected 'auto', 'exact' or 'best-first'")
         if not (isinstance(self.exact_limit, int) and not isinstance(self.exact_limit, bool) and self.exact_limit >= 0):
             raise ValueError(f"exact_limit: got {self.exact_limit!r}, expected an integer >= 0")
-        if not (isinstance(self.time_limit, (int, float)) and 0 < self.time_limit < float("inf")):
+        if isinstance(self.time_limit, bool) or not (
+            isinstance(self.time_limit, (int, float)) and 0 < self.time_limit < float("inf")
+        ):
             raise ValueError(f"time_limit: got {self.time_limit!r}, expected a finite number of seconds > 0")
         n = self.node_limit
         if n is not None and (isinstance(n, bool) or not isinstance(n, (int, np.integer)) or n < 1):

@@ -897,3 +897,42 @@ def test_an_image_of_one_row_has_no_background_plane():
     depth = np.full((1, 48), 3.0, np.float32)
     fg = sqparts.figure_ground(depth, cam, min_pixels=16)
     assert fg.planes == [] and fg.background.sum() == 0 and len(fg.figures) == 1
+
+
+@pytest.mark.parametrize(
+    "field, value",
+    [
+        ("tear", float("nan")),
+        ("planes", 1.5),
+        ("plane_threshold", -1.0),
+        ("min_figure_pixels", -5),
+        ("max_figures", 0),
+        ("max_height", float("nan")),
+        ("max_angle", True),
+        ("max_bits", True),
+    ],
+)
+def test_scene_settings_are_checked_when_made(field, value):
+    """These were accepted and failed (or were used) later, some under another name."""
+    with pytest.raises(ValueError, match=rf"^{field}: got {value!r}, expected"):
+        sqparts.SceneSettings(**{field: value})
+
+
+def test_search_and_select_settings_refuse_bools_and_strings():
+    with pytest.raises(ValueError, match=r"prune: got 'no', expected True or False"):
+        sqparts.SearchSettings(prune="no")
+    with pytest.raises(ValueError, match=r"time_limit: got True, expected a finite number of seconds"):
+        sqparts.SelectSettings(time_limit=True)
+
+
+def test_recover_names_a_bad_progress_or_centres():
+    """progress=3 failed as "'int' object is not callable" in a worker; centres of the
+    wrong shape failed in a reshape."""
+    cam = sqparts.OrthographicCamera(width=32, height=32, pixel_size=0.05, cx=15.5, cy=15.5)
+    depth = np.asarray(sqparts.render_range_image(sqparts.Part(size=[0.3] * 3, position=[0, 0, 3.0]), cam))
+    with pytest.raises(TypeError, match=r"progress: got int, expected a callable"):
+        sqparts.recover(depth, cam, progress=3)
+    with pytest.raises(ValueError, match=r"centres: got shape \(3,\) of float64, expected \(n, 2\)"):
+        sqparts.recover(depth, cam, centres=np.zeros(3))
+    with pytest.raises(TypeError, match=r"input: got NoneType, expected a file path"):
+        sqparts.read_range_image(None)

@@ -228,3 +228,16 @@ def test_half_precision_fields_are_widened_and_complex_refused():
         np.testing.assert_array_equal(np.isfinite(np.asarray(sqparts.render_range_image(part, cam))), want)
     with pytest.raises(ValueError, match=r"size: got complex128, expected real numbers"):
         sqparts.Part(size=[1 + 1j, 1, 1])
+
+
+def test_fields_that_are_not_numbers_are_named():
+    """Strings, objects and ragged lists gave numpy's own messages, naming no field."""
+    for kwargs, field in [
+        (dict(size="abc"), "size"),
+        (dict(size=[object(), 1, 1]), "size"),
+        (dict(size=[[1, 1, 1], [1, 1]]), "size"),
+        (dict(size=[1, 1, 1], position="xyz"), "position"),
+        (dict(size=[1, 1, 1], bend=[[1], [1, 2]]), "bend"),
+    ]:
+        with pytest.raises(ValueError, match=rf"^{field}: got .*, expected numbers$"):
+            sqparts.Part(**kwargs)

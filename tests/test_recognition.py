@@ -517,6 +517,17 @@ def test_bad_match_settings_are_refused():
         sqparts.MatchSettings(alignment_pairs=True)
     with pytest.raises(ValueError, match=r"verification_tolerance: got -1, expected a number > 0 or None"):
         sqparts.MatchSettings(verification_tolerance=-1)
+    # Fields that failed deep in scipy or numpy, or silently gave a self-match score 0.
+    for field, value in [
+        ("size_tolerance", float("nan")),
+        ("distance_tolerance", 0),
+        ("angle_tolerance", "x"),
+        ("iterations", 1.5),
+        ("iterations", -1),
+        ("min_similarity", float("nan")),
+    ]:
+        with pytest.raises(ValueError, match=rf"{field}: got .*, expected"):
+            sqparts.MatchSettings(**{field: value})
 
 
 # --- the whole solid: its outer surface, aligned -----------------------------------------
