@@ -248,7 +248,9 @@ def region_centers(figure, *, spacing: float, method: str = "skeleton", grid_sha
     if method in ("skeleton", "both"):
         from scipy.ndimage import maximum_filter
 
-        skel, dist = medial_axis(fig, return_distance=True, rng=0)
+        # The image's edge bounds the figure: without that border a figure covering the
+        # whole image has no background to measure distances from, and no skeleton.
+        skel, dist = (a[1:-1, 1:-1] for a in medial_axis(np.pad(fig, 1), return_distance=True, rng=0))
         # Drop spurs (e.g. into corners): keep skeleton pixels at least half as thick as
         # the thickest skeleton pixel within ``spacing``.
         thick = maximum_filter(np.where(skel, dist, 0.0), size=max(int(spacing), 1))

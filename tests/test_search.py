@@ -69,6 +69,19 @@ def test_region_centres_on_skeleton():
     assert len(g) > 0 and fig[g[:, 0], g[:, 1]].all()
     with pytest.raises(ValueError, match=r"method: got 'random', expected"):
         sqparts.region_centers(fig, spacing=8, method="random")
+    # A figure filling the image (a mask of every pixel) is bounded by the image's edge:
+    # its centres lie on its own midline, where they used to run along the last row.
+    c = sqparts.region_centers(np.ones((10, 50), bool), spacing=8)
+    assert len(c) >= 4 and np.all(np.abs(c[:, 0] - 4.5) <= 1.5), c
+
+
+def test_a_figure_mask_of_the_whole_image_is_recovered():
+    """figure=np.ones(...) (every pixel the figure, the rest missing data) found no part."""
+    cam = sqparts.OrthographicCamera(width=32, height=32, pixel_size=0.05, cx=15.5, cy=15.5)
+    part = sqparts.Part(size=[0.3, 0.2, 0.25], position=[0.1, 0.0, 3.0])
+    depth = np.asarray(sqparts.render_range_image(part, cam))
+    rec = sqparts.recover(depth, cam, figure=np.ones(depth.shape, bool), search=sqparts.SearchSettings(max_size=0.4))
+    assert len(rec.parts) == 1 and rec.fraction_explained > 0.9
 
 
 def test_chunked_equals_unchunked(data):
