@@ -465,14 +465,20 @@ def read_range_image(path, *, depth_scale: float = 0.001) -> tuple[np.ndarray, C
         raise ValueError(
             f"input: got {depth.dtype} with shape {depth.shape}, expected a 2-D numeric range image with pixels"
         )
-    finite = np.abs(depth[np.isfinite(depth)]) if numeric else np.zeros(0)
+    return _float32_depth(depth, "input", f" in {str(path)!r}"), camera
+
+
+def _float32_depth(raw: np.ndarray, argument: str, where: str = "") -> np.ndarray:
+    """A numeric 2-D array as float32 depths, NaN where there is no return (NaN, inf, 0
+    or negative), as both reading and writing keep them; depths float32 cannot hold are
+    refused (``argument: got depths up to X{where}, ...``) rather than turned into inf."""
+    finite = np.abs(raw[np.isfinite(raw)])
     if finite.size and float(finite.max()) > float(np.finfo(np.float32).max):
         raise ValueError(
-            f"input: got depths up to {float(finite.max()):.3g} in {str(path)!r}, expected depths that float32 holds"
+            f"{argument}: got depths up to {float(finite.max()):.3g}{where}, expected depths that float32 holds"
         )
-    depth = depth.astype(np.float32)
-    depth[~np.isfinite(depth) | (depth <= 0)] = np.nan
-    return depth, camera
+    with np.errstate(invalid="ignore"):
+        return np.where(np.isfinite(raw) & (raw > 0), raw, np.nan).astype(np.float32)
 
 
 def _declared_shape(path: Path, suffix: str) -> tuple[int, ...]:
@@ -599,11 +605,7 @@ def write_range_image(path, depth, *, depth_scale: float = 0.001) -> None:
     real = np.issubdtype(raw.dtype, np.integer) or np.issubdtype(raw.dtype, np.floating)
     if raw.ndim != 2 or 0 in raw.shape or not real:
         raise ValueError(f"depth: got {raw.dtype} with shape {raw.shape}, expected a 2-D range image with pixels")
-    with np.errstate(invalid="ignore"):
-        returns = np.isfinite(raw) & (raw > 0)
-    if returns.any() and float(raw[returns].max()) > float(np.finfo(np.float32).max):
-        raise ValueError(f"depth: got depths up to {float(raw[returns].max()):.3g}, expected depths that float32 holds")
-    depth = np.where(returns, raw, np.nan).astype(np.float32)  # no return: NaN, as read back
+    depth = _float32_depth(raw, "depth")
     suffix = path.suffix.lower()
     if suffix == ".npy":
         with atomic_write(path) as f:
