@@ -1,5 +1,9 @@
 """Prototype (not in the package): verification with the stored parts articulated.
 
+Session 42 put the ``joint`` mode in the package (``MatchSettings.articulated``,
+``sqparts._recognize.articulate``), with the tree made once per stored view and a step
+that also moves the whole solid; this script keeps session 41's measurement.
+
 The verified matcher (``ModelDatabase.match``) fits each stored view to the observed
 points as one rigid solid (``fit_pose``) and renders it there (``verify_poses``). The
 person is learnt standing and shown walking, waving, straddling: a rigid pose cannot

@@ -25,6 +25,7 @@ same checks as scene files, so a failed write leaves the database as it was.
 from __future__ import annotations
 
 import dataclasses
+import functools
 import hashlib
 import json
 import re
@@ -44,11 +45,14 @@ from ._io import _load_json, atomic_write, scene_from_dict, scene_to_dict
 from ._part import Part, stack_parts
 from ._recognize import (
     COHORT,
+    KinematicTree,
     MatchSettings,
     Observation,
     align_candidates,
+    articulate,
     calibrate_threshold,
     fit_pose,
+    kinematic_tree,
     lead,
     match_descriptions,
     observed_points,
@@ -115,6 +119,11 @@ class StoredDescription:
     parts: Part
     description: Description
 
+    @functools.cached_property
+    def tree(self) -> KinematicTree:
+        """The parts' joints (:func:`~sqparts._recognize.kinematic_tree`), made once."""
+        return kinematic_tree(self.parts, self.description.touching)
+
 
 @dataclasses.dataclass(frozen=True)
 class StoredView:
@@ -129,14 +138,15 @@ class StoredView:
 
 
 def transform_parts(parts: Part, pose) -> Part:
-    """Batched ``parts`` moved by a 4x4 rigid transform (p -> R p + t), on the host."""
+    """Batched ``parts`` moved by a 4x4 rigid transform (p -> R p + t), or each part by
+    its own ((n, 4, 4): an articulation), on the host."""
     pose = np.asarray(pose, float)
-    r, t = pose[:3, :3], pose[:3, 3]
+    r, t = pose[..., :3, :3], pose[..., :3, 3]
     moved = Rotation.from_matrix(r) * Rotation.from_rotvec(np.asarray(parts.orientation, float).reshape(-1, 3))
     return Part(
         size=parts.size,
         squareness=parts.squareness,
-        position=(np.asarray(parts.position, float) @ r.T + t).astype(np.float32),
+        position=(np.einsum("...ab,...b->...a", r, np.asarray(parts.position, float)) + t).astype(np.float32),
         orientation=moved.as_rotvec().astype(np.float32),
         bend=parts.bend,
         taper=parts.taper,
@@ -230,7 +240,9 @@ class RecognitionMatch:
     ``parts``: (query part, model part) pairs, query indices into the whole recovery's
     parts (all figures, as in parts.json), model indices into ``model_parts``;
     ``pose``: 4x4, model frame to the query's camera frame; ``figure``: the query
-    figure matched (-1: all figures together).
+    figure matched (-1: all figures together); ``articulation``: (n, 4, 4) per model
+    part, its model-frame motion before ``pose`` when the stored parts verified better
+    articulated about their joints (:func:`~sqparts._recognize.articulate`), else None.
     """
 
     name: str
@@ -241,13 +253,17 @@ class RecognitionMatch:
     view: int
     kind: str
     model_parts: Part
+    articulation: np.ndarray | None = None
 
     def posed_parts(self) -> Part:
-        """The matched stored parts moved into the query's camera frame by ``pose``."""
-        return transform_parts(self.model_parts, self.pose)
+        """The matched stored parts moved into the query's camera frame by ``pose``
+        (each by its own motion when articulated)."""
+        if self.articulation is None:
+            return transform_parts(self.model_parts, self.pose)
+        return transform_parts(self.model_parts, np.einsum("ab,nbc->nac", self.pose, self.articulation))
 
     def to_json(self) -> dict:
-        return {
+        out = {
             "name": self.name,
             "score": float(self.score),
             "parts": self.parts.tolist(),
@@ -256,6 +272,9 @@ class RecognitionMatch:
             "view": self.view,
             "kind": self.kind,
         }
+        if self.articulation is not None:
+            out["articulation"] = self.articulation.tolist()
+        return out
 
 
 class ModelDatabase:
@@ -412,7 +431,12 @@ class ModelDatabase:
         (:func:`~sqparts._recognize.verify_poses`, all in one batched call): the view
         then scores the geometric mean of the alignment and the verification of its best
         pose, which is the match's pose (when ``settings.verification_tolerance`` is
-        set); the part match gives the correspondences."""
+        set); the part match gives the correspondences. With ``settings.articulated``
+        each fitted pose is also verified with the main description's parts articulated
+        about their joints (:func:`~sqparts._recognize.articulate`; the tree is made once
+        per stored view) and scores the better of the two renderings; when the
+        articulated one wins, the match's correspondences are the main description's and
+        its ``articulation`` the parts' motions."""
         rows = []
         for name, views in self.objects.items():
             for k, view in enumerate(views):
@@ -434,16 +458,37 @@ class ModelDatabase:
                 scale = max(query.scale, model.description.scale)
                 sigma = float(settings.alignment_tolerance or 0.0) * scale  # aligned only when it is set
                 poses = [fit_pose(points, model.description, a.pose, sigma) for a in aligned]
-                posed.append(poses)
-                solids += [transform_parts(model.parts, pose) for pose in poses]
-                taus += [tolerance * scale] * len(poses)
+                # Per pose the rigid solid and, articulated about its joints, the same parts
+                # moved each by its own motion (None: nothing to articulate).
+                motions = [
+                    articulate(model.tree, points, pose, sigma)
+                    if settings.articulated and len(model.tree.order) > 1
+                    else None
+                    for pose in poses
+                ]
+                posed.append(list(zip(poses, motions)))
+                for pose, motion in zip(poses, motions):
+                    solids.append(transform_parts(model.parts, pose))
+                    solids += [] if motion is None else [transform_parts(model.parts, motion)]
+                    taus += [tolerance * scale] * (1 if motion is None else 2)
             checks = iter(verify_poses(solids, observation, mask, taus))
         best: dict[str, tuple] = {}
         for r, (name, k, m, stored, aligned) in enumerate(rows):
             if aligned and posed is not None:
-                evidence = [float(np.sqrt(max(a.score, 0.0) * next(checks))) for a in aligned]
+                evidence, articulation = [], []
+                for a, (pose, motion) in zip(aligned, posed[r]):
+                    rigid = next(checks)
+                    moved = -1.0 if motion is None else next(checks)
+                    evidence.append(float(np.sqrt(max(a.score, 0.0) * max(rigid, moved))))
+                    if motion is not None and moved > rigid:
+                        articulation.append(np.einsum("ab,nbc->nac", np.linalg.inv(pose), motion))
+                    else:
+                        articulation.append(None)
                 j = int(np.argmax(evidence))
-                m = dataclasses.replace(m, score=evidence[j], pose=posed[r][j])
+                main = self.objects[name][k].main
+                if articulation[j] is not None and stored is not main:  # the main's parts were articulated
+                    m, stored = match_descriptions(query, main.description, settings), main
+                m = dataclasses.replace(m, score=evidence[j], pose=posed[r][j][0], articulation=articulation[j])
             elif aligned:
                 m = dataclasses.replace(
                     m, score=float(np.sqrt(m.score * max(aligned[0].score, 0.0))), pose=aligned[0].pose
@@ -729,7 +774,10 @@ def match_figures(
             if name not in best or score > best[name][0]:
                 pairs = m.pairs.copy()
                 pairs[:, 0] += offsets[f] if f >= 0 else 0
-                best[name] = (score, RecognitionMatch(name, score, pairs, m.pose, f, view, kind, stored.parts))
+                best[name] = (
+                    score,
+                    RecognitionMatch(name, score, pairs, m.pose, f, view, kind, stored.parts, m.articulation),
+                )
     matches = [m for _, m in sorted(best.values(), key=lambda r: -r[0])]
     top = matches[0].name if matches and db.evidence([m.score for m in matches]) >= db.threshold else None
     return top, matches

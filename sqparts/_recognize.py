@@ -41,6 +41,12 @@ work on the data, not on the query's recovered parts, which change from view to 
 more than the object does. A view then scores the geometric mean of the alignment and
 the verification of its best pose (``MatchSettings.verification_tolerance``); the part
 match still gives the correspondences.
+
+Configuration (section 1: a person learnt standing is seen walking): each fitted pose is
+also verified with the stored parts articulated (:func:`articulate`) about the joints of
+a kinematic tree over the parts that touch (:func:`kinematic_tree`, made once per stored
+view), and scores the better of its rigid and its articulated rendering
+(``MatchSettings.articulated``).
 """
 
 from __future__ import annotations
@@ -54,7 +60,7 @@ from scipy.spatial import KDTree
 from scipy.spatial.transform import Rotation
 
 from ._camera import Camera
-from ._describe import ATTRIBUTES, RELATIONS, SHAPE_BINS, SHAPE_RANGE, Description
+from ._describe import ATTRIBUTES, RELATIONS, SHAPE_BINS, SHAPE_RANGE, Description, part_volume, surface_samples
 
 
 @dataclasses.dataclass(frozen=True)
@@ -91,6 +97,10 @@ class MatchSettings:
         refined alignment is first fitted to the observed points (:func:`fit_pose`); a
         view then scores the geometric mean of the alignment and the verification of its
         best pose. None: no verification.
+    articulated : also verify each fitted pose with the stored parts articulated about
+        their joints (:func:`articulate`; section 1's stability under configuration: a
+        person learnt standing, seen walking), the pose scoring the better of its rigid
+        and its articulated rendering. False: rigid poses alone.
     weighting : a matched pair's weight: ``"fraction"``, sqrt(v_query v_model) of the two
         parts' volume fractions; ``"volume"``, min(V_query, V_model) / max(ΣV_query,
         ΣV_model) of their volumes in scene units, so that a query explaining only a small
@@ -110,6 +120,7 @@ class MatchSettings:
     alignment_pairs: int = 12
     alignment_starts: int = 4
     verification_tolerance: float | None = 0.1
+    articulated: bool = True
 
     def __post_init__(self):
         def number(v) -> bool:
@@ -125,6 +136,8 @@ class MatchSettings:
         k = self.iterations
         if isinstance(k, bool) or not isinstance(k, (int, np.integer)) or k < 0:
             raise ValueError(f"iterations: got {k!r}, expected an integer >= 0")
+        if not isinstance(self.articulated, (bool, np.bool_)):
+            raise ValueError(f"articulated: got {self.articulated!r}, expected True or False")
         if self.weighting not in ("fraction", "volume"):
             raise ValueError(f"weighting: got {self.weighting!r}, expected 'fraction' or 'volume'")
         t = self.shape_tolerance
@@ -149,11 +162,16 @@ class Match:
     score : float in [0, 1].
     pairs : (k, 2) int array of (query part, model part) indices.
     pose : (4, 4) array taking model-frame points to the query's frame.
+    articulation : (n, 4, 4) array or None: per part of the stored view's main
+        description, the model-frame motion (applied before ``pose``) that articulated it
+        about its joints (:func:`articulate`), when that verified better than the rigid
+        pose; None: rigid.
     """
 
     score: float
     pairs: np.ndarray
     pose: np.ndarray
+    articulation: np.ndarray | None = None
 
 
 _SIZE = slice(0, 3)
@@ -520,6 +538,122 @@ def fit_pose(points, model: Description, pose, sigma: float) -> np.ndarray:
     r, t = _refine_pose(np.asarray(points, float), None, KDTree(model.surface), pose[:3, :3], pose[:3, 3], sigma)
     out = np.eye(4)
     out[:3, :3], out[:3, 3] = r, t
+    return out
+
+
+_ARTICULATION_STEPS = 15
+"""Most steps of :func:`articulate`."""
+
+_ARTICULATION_SETTLED = 0.01
+""":func:`articulate` stops when a step moves no surface sample farther than this many σ."""
+
+_JOINT_SAMPLES = 10
+"""Latitudes of each part's surface samples (:func:`~sqparts._describe.surface_samples`)
+that joints are placed on and articulation is fitted with."""
+
+
+@dataclasses.dataclass(frozen=True, eq=False)
+class KinematicTree:
+    """A stored solid's parts as a tree of joints, in the model's frame
+    (:func:`kinematic_tree`).
+
+    Attributes
+    ----------
+    parent : (n,) int, each part's parent (-1: the root, and parts touching none of the
+        tree, which move with the root).
+    order : the tree's parts breadth first, the root first.
+    joints : (n, 3) each part's joint with its parent (the root's: its centre).
+    samples : (m, 3) points on the parts' surfaces; ``owner`` (m,) their parts.
+    subtree : (n, n) bool, ``subtree[c, i]``: part i moves when c turns about its joint.
+    """
+
+    parent: np.ndarray
+    order: tuple[int, ...]
+    joints: np.ndarray
+    samples: np.ndarray
+    owner: np.ndarray
+    subtree: np.ndarray
+
+
+def kinematic_tree(parts, touching) -> KinematicTree:
+    """The joints of batched ``parts`` (model frame) given which touch (``touching``,
+    (n, n) bool: :attr:`~sqparts.Description.touching`): the largest part is the root, the
+    parts touching a part already in the tree are its children (breadth first), and a
+    child's joint is the midpoint of the closest pair of surface samples, one on the
+    child and one on its parent."""
+    size = np.asarray(parts.size, float).reshape(-1, 3)
+    n = len(size)
+    squareness = np.asarray(parts.squareness, float).reshape(n, 2)
+    bend, taper = np.asarray(parts.bend, float).reshape(n, 2), np.asarray(parts.taper, float).reshape(n)
+    rot = Rotation.from_rotvec(np.asarray(parts.orientation, float).reshape(n, 3)).as_matrix()
+    pos = np.asarray(parts.position, float).reshape(n, 3)
+    local = [
+        surface_samples(size[i], squareness[i], bend[i], taper[i], rot[i], pos[i], count=_JOINT_SAMPLES)
+        for i in range(n)
+    ]
+    owner = np.repeat(np.arange(n), [len(s) for s in local])
+    samples = np.concatenate(local)
+    touching = np.asarray(touching, bool)
+    order, parent = [int(np.argmax(part_volume(size, squareness)))], np.full(n, -1)
+    for p in order:  # grows while it is walked: breadth first
+        for c in np.flatnonzero(touching[p]):
+            if int(c) not in order:
+                parent[c] = p
+                order.append(int(c))
+    joints = pos.copy()
+    subtree = np.eye(n, dtype=bool)
+    for c in reversed(order[1:]):
+        a, b = samples[owner == c], samples[owner == parent[c]]
+        d, j = map(np.asarray, KDTree(b).query(a))
+        k = int(np.argmin(d))
+        joints[c] = 0.5 * (a[k] + b[j[k]])
+        subtree[parent[c]] |= subtree[c]
+    return KinematicTree(parent, tuple(order), joints, samples, owner, subtree)
+
+
+def articulate(tree: KinematicTree, points, pose, sigma: float) -> np.ndarray:
+    """(n, 4, 4) per part, the motion taking the model's frame to the query's camera
+    frame after the stored solid at ``pose`` is articulated onto observed ``points``
+    (section 1: the same object in another configuration).
+
+    Starting from the rigid ``pose``, each of :data:`_ARTICULATION_STEPS` steps pairs
+    every observed point with its nearest surface sample (within :data:`_GATE` σ,
+    weighted exp(-d²/8σ²) as :func:`fit_pose` does), moves the whole solid by the
+    weighted Kabsch motion of all pairs, then, down the tree, turns each part with its
+    subtree about its joint by the weighted Kabsch rotation of the subtree's pairs (at
+    least 8 pairs each). A solid of one part, or whose parts touch none, stays at
+    ``pose``."""
+    pose = np.asarray(pose, float)
+    n = len(tree.parent)
+    rot, trans = np.repeat(pose[None, :3, :3], n, 0), np.repeat(pose[None, :3, 3], n, 0)
+    points = np.asarray(points, float)
+    gate = _GATE * sigma
+    surface = np.einsum("mab,mb->ma", rot[tree.owner], tree.samples) + trans[tree.owner]
+    for _ in range(_ARTICULATION_STEPS if len(tree.order) > 1 and len(points) >= 3 else 0):
+        d, j = map(np.asarray, KDTree(surface).query(points, distance_upper_bound=gate))
+        near = np.isfinite(d)
+        d, j, dst = d[near], j[near], points[near]
+        w = np.exp(-0.125 * (d / sigma) ** 2) + 1e-12
+        for c in tree.order:
+            root = tree.parent[c] < 0  # the first in order: the others have a parent
+            moved = np.ones(n, bool) if root else tree.subtree[c]
+            sel = moved[tree.owner[j]]
+            if sel.sum() < 8:
+                continue
+            src = np.einsum("mab,mb->ma", rot[tree.owner[j[sel]]], tree.samples[j[sel]]) + trans[tree.owner[j[sel]]]
+            if root:  # the whole solid, free
+                sc, dc = np.average(src, 0, w[sel]), np.average(dst[sel], 0, w[sel])
+            else:  # the subtree, about its joint
+                sc = dc = rot[c] @ tree.joints[c] + trans[c]
+            u, _, vt = np.linalg.svd(((src - sc) * w[sel, None]).T @ (dst[sel] - dc))
+            r = vt.T @ np.diag([1.0, 1.0, np.sign(np.linalg.det(vt.T @ u.T))]) @ u.T
+            rot[moved] = np.einsum("ab,mbc->mac", r, rot[moved])
+            trans[moved] = (trans[moved] - sc) @ r.T + dc
+        before, surface = surface, np.einsum("mab,mb->ma", rot[tree.owner], tree.samples) + trans[tree.owner]
+        if np.abs(surface - before).max() < _ARTICULATION_SETTLED * sigma:
+            break
+    out = np.repeat(np.eye(4)[None], n, 0)
+    out[:, :3, :3], out[:, :3, 3] = rot, trans
     return out
 
 

@@ -29,7 +29,9 @@ from sqparts._recognize import (
     _similarity,
     align_candidates,
     align_descriptions,
+    articulate,
     fit_pose,
+    kinematic_tree,
     observed_points,
     shape_similarity,
     verify_poses,
@@ -517,6 +519,8 @@ def test_bad_match_settings_are_refused():
         sqparts.MatchSettings(alignment_pairs=True)
     with pytest.raises(ValueError, match=r"verification_tolerance: got -1, expected a number > 0 or None"):
         sqparts.MatchSettings(verification_tolerance=-1)
+    with pytest.raises(ValueError, match=r"articulated: got 'yes', expected True or False"):
+        sqparts.MatchSettings(articulated="yes")
     # Fields that failed deep in scipy or numpy, or silently gave a self-match score 0.
     for field, value in [
         ("size_tolerance", float("nan")),
@@ -878,3 +882,99 @@ def test_descriptions_without_a_shape_distribution_still_read_and_match():
         Description.from_json({**d.to_json(), "shape_distribution": [2.0] + [0.0] * (SHAPE_BINS - 1)})
     with pytest.raises(ValueError, match=r"shape_tolerance: got -1, expected a number > 0 or None"):
         sqparts.MatchSettings(shape_tolerance=-1)
+
+
+# --- articulation: stored parts turned about their joints (configuration) ----------------
+
+ARM_CAMERA = sqparts.OrthographicCamera(80, 48, 0.01, 28.0, 23.5)
+
+
+def _arm(bend_degrees=0.0):
+    """An upper arm along x (long axis a3 turned onto x, its ends' centres at x = ±0.15)
+    and a forearm touching its end at (0.15, 0, 1), turned by ``bend_degrees`` about the
+    viewing axis through that joint."""
+    turn = Rotation.from_rotvec([0.0, np.pi / 2, 0.0])  # local z onto x
+    bend = Rotation.from_rotvec([0.0, 0.0, np.radians(bend_degrees)])
+    joint = np.array([0.15, 0.0, 1.0])
+    upper = sqparts.Part(
+        size=[0.04, 0.04, 0.15], squareness=[0.2, 1.0], position=[0.0, 0.0, 1.0], orientation=turn.as_rotvec()
+    )
+    fore = sqparts.Part(
+        size=[0.03, 0.03, 0.12],
+        squareness=[0.2, 1.0],
+        position=joint + bend.apply([0.12, 0.0, 0.0]),
+        orientation=(bend * turn).as_rotvec(),
+    )
+    return stack_parts([upper, fore]), joint
+
+
+def test_the_kinematic_tree_of_an_arm_joins_its_parts_where_they_touch():
+    """The larger part is the root; the forearm's joint is where the two flat ends meet
+    (both ends' centres are surface samples: the closed form)."""
+    arm, joint = _arm()
+    tree = kinematic_tree(arm, describe(arm).touching)
+    assert tree.order == (0, 1) and tree.parent.tolist() == [-1, 0]
+    np.testing.assert_allclose(tree.joints[1], joint, atol=1e-4)
+    assert tree.subtree.tolist() == [[True, True], [False, True]]
+    lone = stack_parts([arm[0]])
+    assert kinematic_tree(lone, describe(lone).touching).order == (0,)
+
+
+def test_articulating_a_straight_arm_onto_a_bent_one_recovers_the_bend():
+    """The straight arm's tree, articulated onto the range image of the same arm bent 30
+    degrees at the elbow: the forearm's motion is the 30-degree turn about the joint (its
+    far end within 1 cm of the truth, 6 cm away rigidly), the upper arm stays (its ends
+    within 1 cm), and the
+    articulated rendering verifies where the rigid one does not. A solid of one part is
+    left at the rigid pose."""
+    straight, joint = _arm()
+    bent, _ = _arm(30.0)
+    obs = _observed(bent, ARM_CAMERA)
+    points = observed_points(obs, obs.figures[0])
+    sigma = 0.08 * describe(straight).scale
+    motion = articulate(kinematic_tree(straight, describe(straight).touching), points, np.eye(4), sigma)
+    far = np.array([0.39, 0.0, 1.0])  # the straight forearm's far end
+    truth = joint + Rotation.from_rotvec([0.0, 0.0, np.radians(30.0)]).apply(far - joint)
+    assert np.linalg.norm(far - truth) > 0.06
+    assert np.linalg.norm(motion[1, :3, :3] @ far + motion[1, :3, 3] - truth) < 0.01
+    ends = np.array([[-0.15, 0.0, 1.0], [0.15, 0.0, 1.0]])  # the upper arm's (a turn about its axis is no motion)
+    assert np.abs(ends @ motion[0, :3, :3].T + motion[0, :3, 3] - ends).max() < 0.01
+    articulated = transform_parts(straight, motion)
+    rigid_score, articulated_score = verify_poses([straight, articulated], obs, obs.figures[0], 0.01)
+    assert articulated_score > 0.9 and articulated_score > rigid_score + 0.2
+    lone = stack_parts([straight[0]])
+    pose = moved(lone)[1]
+    np.testing.assert_array_equal(
+        articulate(kinematic_tree(lone, describe(lone).touching), points, pose, sigma)[0], pose
+    )
+
+
+def test_moving_each_part_by_its_own_motion_is_moving_them_one_by_one():
+    parts = sqparts.builtin_scene("castings").parts
+    poses = np.stack([moved(parts, rotvec=(0.2 * i, -0.5, 0.1 * i), t=(i, 0.0, 1.0))[1] for i in range(len(parts))])
+    together = transform_parts(parts, poses)
+    for i in range(len(parts)):
+        alone = transform_parts(stack_parts([parts[i]]), poses[i])
+        np.testing.assert_allclose(np.asarray(together.position)[i], np.asarray(alone.position)[0], atol=1e-5)
+        np.testing.assert_allclose(np.asarray(together[i].rotation()), np.asarray(alone[0].rotation()), atol=1e-5)
+
+
+def test_a_bent_arm_is_recognised_by_its_straight_view_articulated(tmp_path):
+    """The arm learnt straight, seen bent 30 degrees: matched with articulation it scores
+    higher than rigidly (the score is also the whole-solid alignment's, which is rigid),
+    its match keeps the motions, the matched model's parts lie on the seen ones, and
+    its rendering explains the image where the best rigid pose's does less well."""
+    straight, _ = _arm()
+    bent, _ = _arm(30.0)
+    db = ModelDatabase(tmp_path / "db")
+    db.add_view("arm", view_from_parts(straight), calibrate=False)
+    obs = _observed(bent, ARM_CAMERA)
+    _, (rigid,) = match_figures([bent], database=db, observation=obs, settings=sqparts.MatchSettings(articulated=False))
+    _, (art,) = match_figures([bent], database=db, observation=obs)
+    assert rigid.articulation is None and art.articulation is not None and art.articulation.shape == (2, 4, 4)
+    assert art.score > rigid.score + 0.05
+    np.testing.assert_allclose(np.asarray(art.posed_parts().position), np.asarray(bent.position), atol=0.02)
+    tau = 0.1 * describe(straight).scale  # verification_tolerance's
+    rigid_check, art_check = verify_poses([rigid.posed_parts(), art.posed_parts()], obs, obs.figures[0], tau)
+    assert art_check > 0.8 and art_check > rigid_check + 0.15
+    assert np.array(json.loads(json.dumps(art.to_json()))["articulation"]).shape == (2, 4, 4)
