@@ -551,6 +551,15 @@ class ModelDatabase:
             self._write_index()
         return self.threshold
 
+    def calibrated_for(self, settings: MatchSettings = MatchSettings()) -> bool:
+        """Whether the threshold is on the scale of the scores matching with ``settings``
+        gives: False when the last calibration was made with other settings (a database
+        calibrated before a matcher's setting existed, or with other tolerances; then
+        :meth:`calibrate` with these settings); True when they agree or the calibration
+        does not record them (a format 1 database)."""
+        used = self.calibration.get("settings")
+        return used is None or used == _round(dataclasses.asdict(settings))
+
     def calibrate_from(self, views_scores, *, statistic: str | None = None) -> float:
         """Set :attr:`statistic` (given, or by the number of objects: see
         :meth:`calibrate`), :attr:`threshold` and :attr:`calibration` from stored views'
@@ -833,14 +842,18 @@ def recognize(
     ``best`` is the top object if the database's evidence for it (its score or, in a
     database of :data:`~sqparts._recognize.COHORT` or more objects, its lead over the
     others: :meth:`ModelDatabase.evidence`) reaches the calibrated threshold, else None
-    (an object the database does not know). Each match's ``pose`` takes the model's frame
-    to the camera frame.
+    (an object the database does not know). A database calibrated with other matching
+    ``settings`` is calibrated again first (:meth:`ModelDatabase.calibrated_for`; this
+    writes ``database.json``). Each match's ``pose`` takes the model's frame to the
+    camera frame.
     """
     from ._recover import recover_scene
 
     db = database if isinstance(database, ModelDatabase) else ModelDatabase(database)
     if not db.objects:
         raise ValueError(f"--db: got {str(db.path)!r} with no objects, expected a database made by sqparts learn")
+    if not db.calibrated_for(settings):  # a threshold on the scale of these settings' scores
+        db.calibrate(settings=settings)
     t0 = time.perf_counter()
     if recovery is None:
         if depth is None or camera is None:

@@ -454,6 +454,10 @@ def cmd_recognize(args) -> int:
     for target in targets:  # before any work: never overwrite silently
         check_new_output(target, overwrite=args.overwrite, inputs=kept)
     loaded = _read_inputs(args, inputs)
+    if not db.calibrated_for():  # as recognize() would, once, before the inputs
+        if not args.quiet:
+            print(f"--db {args.db}: calibrated with other match settings; calibrating it again", file=sys.stderr)
+        db.calibrate()
     progress = _progress(args, "regions", "region")
     log = _ResultsLog(results, keep=()) if results is not None else None
     failed = []

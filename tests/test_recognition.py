@@ -6,6 +6,7 @@ renders end to end."""
 
 import dataclasses
 import json
+from types import SimpleNamespace
 
 import numpy as np
 import pytest
@@ -397,6 +398,9 @@ def test_learn_and_recognize_from_the_command_line(tmp_path, capsys):
     r = Rotation.from_rotvec([0.0, 0.5, 0.3]).as_matrix()  # turned about its centre, moved back
     turned, _ = moved(cigar, rotvec=(0.0, 0.5, 0.3), t=np.array([0.05, 0, 2.2]) - r @ [0, 0, 2.0])
     np.save(tmp_path / "query.npy", np.asarray(sqparts.render_range_image(turned, cam)))
+    # As an earlier version left it: calibrated for another matcher; recognising calibrates it again.
+    ModelDatabase(tmp_path / "db").calibrate(settings=sqparts.MatchSettings(articulated=False))
+    capsys.readouterr()
     out = tmp_path / "out"
     assert (
         main(
@@ -409,11 +413,13 @@ def test_learn_and_recognize_from_the_command_line(tmp_path, capsys):
                 str(tmp_path / "db"),
                 "--out",
                 str(out),
-                *FAST,
+                *FAST[:-1],  # not --quiet: the calibration is announced
             ]
         )
         == 0
     )
+    assert "calibrated with other match settings; calibrating it again" in capsys.readouterr().err
+    assert ModelDatabase(tmp_path / "db").calibrated_for()
     assert sorted(p.name for p in (out / "query").iterdir()) == ["parts.json", "recognition.json", "report.png"]
     result = json.loads((out / "query" / "recognition.json").read_text())
     assert result["best"] == "cigar" and [m["name"] for m in result["matches"]] == ["cigar", "slab"]
@@ -978,3 +984,27 @@ def test_a_bent_arm_is_recognised_by_its_straight_view_articulated(tmp_path):
     rigid_check, art_check = verify_poses([rigid.posed_parts(), art.posed_parts()], obs, obs.figures[0], tau)
     assert art_check > 0.8 and art_check > rigid_check + 0.15
     assert np.array(json.loads(json.dumps(art.to_json()))["articulation"]).shape == (2, 4, 4)
+
+
+def test_a_database_calibrated_for_other_settings_is_calibrated_again(tmp_path):
+    """A threshold is on the scale of the scores of the matcher it was calibrated for:
+    recognising with other settings (here a database calibrated before articulation, as
+    one learnt with an earlier version is) calibrates it again first and writes it, and
+    the threshold is then the one a calibration from nothing with those settings gives."""
+    db = _database(tmp_path / "db")  # calibrated with the defaults
+    rigid = sqparts.MatchSettings(articulated=False)
+    assert db.calibrated_for() and not db.calibrated_for(rigid)
+    stale_threshold = db.calibrate(settings=rigid)
+    stale = ModelDatabase(tmp_path / "db")
+    assert stale.calibrated_for(rigid) and not stale.calibrated_for()
+    reference = stale.without()  # the same views as read back, calibrated from nothing, in memory
+    reference.path, reference.calibration = tmp_path / "nowhere", {}
+    default = reference.calibrate()
+    assert not (tmp_path / "nowhere").exists()
+    s = sqparts.builtin_scene("chair")
+    obs = _observed(s.parts, s.camera)
+    recovery = SimpleNamespace(parts=s.parts, figure=obs.figures[0], depth=obs.depth, camera=s.camera)
+    result = sqparts.recognize(database=stale, recovery=recovery)
+    assert stale_threshold != pytest.approx(default, abs=1e-4)
+    assert result.best == "chair" and result.threshold == pytest.approx(default, rel=1e-9)
+    assert ModelDatabase(tmp_path / "db").calibrated_for()
