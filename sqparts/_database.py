@@ -40,6 +40,7 @@ if TYPE_CHECKING:
     from ._recover import Recovery, SceneRecovery
 
 from ._camera import json_numbers
+from ._compile import concurrently
 from ._describe import Description, describe, merged_alternatives, part_volume, surface_cloud
 from ._io import _load_json, atomic_write, scene_from_dict, scene_to_dict
 from ._part import Part, stack_parts
@@ -437,40 +438,51 @@ class ModelDatabase:
         per stored view) and scores the better of the two renderings; when the
         articulated one wins, the match's correspondences are the main description's and
         its ``articulation`` the parts' motions."""
-        rows = []
-        for name, views in self.objects.items():
-            for k, view in enumerate(views):
-                if exclude == (name, k):
-                    continue
-                m, stored = max(
-                    ((match_descriptions(query, s.description, settings), s) for s in view.descriptions),
-                    key=lambda r: r[0].score,
-                )
-                rows.append((name, k, m, stored, align_candidates(query, view.main.description, settings)))
+
+        def candidates(item):
+            name, k, view = item
+            m, stored = max(
+                ((match_descriptions(query, s.description, settings), s) for s in view.descriptions),
+                key=lambda r: r[0].score,
+            )
+            return name, k, m, stored, align_candidates(query, view.main.description, settings)
+
+        # Every stored view on its own: run on a thread per core (the k-d tree queries and
+        # SVDs most of the time goes to release the GIL); the results do not depend on it.
+        items = [(n, k, v) for n, views in self.objects.items() for k, v in enumerate(views) if exclude != (n, k)]
+        rows = concurrently(candidates, items)
         tolerance = settings.verification_tolerance
         posed: list | None = None  # per row, its alignments fitted to the observation
         if observation is not None and tolerance is not None:
             mask = observation.figures.any(0) if figure is None else figure
             points = observed_points(observation, mask)
-            posed, solids, taus = [], [], []
-            for name, k, _m, _stored, aligned in rows:
+
+            def fitted(row):
+                """The row's alignments fitted to the points, each with its articulation
+                (None: rigid only), and the verification tolerance."""
+                name, k, _m, _stored, aligned = row
                 model = self.objects[name][k].main
                 scale = max(query.scale, model.description.scale)
                 sigma = float(settings.alignment_tolerance or 0.0) * scale  # aligned only when it is set
                 poses = [fit_pose(points, model.description, a.pose, sigma) for a in aligned]
-                # Per pose the rigid solid and, articulated about its joints, the same parts
-                # moved each by its own motion (None: nothing to articulate).
                 motions = [
                     articulate(model.tree, points, pose, sigma)
                     if settings.articulated and len(model.tree.order) > 1
                     else None
                     for pose in poses
                 ]
-                posed.append(list(zip(poses, motions)))
-                for pose, motion in zip(poses, motions):
+                return list(zip(poses, motions)), tolerance * scale
+
+            posed, solids, taus = [], [], []
+            for row, (pairs, tau) in zip(rows, concurrently(fitted, rows)):
+                model = self.objects[row[0]][row[1]].main
+                posed.append(pairs)
+                # Per pose the rigid solid and, articulated about its joints, the same parts
+                # moved each by its own motion.
+                for pose, motion in pairs:
                     solids.append(transform_parts(model.parts, pose))
                     solids += [] if motion is None else [transform_parts(model.parts, motion)]
-                    taus += [tolerance * scale] * (1 if motion is None else 2)
+                    taus += [tau] * (1 if motion is None else 2)
             checks = iter(verify_poses(solids, observation, mask, taus))
         best: dict[str, tuple] = {}
         for r, (name, k, m, stored, aligned) in enumerate(rows):

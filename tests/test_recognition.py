@@ -1008,3 +1008,23 @@ def test_a_database_calibrated_for_other_settings_is_calibrated_again(tmp_path):
     assert stale_threshold != pytest.approx(default, abs=1e-4)
     assert result.best == "chair" and result.threshold == pytest.approx(default, rel=1e-9)
     assert ModelDatabase(tmp_path / "db").calibrated_for()
+
+
+def test_matching_on_threads_equals_matching_one_view_after_another(tmp_path, monkeypatch):
+    """ModelDatabase.match runs the stored views on a thread each (SQPARTS_THREADS): the
+    same scores, poses and articulations as one after another, whatever the threads."""
+    db = _database(tmp_path / "db", names=("human", "chair"))
+    s = sqparts.builtin_scene("human")
+    obs = _observed(s.parts, s.camera)
+    query = describe(s.parts)
+    monkeypatch.setenv("SQPARTS_THREADS", "1")
+    alone = db.match(query, observation=obs)
+    monkeypatch.setenv("SQPARTS_THREADS", "2")
+    again = db.match(query, observation=obs)
+    assert [r[:4] for r in again] == [r[:4] for r in alone]
+    for (*_, m, _), (*_, n, _) in zip(again, alone):
+        np.testing.assert_array_equal(m.pose, n.pose)
+        np.testing.assert_array_equal(m.pairs, n.pairs)
+        assert (m.articulation is None) == (n.articulation is None)
+        if m.articulation is not None:
+            np.testing.assert_array_equal(m.articulation, n.articulation)
