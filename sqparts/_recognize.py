@@ -413,11 +413,21 @@ def _refine_pose(q, m, mtree, r, t, sigma, qtree=None):
         if len(d) < 3:  # nothing within reach: the pose stays as it is
             break
         w = np.exp(-0.125 * (d / sigma) ** 2) + 1e-12
-        sc, dc = np.average(src, 0, w), np.average(dst, 0, w)
-        u, _, vt = np.linalg.svd(((src - sc) * w[:, None]).T @ (dst - dc))
-        r = vt.T @ np.diag([1.0, 1.0, np.sign(np.linalg.det(vt.T @ u.T))]) @ u.T
-        t = dc - r @ sc
+        r, t = _kabsch(src, dst, w)
     return r, t
+
+
+def _kabsch(src, dst, w, centre=None):
+    """The rotation r and translation t (p -> r p + t) taking points ``src`` onto ``dst``
+    in weighted least squares (weights ``w``): free, or a turn about a fixed ``centre``
+    (a joint: then t = centre - r centre)."""
+    if centre is None:
+        sc, dc = np.average(src, 0, w), np.average(dst, 0, w)
+    else:
+        sc = dc = centre
+    u, _, vt = np.linalg.svd(((src - sc) * w[:, None]).T @ (dst - dc))
+    r = vt.T @ np.diag([1.0, 1.0, np.sign(np.linalg.det(vt.T @ u.T))]) @ u.T
+    return r, dc - r @ sc
 
 
 def align_candidates(
@@ -641,14 +651,10 @@ def articulate(tree: KinematicTree, points, pose, sigma: float) -> np.ndarray:
             if sel.sum() < 8:
                 continue
             src = np.einsum("mab,mb->ma", rot[tree.owner[j[sel]]], tree.samples[j[sel]]) + trans[tree.owner[j[sel]]]
-            if root:  # the whole solid, free
-                sc, dc = np.average(src, 0, w[sel]), np.average(dst[sel], 0, w[sel])
-            else:  # the subtree, about its joint
-                sc = dc = rot[c] @ tree.joints[c] + trans[c]
-            u, _, vt = np.linalg.svd(((src - sc) * w[sel, None]).T @ (dst[sel] - dc))
-            r = vt.T @ np.diag([1.0, 1.0, np.sign(np.linalg.det(vt.T @ u.T))]) @ u.T
+            # the whole solid free; a subtree about its joint
+            r, t = _kabsch(src, dst[sel], w[sel], None if root else rot[c] @ tree.joints[c] + trans[c])
             rot[moved] = np.einsum("ab,mbc->mac", r, rot[moved])
-            trans[moved] = (trans[moved] - sc) @ r.T + dc
+            trans[moved] = trans[moved] @ r.T + t
         before, surface = surface, np.einsum("mab,mb->ma", rot[tree.owner], tree.samples) + trans[tree.owner]
         if np.abs(surface - before).max() < _ARTICULATION_SETTLED * sigma:
             break
