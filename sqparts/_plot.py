@@ -152,7 +152,8 @@ def save_residual_report(path, recovery, model, *, title: str | None = None) -> 
 
 def save_recognition_report(path, recognition, *, title: str | None = None) -> None:
     """Report PNG of a recognition: the input, its recovered parts and the best-matching
-    stored object's parts placed by the estimated pose, corresponding parts in the same
+    stored object's parts placed by the estimated pose (and articulated, when that
+    verified better), corresponding parts in the same
     colour (unmatched recovered parts grey); with the scores of the top matches."""
     title = _printable(title)
     from ._render import render_range_image
@@ -181,7 +182,8 @@ def save_recognition_report(path, recognition, *, title: str | None = None) -> N
         mlab = np.where(mlabels >= 0, mcolour[np.clip(mlabels, 0, None)], -1)
         mrgb = _label_rgb(np.where(mlab == -2, 0, mlab), mdepth)
         mrgb[mlab == -2] = 0.6
-        panels.append((f"model {match.name!r} ({match.kind}, view {match.view}) at the estimated pose", mrgb))
+        posed = "at the estimated pose" + (", articulated" if match.articulation is not None else "")
+        panels.append((f"model {match.name!r} ({match.kind}, view {match.view}) {posed}", mrgb))
     fig, axes = _subplots(1, len(panels), figsize=(4.2 * len(panels), 4.8), dpi=100)
     for ax, (name, img) in zip(np.atleast_1d(axes), panels):
         ax.imshow(img, interpolation="nearest")
