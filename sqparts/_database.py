@@ -474,12 +474,12 @@ class ModelDatabase:
                 return list(zip(poses, motions)), tolerance * scale
 
             posed, solids, taus = [], [], []
-            for row, (pairs, tau) in zip(rows, concurrently(fitted, rows)):
+            for row, (fits, tau) in zip(rows, concurrently(fitted, rows)):
                 model = self.objects[row[0]][row[1]].main
-                posed.append(pairs)
+                posed.append(fits)
                 # Per pose the rigid solid and, articulated about its joints, the same parts
                 # moved each by its own motion.
-                for pose, motion in pairs:
+                for pose, motion in fits:
                     solids.append(transform_parts(model.parts, pose))
                     solids += [] if motion is None else [transform_parts(model.parts, motion)]
                     taus += [tau] * (1 if motion is None else 2)
