@@ -440,12 +440,11 @@ class ModelDatabase:
         its ``articulation`` the parts' motions."""
 
         def candidates(item):
+            """The view's part match with each of its descriptions (the main first) and
+            its main solid's alignments."""
             name, k, view = item
-            m, stored = max(
-                ((match_descriptions(query, s.description, settings), s) for s in view.descriptions),
-                key=lambda r: r[0].score,
-            )
-            return name, k, m, stored, align_candidates(query, view.main.description, settings)
+            matches = [(match_descriptions(query, s.description, settings), s) for s in view.descriptions]
+            return name, k, matches, align_candidates(query, view.main.description, settings)
 
         # Every stored view on its own: run on a thread per core (the k-d tree queries and
         # SVDs most of the time goes to release the GIL); the results do not depend on it.
@@ -460,7 +459,7 @@ class ModelDatabase:
             def fitted(row):
                 """The row's alignments fitted to the points, each with its articulation
                 (None: rigid only), and the verification tolerance."""
-                name, k, _m, _stored, aligned = row
+                name, k, _matches, aligned = row
                 model = self.objects[name][k].main
                 scale = max(query.scale, model.description.scale)
                 sigma = float(settings.alignment_tolerance or 0.0) * scale  # aligned only when it is set
@@ -485,7 +484,8 @@ class ModelDatabase:
                     taus += [tau] * (1 if motion is None else 2)
             checks = iter(verify_poses(solids, observation, mask, taus))
         best: dict[str, tuple] = {}
-        for r, (name, k, m, stored, aligned) in enumerate(rows):
+        for r, (name, k, matches, aligned) in enumerate(rows):
+            m, stored = max(matches, key=lambda row: row[0].score)
             if aligned and posed is not None:
                 evidence, articulation = [], []
                 for a, (pose, motion) in zip(aligned, posed[r]):
@@ -497,9 +497,8 @@ class ModelDatabase:
                     else:
                         articulation.append(None)
                 j = int(np.argmax(evidence))
-                main = self.objects[name][k].main
-                if articulation[j] is not None and stored is not main:  # the main's parts were articulated
-                    m, stored = match_descriptions(query, main.description, settings), main
+                if articulation[j] is not None:  # the main's parts were articulated: its correspondences
+                    m, stored = matches[0]
                 m = dataclasses.replace(m, score=evidence[j], pose=posed[r][j][0], articulation=articulation[j])
             elif aligned:
                 m = dataclasses.replace(
