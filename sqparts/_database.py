@@ -430,9 +430,11 @@ class ModelDatabase:
         refined alignment of every view is fitted to the figure's observed points
         (:func:`~sqparts._recognize.fit_pose`) and verified by rendering
         (:func:`~sqparts._recognize.verify_poses`, all in one batched call): the view
-        then scores the geometric mean of the alignment and the verification of its best
-        pose, which is the match's pose (when ``settings.verification_tolerance`` is
-        set); the part match gives the correspondences. With ``settings.articulated``
+        then scores the verification of its best pose (``settings.verification_levels``
+        tolerances, the largest a ``settings.verification_tolerance`` fraction of the
+        query's scale, one for every object), and that pose is the match's (when
+        ``settings.verification_tolerance`` is set); the part match gives the
+        correspondences. With ``settings.articulated``
         each fitted pose is also verified with the main description's parts articulated
         about their joints (:func:`~sqparts._recognize.articulate`; the tree is made once
         per stored view) and scores the better of the two renderings; when the
@@ -458,7 +460,7 @@ class ModelDatabase:
 
             def fitted(row):
                 """The row's alignments fitted to the points, each with its articulation
-                (None: rigid only), and the verification tolerance."""
+                (None: rigid only)."""
                 name, k, _matches, aligned = row
                 model = self.objects[name][k].main
                 scale = max(query.scale, model.description.scale)
@@ -470,10 +472,10 @@ class ModelDatabase:
                     else None
                     for pose in poses
                 ]
-                return list(zip(poses, motions)), tolerance * scale
+                return list(zip(poses, motions))
 
-            posed, solids, taus = [], [], []
-            for row, (fits, tau) in zip(rows, concurrently(fitted, rows)):
+            posed, solids = [], []
+            for row, fits in zip(rows, concurrently(fitted, rows)):
                 model = self.objects[row[0]][row[1]].main
                 posed.append(fits)
                 # Per pose the rigid solid and, articulated about its joints, the same parts
@@ -481,17 +483,17 @@ class ModelDatabase:
                 for pose, motion in fits:
                     solids.append(transform_parts(model.parts, pose))
                     solids += [] if motion is None else [transform_parts(model.parts, motion)]
-                    taus += [tau] * (1 if motion is None else 2)
-            checks = iter(verify_poses(solids, observation, mask, taus))
+            tau = tolerance * query.scale  # one tolerance for every object this query meets
+            checks = iter(verify_poses(solids, observation, mask, tau, settings.verification_levels))
         best: dict[str, tuple] = {}
         for r, (name, k, matches, aligned) in enumerate(rows):
             m, stored = max(matches, key=lambda row: row[0].score)
             if aligned and posed is not None:
                 evidence, articulation = [], []
-                for a, (pose, motion) in zip(aligned, posed[r]):
+                for pose, motion in posed[r]:
                     rigid = next(checks)
                     moved = -1.0 if motion is None else next(checks)
-                    evidence.append(float(np.sqrt(max(a.score, 0.0) * max(rigid, moved))))
+                    evidence.append(float(max(rigid, moved)))
                     if motion is not None and moved > rigid:
                         articulation.append(np.einsum("ab,nbc->nac", np.linalg.inv(pose), motion))
                     else:

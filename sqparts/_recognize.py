@@ -38,9 +38,9 @@ each refined alignment is fitted to the figure's observed points by ICP
 camera (:func:`verify_poses`, one batched call of the package's renderer for every pose
 of every stored view) and compared with the observed depth pixel by pixel. Both steps
 work on the data, not on the query's recovered parts, which change from view to view
-more than the object does. A view then scores the geometric mean of the alignment and
-the verification of its best pose (``MatchSettings.verification_tolerance``); the part
-match still gives the correspondences.
+more than the object does. A view then scores the verification of its best pose
+(``MatchSettings.verification_tolerance``): the alignment proposes poses, the image
+judges them; the part match still gives the correspondences.
 
 Configuration (section 1: a person learnt standing is seen walking): each fitted pose is
 also verified with the stored parts articulated (:func:`articulate`) about the joints of
@@ -93,10 +93,16 @@ class MatchSettings:
     alignment_starts : how many of the best proposals are refined.
     verification_tolerance : verifying poses by rendering (:func:`verify_poses`), when
         the query's range image is known: the tolerance τ of a rendered depth's
-        difference from the observed one, a fraction of the larger object's scale. Each
-        refined alignment is first fitted to the observed points (:func:`fit_pose`); a
-        view then scores the geometric mean of the alignment and the verification of its
-        best pose. None: no verification.
+        difference from the observed one, a fraction of the query's scale (one
+        tolerance for every stored object a query is compared with, so that a larger
+        model is not judged more leniently). Each refined alignment is first fitted to
+        the observed points (:func:`fit_pose`); a view then scores the verification of
+        its best pose (the alignment proposed it; the image judges it). None: no
+        verification.
+    verification_levels : the verification is the mean of its scores at τ, τ/2, ...,
+        τ/2^(levels-1): a pose that puts the surface within τ/4 of the data scores
+        higher than one within τ, so that the object whose shape fits closely stands out
+        from those that merely cover the figure.
     articulated : also verify each fitted pose with the stored parts articulated about
         their joints (:func:`articulate`; section 1's stability under configuration: a
         person learnt standing, seen walking), the pose scoring the better of its rigid
@@ -120,6 +126,7 @@ class MatchSettings:
     alignment_pairs: int = 12
     alignment_starts: int = 4
     verification_tolerance: float | None = 0.1
+    verification_levels: int = 3
     articulated: bool = True
 
     def __post_init__(self):
@@ -147,7 +154,7 @@ class MatchSettings:
             t = getattr(self, name)
             if t is not None and not (isinstance(t, (int, float)) and np.isfinite(t) and t > 0):
                 raise ValueError(f"{name}: got {t!r}, expected a number > 0 or None")
-        for name in ("alignment_pairs", "alignment_starts"):
+        for name in ("alignment_pairs", "alignment_starts", "verification_levels"):
             k = getattr(self, name)
             if isinstance(k, bool) or not isinstance(k, (int, np.integer)) or k < 1:
                 raise ValueError(f"{name}: got {k!r}, expected an integer >= 1")
@@ -683,7 +690,7 @@ def verification_lattice(camera: Camera, figure) -> tuple[tuple[slice, slice], C
     return window, camera.cropped((0, 0, camera.height, camera.width), step)
 
 
-def verify_poses(solids, observation: Observation, figure, tolerance) -> np.ndarray:
+def verify_poses(solids, observation: Observation, figure, tolerance, levels: int = 1) -> np.ndarray:
     """(k,) how well each of ``solids`` (batched :class:`~sqparts.Part`, camera frame: a
     stored model at a candidate pose) explains the observed range image, in [0, 1].
 
@@ -695,9 +702,13 @@ def verify_poses(solids, observation: Observation, figure, tolerance) -> np.ndar
     those hidden behind a nearer observed surface (an occluder). The score is
     sqrt(explained x precision): a model that covers the figure but spills far past it,
     or one that fits a piece of it, both score low. Both sums are taken over the pixels
-    of :func:`verification_lattice`, which bounds the rays rendered per solid."""
+    of :func:`verification_lattice`, which bounds the rays rendered per solid. With
+    ``levels`` > 1 the score is the mean of the scores at τ, τ/2, ..., τ/2^(levels-1)
+    (one rendering; ``MatchSettings.verification_levels``)."""
     from ._encoding import part_vectors, render_layers
 
+    if isinstance(levels, bool) or not isinstance(levels, (int, np.integer)) or levels < 1:
+        raise ValueError(f"levels: got {levels!r}, expected an integer >= 1")
     solids = list(solids)
     if not solids:
         return np.zeros(0)
@@ -710,12 +721,17 @@ def verify_poses(solids, observation: Observation, figure, tolerance) -> np.ndar
     depth, figure = observation.depth[window][None], np.asarray(figure, bool)[window][None]
     seen, model = np.isfinite(depth), np.isfinite(rendered)
     both = seen & model
-    agree = np.where(both, np.exp(-0.5 * ((rendered - np.where(seen, depth, 0.0)) / tau) ** 2), 0.0)
-    hidden = both & (depth < rendered - 2.0 * tau)
-    explained = (agree * figure).sum((1, 2)) / max(int(figure.sum()), 1)
-    visible = model & ~hidden
-    precision = (agree * visible).sum((1, 2)) / np.maximum(visible.sum((1, 2)), 1)
-    return np.sqrt(explained * precision)
+    difference = rendered - np.where(seen, depth, 0.0)
+    scores = []
+    for level in range(levels):
+        t = tau / 2.0**level
+        agree = np.where(both, np.exp(-0.5 * (difference / t) ** 2), 0.0)
+        hidden = both & (depth < rendered - 2.0 * t)
+        explained = (agree * figure).sum((1, 2)) / max(int(figure.sum()), 1)
+        visible = model & ~hidden
+        precision = (agree * visible).sum((1, 2)) / np.maximum(visible.sum((1, 2)), 1)
+        scores.append(np.sqrt(explained * precision))
+    return np.mean(scores, axis=0)
 
 
 def shape_similarity(query: Description, model: Description, tolerance: float | None = 0.5) -> float:

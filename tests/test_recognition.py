@@ -535,6 +535,8 @@ def test_bad_match_settings_are_refused():
         ("iterations", 1.5),
         ("iterations", -1),
         ("min_similarity", float("nan")),
+        ("verification_levels", 0),
+        ("verification_levels", 2.0),
     ]:
         with pytest.raises(ValueError, match=rf"{field}: got .*, expected"):
             sqparts.MatchSettings(**{field: value})
@@ -625,6 +627,21 @@ def test_verification_of_a_solid_moved_along_the_rays_is_the_closed_form():
     np.testing.assert_allclose(got, want, atol=2e-3)
 
 
+def test_verification_at_several_tolerances_is_the_mean_of_their_closed_forms():
+    """``levels=3``: the mean of exp(-d²/2τ_k²) over τ, τ/2 and τ/4 for a solid moved by d
+    along orthographic rays (every d within 2τ/4, so that no pixel is taken for hidden)."""
+    box = sqparts.Part(size=[0.1, 0.07, 0.05], squareness=[0.3, 0.5], position=[0.0, 0.0, 1.0], taper=0.2)
+    obs, tau = _observed(stack_parts([box])), 0.04
+    shifts = [0.0, 0.005, 0.01, 0.015]
+    solids = [stack_parts([dataclasses.replace(box, position=np.array([0.0, 0.0, 1.0 + d]))]) for d in shifts]
+    got = verify_poses(solids, obs, obs.figures[0], tau, levels=3)
+    want = [np.mean([np.exp(-0.5 * (d / (tau / 2**k)) ** 2) for k in range(3)]) for d in shifts]
+    np.testing.assert_allclose(got, want, atol=2e-3)
+    assert got[3] < verify_poses(solids[3:], obs, obs.figures[0], tau)[0] - 0.2  # tighter than τ alone
+    with pytest.raises(ValueError, match=r"levels: got 0, expected an integer >= 1"):
+        verify_poses(solids, obs, obs.figures[0], tau, levels=0)
+
+
 def test_verification_does_not_count_a_model_hidden_by_an_occluder():
     """A plate in front hides the left half of a sphere: the true sphere still scores
     about 1 on the figure it explains (its visible half), since the hidden half is behind
@@ -653,13 +670,15 @@ def test_verification_picks_the_pose_the_range_image_shows():
 
 def test_verified_matching_prefers_the_object_in_the_image(tmp_path):
     """The chair's range image, matched with the image: the chair's stored parts at their
-    best pose reproduce it (score near 1); the other objects score far lower."""
+    best pose reproduce it (score near 1: at the tightest tolerance, a quarter of 10% of
+    the chair's scale, the fitted pose's millimetres show); the other objects score far
+    lower."""
     db = _database(tmp_path / "db")
     s = sqparts.builtin_scene("chair")
     obs = _observed(s.parts, s.camera)
     best, matches = match_figures([s.parts], database=db, observation=obs)
     verified = {m.name: m.score for m in matches}
-    assert best == "chair" and verified["chair"] > 0.97
+    assert best == "chair" and verified["chair"] > 0.92
     for name in ("human", "castings"):
         assert verified[name] < verified["chair"] - 0.3
     with pytest.raises(ValueError, match=r"observation: got 1 figure masks, expected one per figure \(2\)"):
@@ -967,8 +986,7 @@ def test_moving_each_part_by_its_own_motion_is_moving_them_one_by_one():
 
 def test_a_bent_arm_is_recognised_by_its_straight_view_articulated(tmp_path):
     """The arm learnt straight, seen bent 30 degrees: matched with articulation it scores
-    higher than rigidly (the score is also the whole-solid alignment's, which is rigid),
-    its match keeps the motions, the matched model's parts lie on the seen ones, and
+    higher than rigidly, its match keeps the motions, the matched model's parts lie on the seen ones, and
     its rendering explains the image where the best rigid pose's does less well."""
     straight, _ = _arm()
     bent, _ = _arm(30.0)
@@ -980,7 +998,7 @@ def test_a_bent_arm_is_recognised_by_its_straight_view_articulated(tmp_path):
     assert rigid.articulation is None and art.articulation is not None and art.articulation.shape == (2, 4, 4)
     assert art.score > rigid.score + 0.05
     np.testing.assert_allclose(np.asarray(art.posed_parts().position), np.asarray(bent.position), atol=0.02)
-    tau = 0.1 * describe(straight).scale  # verification_tolerance's
+    tau = 0.1 * describe(bent).scale  # verification_tolerance's (the query's scale)
     rigid_check, art_check = verify_poses([rigid.posed_parts(), art.posed_parts()], obs, obs.figures[0], tau)
     assert art_check > 0.8 and art_check > rigid_check + 0.15
     assert np.array(json.loads(json.dumps(art.to_json()))["articulation"]).shape == (2, 4, 4)
@@ -988,11 +1006,11 @@ def test_a_bent_arm_is_recognised_by_its_straight_view_articulated(tmp_path):
 
 def test_a_database_calibrated_for_other_settings_is_calibrated_again(tmp_path):
     """A threshold is on the scale of the scores of the matcher it was calibrated for:
-    recognising with other settings (here a database calibrated before articulation, as
-    one learnt with an earlier version is) calibrates it again first and writes it, and
+    recognising with other settings (here a database calibrated before articulation and
+    verification at several tolerances, as one learnt with an earlier version is) calibrates it again first and writes it, and
     the threshold is then the one a calibration from nothing with those settings gives."""
     db = _database(tmp_path / "db")  # calibrated with the defaults
-    rigid = sqparts.MatchSettings(articulated=False)
+    rigid = sqparts.MatchSettings(articulated=False, verification_levels=1)
     assert db.calibrated_for() and not db.calibrated_for(rigid)
     stale_threshold = db.calibrate(settings=rigid)
     stale = ModelDatabase(tmp_path / "db")
