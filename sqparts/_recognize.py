@@ -726,7 +726,7 @@ def verify_poses(solids, observation: Observation, figure, tolerance, levels: in
     for level in range(levels):
         t = tau / 2.0**level
         agree = np.where(both, np.exp(-0.5 * (difference / t) ** 2), 0.0)
-        hidden = both & (depth < rendered - 2.0 * t)
+        hidden = both & (difference > 2.0 * t)  # an observed surface well in front
         explained = (agree * figure).sum((1, 2)) / max(int(figure.sum()), 1)
         visible = model & ~hidden
         precision = (agree * visible).sum((1, 2)) / np.maximum(visible.sum((1, 2)), 1)
