@@ -21,6 +21,7 @@ from __future__ import annotations
 
 import dataclasses
 import functools
+import math
 from typing import TYPE_CHECKING
 
 import jax
@@ -171,6 +172,12 @@ class _Camera:
         return o + r * d
 
 
+MAX_RAY_ANGLE = 85
+"""Degrees off the optical axis a pinhole camera's image may reach (a 170-degree field of
+view): beyond it a pinhole model is not the camera (a fisheye is not one, and real
+rectified cameras stay well within it)."""
+
+
 @dataclasses.dataclass(frozen=True)
 class PinholeCamera(_Camera):
     """Pinhole camera with focal lengths ``fx``, ``fy`` and principal point ``cx``, ``cy``
@@ -187,6 +194,17 @@ class PinholeCamera(_Camera):
             object.__setattr__(self, name, _check_finite(name, getattr(self, name), positive=True))
         for name in ("cx", "cy"):
             object.__setattr__(self, name, _check_finite(name, getattr(self, name)))
+        for f, c, n, side in (("fx", "cx", self.width, "wide"), ("fy", "cy", self.height, "high")):
+            # The image's edges (pixel centres at 0 .. n-1, edges half a pixel out) seen at
+            # most MAX_RAY_ANGLE off the optical axis: a focal length given in metres or
+            # millimetres instead of pixels is refused, not recovered into meaningless parts.
+            reach = max(abs(-0.5 - getattr(self, c)), abs(n - 0.5 - getattr(self, c)))
+            least = reach / math.tan(math.radians(MAX_RAY_ANGLE))
+            if getattr(self, f) < least:
+                raise ValueError(
+                    f"{f}: got {getattr(self, f)!r}, expected at least {least:.4g} pixels for an image {n} pixels "
+                    f"{side} with {c} {getattr(self, c)!r} (rays within {MAX_RAY_ANGLE} degrees of the optical axis)"
+                )
 
     def _rays(self, uu, vv):
         d = jnp.stack([(uu - self.cx) / self.fx, (vv - self.cy) / self.fy, jnp.ones_like(uu)], -1)

@@ -565,13 +565,18 @@ class ModelDatabase:
         return self.threshold
 
     def calibrated_for(self, settings: MatchSettings = MatchSettings()) -> bool:
-        """Whether the threshold is on the scale of the scores matching with ``settings``
-        gives: False when the last calibration was made with other settings (a database
-        calibrated before a matcher's setting existed, or with other tolerances; then
-        :meth:`calibrate` with these settings); True when they agree or the calibration
-        does not record them (a format 1 database)."""
+        """Whether the threshold was calibrated for these objects, as their files now are,
+        and on the scale of the scores matching with ``settings`` gives. False when the
+        last calibration was made with other settings (a database calibrated before a
+        matcher's setting existed, or with other tolerances) or on other objects (a
+        model file removed, added or edited by hand since: ``database.json`` still names
+        the objects it was calibrated on); then :meth:`calibrate`, which matches only
+        what changed. True when the calibration records neither (a format 1 database)."""
         used = self.calibration.get("settings")
-        return used is None or used == _round(dataclasses.asdict(settings))
+        if used is None:
+            return True
+        objects = self.calibration.get("objects")
+        return used == _round(dataclasses.asdict(settings)) and (objects is None or objects == self._digests)
 
     def calibrate_from(self, views_scores, *, statistic: str | None = None) -> float:
         """Set :attr:`statistic` (given, or by the number of objects: see
@@ -856,8 +861,8 @@ def recognize(
     database of :data:`~sqparts._recognize.COHORT` or more objects, its lead over the
     others: :meth:`ModelDatabase.evidence`) reaches the calibrated threshold, else None
     (an object the database does not know). A database calibrated with other matching
-    ``settings`` is calibrated again first (:meth:`ModelDatabase.calibrated_for`; this
-    writes ``database.json``). Each match's ``pose`` takes the model's frame to the
+    ``settings``, or on model files changed since, is calibrated again first
+    (:meth:`ModelDatabase.calibrated_for`; this writes ``database.json``). Each match's ``pose`` takes the model's frame to the
     camera frame.
     """
     from ._recover import recover_scene

@@ -456,7 +456,10 @@ def cmd_recognize(args) -> int:
     loaded = _read_inputs(args, inputs)
     if not db.calibrated_for():  # as recognize() would, once, before the inputs
         if not args.quiet:
-            print(f"--db {args.db}: calibrated with other match settings; calibrating it again", file=sys.stderr)
+            print(
+                f"--db {args.db}: calibrated with other match settings or model files; calibrating it again",
+                file=sys.stderr,
+            )
         db.calibrate()
     progress = _progress(args, "regions", "region")
     log = _ResultsLog(results, keep=()) if results is not None else None

@@ -652,6 +652,36 @@ def test_a_camera_float32_cannot_hold_is_refused(files, capsys, fx):
         sqparts.camera_from_json(dict(CAMERA, intrinsic_matrix=k))
 
 
+@pytest.mark.parametrize("entry", [0, 4])
+def test_a_focal_length_not_in_pixels_is_refused(files, capsys, entry):
+    """fx = 1e-6 (or a focal length in metres, 0.004) gave finite but meaningless parts: a
+    pixel's ray 89.9999 degrees off the axis. A pinhole camera's image must lie within
+    85 degrees of its axis: for 32 x 24 pixels centred at 15.5, 11.5 that is
+    fx >= 16 / tan(85 deg), fy >= 12 / tan(85 deg); one error line, nothing written."""
+    k = list(CAMERA["intrinsic_matrix"])
+    k[entry] = 0.004
+    (files / "metres.json").write_text(json.dumps(dict(CAMERA, intrinsic_matrix=k)))
+    out = files / "out"
+    err = cli_error(
+        capsys, ["recover", str(files / "x.npy"), "--camera", str(files / "metres.json"), "--out", str(out)]
+    )
+    name, half = ("fx", 16.0) if entry == 0 else ("fy", 12.0)
+    least = half / np.tan(np.radians(85.0))
+    assert err.startswith("sqparts: error: camera.intrinsic_matrix: got 0.004, expected at least"), err
+    assert f"{least:.4g} pixels" in err and err.endswith(f"({name})"), err
+    assert not out.exists()
+    for f, ok in ((least * 1.001, True), (least * 0.999, False)):
+        args = dict(width=32, height=24, fx=40.0, fy=40.0, cx=15.5, cy=11.5) | {name: f}
+        if ok:
+            sqparts.PinholeCamera(**args)
+        else:
+            with pytest.raises(ValueError, match=rf"{name}: got .*, expected at least"):
+                sqparts.PinholeCamera(**args)
+    # A principal point far outside the image (a crop) reaches farther off the axis.
+    with pytest.raises(ValueError, match=r"fx: got 40.0, expected at least 90.24 pixels"):
+        sqparts.PinholeCamera(32, 24, 40.0, 40.0, -1000.0, 11.5)
+
+
 def test_overwrite_never_replaces_a_folder_holding_the_input(files, capsys, monkeypatch):
     """``recover x/a.npy --out x --overwrite`` replaced the folder x, the input with it
     (and --camera's file beside it); it is refused before any work, and x is as it was."""

@@ -418,7 +418,7 @@ def test_learn_and_recognize_from_the_command_line(tmp_path, capsys):
         )
         == 0
     )
-    assert "calibrated with other match settings; calibrating it again" in capsys.readouterr().err
+    assert "calibrated with other match settings or model files; calibrating it again" in capsys.readouterr().err
     assert ModelDatabase(tmp_path / "db").calibrated_for()
     assert sorted(p.name for p in (out / "query").iterdir()) == ["parts.json", "recognition.json", "report.png"]
     result = json.loads((out / "query" / "recognition.json").read_text())
@@ -1026,6 +1026,35 @@ def test_a_database_calibrated_for_other_settings_is_calibrated_again(tmp_path):
     assert stale_threshold != pytest.approx(default, abs=1e-4)
     assert result.best == "chair" and result.threshold == pytest.approx(default, rel=1e-9)
     assert ModelDatabase(tmp_path / "db").calibrated_for()
+
+
+def test_a_database_whose_model_files_changed_is_calibrated_again(tmp_path):
+    """database.json records the model files it was calibrated on: one removed or edited
+    by hand since makes the threshold stale (calibrated_for is False), and recognising
+    calibrates it again to the threshold a calibration from nothing of the files as they
+    now are gives."""
+    _database(tmp_path / "db", names=("chair", "castings", "human"))
+    assert ModelDatabase(tmp_path / "db").calibrated_for()
+    (tmp_path / "db" / "castings.json").unlink()  # database.json still names it
+    left = ModelDatabase(tmp_path / "db")
+    assert left.names == ["chair", "human"] and not left.calibrated_for()
+    reference = left.without()
+    reference.path, reference.calibration = tmp_path / "nowhere", {}
+    fresh = reference.calibrate()
+    s = sqparts.builtin_scene("chair")
+    obs = _observed(s.parts, s.camera)
+    recovery = SimpleNamespace(parts=s.parts, figure=obs.figures[0], depth=obs.depth, camera=s.camera)
+    result = sqparts.recognize(database=left, recovery=recovery)
+    assert result.threshold == pytest.approx(fresh, abs=1e-5)
+    assert set(left.calibration["objects"]) == {"chair", "human"}
+    assert [v["object"] for v in left.calibration["views"]] == ["chair", "human"]
+    assert all(set(v["scores"]) <= {"chair", "human"} for v in left.calibration["views"])
+    assert ModelDatabase(tmp_path / "db").calibrated_for()
+    edited = tmp_path / "db" / "chair.json"
+    data = json.loads(edited.read_text())
+    data["views"][0]["main"]["parts"][0]["size"][0] *= 1.5
+    edited.write_text(json.dumps(data))
+    assert not ModelDatabase(tmp_path / "db").calibrated_for()
 
 
 def test_matching_on_threads_equals_matching_one_view_after_another(tmp_path, monkeypatch):
