@@ -569,9 +569,10 @@ class ModelDatabase:
         and on the scale of the scores matching with ``settings`` gives. False when the
         last calibration was made with other settings (a database calibrated before a
         matcher's setting existed, or with other tolerances) or on other objects (a
-        model file removed, added or edited by hand since: ``database.json`` still names
-        the objects it was calibrated on); then :meth:`calibrate`, which matches only
-        what changed. True when the calibration records neither (a format 1 database)."""
+        model file removed, added or edited by hand since: the calibration keeps a
+        fingerprint of each file it was made on); then :meth:`calibrate`, which matches
+        only what changed. True when the calibration records neither (a format 1
+        database)."""
         used = self.calibration.get("settings")
         if used is None:
             return True
@@ -862,8 +863,8 @@ def recognize(
     others: :meth:`ModelDatabase.evidence`) reaches the calibrated threshold, else None
     (an object the database does not know). A database calibrated with other matching
     ``settings``, or on model files changed since, is calibrated again first
-    (:meth:`ModelDatabase.calibrated_for`; this writes ``database.json``). Each match's ``pose`` takes the model's frame to the
-    camera frame.
+    (:meth:`ModelDatabase.calibrated_for`; this writes ``database.json``). Each match's
+    ``pose`` takes the model's frame to the camera frame.
     """
     from ._recover import recover_scene
 
