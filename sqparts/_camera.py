@@ -194,16 +194,18 @@ class PinholeCamera(_Camera):
             object.__setattr__(self, name, _check_finite(name, getattr(self, name), positive=True))
         for name in ("cx", "cy"):
             object.__setattr__(self, name, _check_finite(name, getattr(self, name)))
-        for f, c, n, side in (("fx", "cx", self.width, "wide"), ("fy", "cy", self.height, "high")):
-            # The image's edges (pixel centres at 0 .. n-1, edges half a pixel out) seen at
-            # most MAX_RAY_ANGLE off the optical axis: a focal length given in metres or
-            # millimetres instead of pixels is refused, not recovered into meaningless parts.
-            reach = max(abs(-0.5 - getattr(self, c)), abs(n - 0.5 - getattr(self, c)))
-            least = reach / math.tan(math.radians(MAX_RAY_ANGLE))
-            if getattr(self, f) < least:
+        # The image's edges (pixel centres at 0 .. n-1, edges half a pixel out) seen at most
+        # MAX_RAY_ANGLE off the optical axis: a focal length given in metres or millimetres
+        # instead of pixels is refused, not recovered into meaningless parts.
+        for f, focal, c, centre, n, side in (
+            ("fx", self.fx, "cx", self.cx, self.width, "wide"),
+            ("fy", self.fy, "cy", self.cy, self.height, "high"),
+        ):
+            least = max(abs(-0.5 - centre), abs(n - 0.5 - centre)) / math.tan(math.radians(MAX_RAY_ANGLE))
+            if focal < least:
                 raise ValueError(
-                    f"{f}: got {getattr(self, f)!r}, expected at least {least:.4g} pixels for an image {n} pixels "
-                    f"{side} with {c} {getattr(self, c)!r} (rays within {MAX_RAY_ANGLE} degrees of the optical axis)"
+                    f"{f}: got {focal!r}, expected at least {least:.4g} pixels for an image {n} pixels {side} "
+                    f"with {c} {centre!r} (rays within {MAX_RAY_ANGLE} degrees of the optical axis)"
                 )
 
     def _rays(self, uu, vv):
