@@ -63,7 +63,10 @@ def local_cluster(workers: int):
         threads_per_worker=1,
         processes=True,
         dashboard_address=None,  # pyright: ignore[reportArgumentType]  (None = no dashboard, as distributed documents)
-        silence_logs=logging.ERROR,
+        # Every failure a user needs reaches them as an error record; what distributed logs
+        # besides is its own shutdown races (a worker's heartbeat to a scheduler that is
+        # closing), printed as tracebacks.
+        silence_logs=logging.CRITICAL,
     )
     try:
         with Client(cluster) as client:

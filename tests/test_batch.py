@@ -307,3 +307,19 @@ def test_two_dask_workers_give_the_single_process_results(batch):
 
 def records_by(records):
     return {r["output"]: r for r in records}
+
+
+@pytest.mark.slow
+def test_the_local_cluster_prints_none_of_distributed_s_own_errors(capfd):
+    """--jobs reports every failure as an error record. What distributed logs besides, in the
+    workers and here, is its own shutdown races: a worker's heartbeat to a closing scheduler
+    printed a traceback after Ctrl-C. Its errors are logged, in each process, and not printed."""
+    import logging
+
+    from sqparts._dask import local_cluster
+
+    with local_cluster(1) as client:
+        client.run(lambda: logging.getLogger("distributed.worker").error("heartbeat failed (worker)"))
+        logging.getLogger("distributed.scheduler").error("heartbeat failed (here)")
+    err = capfd.readouterr().err
+    assert "heartbeat failed" not in err, err
