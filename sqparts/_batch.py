@@ -30,6 +30,7 @@ import dataclasses
 import glob
 import json
 import os
+import re
 import time
 from pathlib import Path
 
@@ -90,6 +91,10 @@ def expand_inputs(paths, *, recursive: bool = False) -> list[Path]:
             raise FileNotFoundError(f"input: got {text!r}, expected an existing file or folder, or a glob pattern")
         elif p.suffix.lower() not in RANGE_IMAGE_SUFFIXES:  # every input's name checked before any work
             raise ValueError(f"input: got {text!r}, expected a range image ending in {wanted}")
+        elif not p.is_file():
+            raise ValueError(
+                f"input: got {text!r}, which is not a regular file (a device, pipe or socket), expected a range image file"
+            )
         else:
             out.append(p)
     seen = {}
@@ -117,8 +122,9 @@ def output_names(paths) -> list[str]:
         stem if stem_count[stem] == 1 else name if bare_count[name] == 1 else str(r)
         for stem, name, r in zip(stems, bare, relative)
     ]
-    # A short name may still meet another input's (``x.npy.png``'s stem is ``x.npy``) or
-    # hold it (``b.npy``'s ``b`` beside ``b/x.npy``'s ``b/x``): those take their whole
+    # A short name may still meet another input's (``x.npy.png``'s stem is ``x.npy``),
+    # hold it (``b.npy``'s ``b`` beside ``b/x.npy``'s ``b/x``) or name no folder of its
+    # own (``..npy``'s stem is ``.``, which is --out itself): those take their whole
     # relative path, until none clash (whole paths of distinct files never do).
     while clashing := _clashing(names):
         names = [str(r) if i in clashing else n for i, (n, r) in enumerate(zip(names, relative))]
@@ -126,11 +132,13 @@ def output_names(paths) -> list[str]:
 
 
 def _clashing(names) -> set[int]:
-    """Indices of output names equal to another's or holding another (a folder of it)."""
+    """Indices of output names equal to another's, holding another (a folder of it) or
+    not a folder of their own (empty, or a ``.`` or ``..`` in them)."""
     index = collections.defaultdict(list)
     for i, n in enumerate(names):
         index[n].append(i)
     bad = {i for group in index.values() if len(group) > 1 for i in group}
+    bad.update(i for i, n in enumerate(names) if not n or {".", ".."} & set(re.split(r"[\\/]", n)))
     for i, n in enumerate(names):
         for up in Path(n).parents:
             if str(up) != "." and str(up) in index:
@@ -189,6 +197,20 @@ def read_input(path, *, camera=None, depth_scale: float = 0.001):
     return depth, camera
 
 
+@contextlib.contextmanager
+def naming_input(path):
+    """An image's depths refused inside (``depth: got 0 returns, ...``): the error names
+    the file it was read from (``input: got 0 returns in 'x.npy', ...``)."""
+    try:
+        yield
+    except ValueError as e:
+        got, _, rest = str(e).partition(": ")
+        if got != "depth" or not rest.startswith("got "):
+            raise
+        found, _, expected = rest.partition(", expected ")
+        raise ValueError(f"input: {found} in {str(path)!r}" + (f", expected {expected}" if expected else "")) from None
+
+
 def recover_file(
     path,
     target,
@@ -217,16 +239,10 @@ def recover_file(
 
     path = Path(path)
     depth, camera = read_input(path, camera=camera, depth_scale=depth_scale)
-    try:
+    with naming_input(path):
         check_range_image(depth, camera)  # the image's depths before --sigma is checked against them
         encoding = encoding_for(depth[np.isfinite(depth)], sigma=sigma) if sigma else None
         recovery = recover_scene(depth, camera, encoding=encoding, progress=progress, **options)
-    except ValueError as e:  # the image's depths refused: name the file
-        got, sep, rest = str(e).partition(": ")
-        if got != "depth" or not rest.startswith("got "):
-            raise
-        found, _, expected = rest.partition(", expected ")
-        raise ValueError(f"input: {found} in {str(path)!r}" + (f", expected {expected}" if expected else "")) from None
     with staged_folder(target, overwrite=overwrite, inputs=(path,)) as folder:
         write_recovery(folder, recovery, title=path.name)
     return recovery
@@ -405,8 +421,9 @@ def plan_batch(
     out = Path(out)
     if out.exists() and not out.is_dir():
         raise FileExistsError(f"--out: got {str(out)!r}, which is a file, expected a folder")
-    if isinstance(camera, (str, os.PathLike)):
-        camera = load_camera(camera)
+    camera_file = camera if isinstance(camera, (str, os.PathLike)) else None  # never inside a folder replaced
+    if camera_file is not None:
+        camera = load_camera(camera_file)
     paths = expand_inputs(inputs, recursive=recursive)
     if not paths:
         raise ValueError("input: got no inputs, expected at least one range image")
@@ -440,7 +457,7 @@ def plan_batch(
         if resume and target.exists() and _ours(target):
             replace = True  # finished but unrecorded, or a failed earlier run's: redo it
         else:
-            check_new_output(target, overwrite=overwrite, inputs=paths)
+            check_new_output(target, overwrite=overwrite, inputs=[*paths, camera_file])
         tasks.append(_Task(str(path), name, str(out), camera, depth_scale, sigma, dict(options), replace))
     keep = None
     if resume and results.exists():

@@ -353,7 +353,8 @@ class ModelDatabase:
     def names(self) -> list[str]:
         return sorted(self.objects)
 
-    def _write_object(self, name: str) -> None:
+    def _object_data(self, name: str) -> dict:
+        """Object ``name``'s file as written (its fingerprint recorded as it is made)."""
         data = {
             "format": MODEL_FORMAT,
             "name": name,
@@ -366,8 +367,8 @@ class ModelDatabase:
                 for v in self.objects[name]
             ],
         }
-        _write_json(self.path / f"{name}.json", data)
         self._digests[name] = _digest(data)
+        return data
 
     def _write_index(self) -> None:
         _write_json(
@@ -393,11 +394,19 @@ class ModelDatabase:
         views = tuple(views)
         if not all(isinstance(v, StoredView) for v in views):
             raise TypeError("views: got something other than StoredView, expected views from view_from_parts")
-        self.path.mkdir(parents=True, exist_ok=True)
+        before = (dict(self.objects), dict(self._digests), self.threshold, self.statistic, self.calibration)
         self.objects[name] = (*(() if replace else self.objects.get(name, ())), *views)
-        self._write_object(name)
+        try:
+            data = self._object_data(name)
+            if calibrate:  # in memory first: the files are written only once it is done
+                self.calibrate(write=False)
+        except BaseException:  # e.g. interrupted while calibrating: the database as it was
+            self.objects, self._digests, self.threshold, self.statistic, self.calibration = before
+            raise
+        self.path.mkdir(parents=True, exist_ok=True)
+        _write_json(self.path / f"{name}.json", data)
         if calibrate:
-            self.calibrate()
+            self._write_index()
 
     def without(self, *names) -> "ModelDatabase":
         """An in-memory copy without the named objects (nothing written); the threshold
@@ -519,7 +528,7 @@ class ModelDatabase:
             return 0.0
         return lead(s[0], s[1:]) if self.statistic == "lead" else s[0]
 
-    def calibrate(self, *, settings: MatchSettings = MatchSettings()) -> float:
+    def calibrate(self, *, settings: MatchSettings = MatchSettings(), write: bool = True) -> float:
         """Set :attr:`threshold` from the stored views alone, each view matched against
         the database with itself left out: genuine values (its score against its own
         object) and impostor values (the best of the other objects: what an object the
@@ -539,7 +548,7 @@ class ModelDatabase:
         object matched against has changed since, under the same settings: only those
         pairs are matched again, and adding one object to a database of n views matches
         each view against the new object and the new views against all (not n x n).
-        Writes ``database.json``."""
+        Writes ``database.json`` (with ``write``, when the folder exists)."""
         key = _round(dataclasses.asdict(settings))
         digests = {n: self._digests[n] for n in self.objects}
         old = self.calibration if self.calibration.get("settings") == key else {}
@@ -560,7 +569,7 @@ class ModelDatabase:
                 views_scores.append({"object": name, "view": k, "scores": scores})
         self.calibrate_from(views_scores)
         self.calibration.update(settings=key, objects=digests)
-        if self.path.is_dir():
+        if write and self.path.is_dir():
             self._write_index()
         return self.threshold
 

@@ -259,12 +259,11 @@ def cmd_recover(args) -> int:
         _say(args, f"{path.name}: {recovery.summary()}\n  wrote {out}/parts.json, model.ply, report.png")
         return 0
     # Everything cheap is checked before any work; each input is read when it is recovered.
-    camera = load_camera(args.camera) if args.camera else None
     opts = _recover_options(args)
     plan = plan_batch(
         args.input,
         out=args.out,
-        camera=camera,
+        camera=args.camera,  # read there, and never inside an output folder it replaces
         recursive=args.recursive,
         overwrite=args.overwrite,
         resume=args.resume,
@@ -285,7 +284,7 @@ def cmd_recover(args) -> int:
                     if not args.quiet:
                         from tqdm import tqdm
 
-                        tqdm.write(f"{record['input']}: {record['error']}", file=sys.stderr)
+                        tqdm.write(f"{_shown(record['input'])}: {record['error']}", file=sys.stderr)
     finally:
         if args.jobs is not None:  # workers stopped mid-write leave their staging folders
             remove_staging(plan, since=since)
@@ -307,14 +306,18 @@ def cmd_recover(args) -> int:
 
 def _recover_command(args) -> int:
     """``recover``: ``--rerun`` checked before any work, then :func:`cmd_recover`."""
+    from ._io import check_new_output
+
     if args.rerun is not None:
         if Path(args.rerun).suffix.lower() != ".rrd":
             raise ValueError(f"--rerun: got {args.rerun!r}, expected a path ending in .rrd")
         rrd = Path(args.rerun)
-        if rrd.is_dir() or (rrd.exists() and not args.overwrite):
-            raise FileExistsError(f"--rerun: got {args.rerun!r}, which exists, expected a new file (or --overwrite)")
+        if rrd.is_dir():
+            raise IsADirectoryError(f"--rerun: got {args.rerun!r}, which is a folder, expected a file path")
         if not rrd.parent.is_dir():
             raise FileNotFoundError(f"--rerun: got {args.rerun!r}, expected a path in an existing directory")
+        # Exists only with --overwrite, is none of the inputs, and can be written: before any work.
+        check_new_output(rrd, overwrite=args.overwrite, inputs=(*args.input, args.camera), argument="--rerun")
         try:
             import rerun  # noqa: F401
         except ImportError:
@@ -393,6 +396,7 @@ def _recognition_options(args) -> dict:
 
 
 def cmd_learn(args) -> int:
+    from ._batch import naming_input
     from ._database import ModelDatabase, check_name, view_from_recovery
     from ._io import check_new_output
     from ._recover import recover_scene
@@ -406,7 +410,8 @@ def cmd_learn(args) -> int:
     progress = _progress(args, "regions", "region")
     views = []
     for path, depth, camera in loaded:
-        rec = recover_scene(depth, camera, progress=progress, **_recognition_options(args))
+        with naming_input(path):
+            rec = recover_scene(depth, camera, progress=progress, **_recognition_options(args))
         if not rec.figures:
             raise ValueError(f"input: got {str(path)!r}, in which nothing was recovered, expected a view of the object")
         views.append(view_from_recovery(rec, source=str(path), levels=args.levels))
@@ -423,7 +428,7 @@ def cmd_learn(args) -> int:
 def cmd_recognize(args) -> int:
     import json
 
-    from ._batch import RESULTS_NAME, _ResultsLog, error_message
+    from ._batch import RESULTS_NAME, _ResultsLog, error_message, naming_input
     from ._database import ModelDatabase, recognize
     from ._io import atomic_write, check_new_output, staged_folder
     from ._plot import save_recognition_report
@@ -468,7 +473,8 @@ def cmd_recognize(args) -> int:
         for (path, depth, camera), target in zip(loaded, targets):
             t0 = time.perf_counter()
             try:
-                result = recognize(depth, camera, database=db, progress=progress, **_recognition_options(args))
+                with naming_input(path):
+                    result = recognize(depth, camera, database=db, progress=progress, **_recognition_options(args))
                 with staged_folder(target, overwrite=args.overwrite, inputs=kept) as folder:
                     with atomic_write(folder / "recognition.json", "w") as f:
                         f.write(json.dumps(dict(result.to_json(), input=str(path)), indent=1) + "\n")
@@ -482,7 +488,7 @@ def cmd_recognize(args) -> int:
                 failed.append((path, error))
                 record = {"status": "error", "best": None, "evidence": None, "error": error}
                 if not args.quiet:
-                    print(f"{path}: {error}", file=sys.stderr)  # as recover's batch reports a failure
+                    print(f"{_shown(path)}: {error}", file=sys.stderr)  # as recover's batch reports a failure
             else:
                 record = {"status": "ok", "best": result.best, "evidence": float(result.evidence), "error": None}
                 _say(
@@ -504,6 +510,13 @@ def cmd_recognize(args) -> int:
     return 0
 
 
+def _shown(path) -> str:
+    """A file name as one line of a message: as it is, or quoted with its escapes when it
+    holds a newline or another character a terminal does not print."""
+    text = str(path)
+    return text if text.isprintable() else repr(text)
+
+
 def _say(args, msg: str) -> None:
     if not getattr(args, "quiet", False):
         print(msg)
@@ -517,6 +530,9 @@ def build_parser() -> argparse.ArgumentParser:
         prog="sqparts",
         description="Recover part structure (deformed superquadrics) from range images.",
     )
+    from . import __version__
+
+    parser.add_argument("--version", action="version", version=f"%(prog)s {__version__}")
     sub = parser.add_subparsers(dest="command", required=True, metavar="COMMAND", parser_class=_Parser)
 
     p = sub.add_parser("render", help="render a scene JSON into a range image")
@@ -840,7 +856,7 @@ def main(argv=None) -> int:
                 return _error(
                     f"file: got {str(e.filename)!r} ({e.strerror}), expected a path that can be read or written"
                 )
-            return _error(str(e) or type(e).__name__)
+            return _error(_as_typed(str(e) or type(e).__name__, sys.argv[1:] if argv is None else argv))
         except (ValueError, TypeError) as e:
             return _error(_as_typed(str(e) or type(e).__name__, sys.argv[1:] if argv is None else argv))
         except MemoryError:

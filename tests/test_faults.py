@@ -966,3 +966,131 @@ def test_recover_names_a_bad_progress_or_centres():
         sqparts.recover(depth, cam, centres=np.zeros(3))
     with pytest.raises(TypeError, match=r"input: got NoneType, expected a file path"):
         sqparts.read_range_image(None)
+
+
+# --- session 45's fuzzing: names that are no folder, files read beside the inputs ------
+
+
+def test_an_input_whose_stem_is_a_dot_gets_a_folder_of_its_own(files, capsys):
+    """``..npy``'s stem is ``.``: its outputs went into --out itself, and with --overwrite
+    replaced the whole batch folder (the other inputs' folders and results.jsonl) while
+    the run reported success; ``...npy``'s stem ``..`` pointed above --out."""
+    import shutil
+
+    scans = files / "scans"
+    scans.mkdir()
+    for name in ("y.npy", "..npy", "...npy"):
+        shutil.copy(files / "x.npy", scans / name)
+    inputs = [scans / "y.npy", scans / "..npy", scans / "...npy"]
+    assert cli.output_names(inputs) == ["y", "..npy", "...npy"]
+    assert cli.output_names([scans / "..npy"]) == ["..npy"]
+    assert cli.output_names([scans / "y.npy", files / "..npy"]) == ["y", "..npy"]
+    out = files / "out"
+    argv = ["recover", *map(str, inputs), "--camera", str(files / "cam.json"), "--out", str(out), *FAST]
+    for extra in ([], ["--overwrite"]):
+        assert main(argv + extra) == 0, capsys.readouterr().err
+        assert sorted(p.name for p in out.iterdir()) == ["...npy", "..npy", "results.jsonl", "y"]
+        assert all({p.name for p in (out / n).iterdir()} == OUTPUTS for n in ("y", "..npy", "...npy"))
+        records = [json.loads(line) for line in (out / "results.jsonl").read_text().splitlines()]
+        assert sorted(r["output"] for r in records) == ["...npy", "..npy", "y"]
+        assert all(r["status"] == "ok" for r in records)
+    assert sorted(p.name for p in files.iterdir()) == ["cam.json", "out", "scans", "scene.json", "x.npy"]
+
+
+def test_a_batch_never_replaces_a_folder_holding_the_camera_file(files, capsys, monkeypatch):
+    """With several inputs, ``--overwrite`` deleted --camera's file when it lay in one
+    input's output folder (one input was refused so; a batch checked only the images)."""
+    import sqparts._recover
+
+    monkeypatch.setattr(sqparts._recover, "recover_scene", lambda *a, **k: pytest.fail("recovery ran"))
+    (files / "a").mkdir()
+    (files / "a" / "x.npy").write_bytes((files / "x.npy").read_bytes())
+    camera = files / "out" / "x" / "cam.json"
+    camera.parent.mkdir(parents=True)
+    camera.write_text(json.dumps(CAMERA))
+    argv = ["recover", str(files / "x.npy"), str(files / "a" / "x.npy"), "--camera", str(camera)]
+    err = cli_error(capsys, [*argv, "--out", str(files / "out"), "--overwrite", *FAST])
+    assert err.startswith(
+        f"sqparts: error: --out: got {str(files / 'out' / 'x')!r}, which holds the input {str(camera)!r}"
+    ), err
+    assert sorted(p.name for p in (files / "out").rglob("*")) == ["cam.json", "x"]
+
+
+def test_a_rerun_file_that_cannot_be_written_is_refused_before_any_work(files, capsys, monkeypatch):
+    """``--rerun /proc/x.rrd`` recovered and wrote every output, then failed naming the
+    tool's own temporary file; a folder given with --overwrite was told to add --overwrite."""
+    import sqparts._recover
+
+    monkeypatch.setattr(sqparts._recover, "recover_scene", lambda *a, **k: pytest.fail("recovery ran"))
+    argv = ["recover", str(files / "x.npy"), "--camera", str(files / "cam.json"), "--out", str(files / "o"), *FAST]
+    err = cli_error(capsys, [*argv, "--rerun", "/proc/x.rrd"])
+    assert err.startswith("sqparts: error: --rerun: got '/proc/x.rrd', expected a path in a folder this user can write")
+    (files / "d.rrd").mkdir()
+    err = cli_error(capsys, [*argv, "--rerun", str(files / "d.rrd"), "--overwrite"])
+    assert err == f"sqparts: error: --rerun: got {str(files / 'd.rrd')!r}, which is a folder, expected a file path"
+    err = cli_error(capsys, [*argv, "--rerun", str(files / "x.npy"), "--overwrite"])
+    assert err.startswith(f"sqparts: error: --rerun: got {str(files / 'x.npy')!r}, expected a path ending in .rrd")
+    err = cli_error(capsys, [*argv, "--rerun", str(files / "cam.rrd"), "--camera", str(files / "cam.rrd")])
+    assert err.startswith(f"sqparts: error: --camera: got {str(files / 'cam.rrd')!r}, expected an existing file")
+    assert not (files / "o").exists()
+
+
+def test_a_database_interrupted_while_calibrating_is_left_as_it_was(tmp_path, monkeypatch):
+    """``learn`` stopped by a signal while recalibrating said "no partial output left", but
+    the new object's file was already written beside the old database.json: the object's
+    file and the threshold are now written together, after the calibration."""
+    from sqparts._database import ModelDatabase, view_from_parts
+
+    db = ModelDatabase(tmp_path / "db")
+    db.add_views("chair", [view_from_parts(sqparts.builtin_scene("chair").parts)])
+    files_before = {p.name: p.read_bytes() for p in (tmp_path / "db").iterdir()}
+    state_before = (db.names, db.threshold, db.statistic, json.dumps(db.calibration, sort_keys=True))
+
+    def interrupted(self, **kwargs):
+        raise KeyboardInterrupt
+
+    monkeypatch.setattr(ModelDatabase, "calibrate", interrupted)
+    with pytest.raises(KeyboardInterrupt):
+        db.add_views("castings", [view_from_parts(sqparts.builtin_scene("castings").parts)])
+    assert {p.name: p.read_bytes() for p in (tmp_path / "db").iterdir()} == files_before
+    assert (db.names, db.threshold, db.statistic, json.dumps(db.calibration, sort_keys=True)) == state_before
+    monkeypatch.undo()
+    assert ModelDatabase(tmp_path / "db").names == ["chair"]
+
+
+def test_an_input_that_is_not_a_regular_file_is_refused_before_any_work(files, capsys):
+    """A FIFO (or a device) named like a range image became a batch: --out was made with a
+    results.jsonl, the input failed "expected an existing file" and the exit status was 1."""
+    fifo = files / "ff.npy"
+    os.mkfifo(fifo)
+    err = cli_error(
+        capsys, ["recover", str(fifo), "--camera", str(files / "cam.json"), "--out", str(files / "o"), *FAST]
+    )
+    assert err == (
+        f"sqparts: error: input: got {str(fifo)!r}, which is not a regular file (a device, pipe or socket), "
+        "expected a range image file"
+    )
+    assert not (files / "o").exists()
+
+
+def test_learn_names_the_input_it_could_not_use_and_the_version_is_printed(files, capsys):
+    np.save(files / "nan.npy", np.full((24, 32), np.nan, np.float32))
+    argv = ["learn", "thing", str(files / "nan.npy"), "--camera", str(files / "cam.json"), "--db", str(files / "db")]
+    err = cli_error(capsys, [*argv, *FAST])
+    assert err.startswith(f"sqparts: error: input: got 0 returns in {str(files / 'nan.npy')!r}, expected"), err
+    assert not (files / "db").exists()
+    with pytest.raises(SystemExit) as stop:
+        main(["--version"])
+    assert stop.value.code == 0
+    assert capsys.readouterr().out.strip() == f"sqparts {sqparts.__version__}"
+
+
+def test_a_batch_shows_a_file_name_holding_a_newline_on_one_line(files, capsys):
+    bad = files / "in" / "bad\nname.npy"
+    bad.parent.mkdir()
+    bad.write_bytes(b"not an array")
+    (files / "in" / "x.npy").write_bytes((files / "x.npy").read_bytes())
+    argv = ["recover", str(files / "in"), "--camera", str(files / "cam.json"), "--out", str(files / "o")]
+    assert main([*argv, "--resolution", "0", "--refine-rounds", "0"]) == 1
+    err = capsys.readouterr().err
+    assert f"{str(bad)!r}: " in err and str(bad) not in err, err
