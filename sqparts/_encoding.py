@@ -421,35 +421,60 @@ def render_layers(vectors, camera) -> np.ndarray:
     part's size in the image rather than the image's. ``TILE_BATCH`` tiles, of any
     parts, per compiled call: one program for every image and part."""
     vectors = part_vectors(host_parts(vectors))
-    h, w = camera.height, camera.width
-    out = np.full((len(vectors), h, w), np.inf, np.float32)
+    out = np.full((len(vectors), camera.height, camera.width), np.inf, np.float32)
     big = bucket_camera(camera)  # its image a multiple of IMAGE_BUCKET, so of TILE
 
     def render(todo):
-        v = vectors[todo]
-        box = silhouette_boxes(v, camera)
-        t0, t1 = box[:, :2] // TILE, -(-box[:, 2:] // TILE)  # tile index ranges, rows and columns
-        counts = np.maximum(t1 - t0, 0).prod(1)
-        part = np.repeat(np.arange(len(v)), counts)
-        first = np.repeat(np.cumsum(counts) - counts, counts)
-        k = np.arange(len(part)) - first
-        span = np.maximum(t1 - t0, 1)[part, 1]
-        row, col = t0[part, 0] + k // span, t0[part, 1] + k % span
-        m = -(-len(part) // TILE_BATCH) * TILE_BATCH
-        parts_of_tiles = host_parts(pad_vectors(v[part], m))
-        corners = pad_rows(np.stack([row, col], 1).astype(np.int32) * TILE, m)
-        rows_t, cols_t = big.height // TILE, big.width // TILE
-        canvas = np.full((len(v), rows_t, cols_t, TILE, TILE), np.inf, np.float32)
-
-        def batch(j):
-            b = slice(j, j + TILE_BATCH)
-            tiles = np.asarray(_render_tiles(parts_of_tiles[b], corners[b], big))
-            canvas[part[b], row[b], col[b]] = tiles[: len(part[b])]  # the rest is padding
-
-        concurrently(batch, range(0, m, TILE_BATCH))
-        return canvas.transpose(0, 1, 3, 2, 4).reshape(len(v), big.height, big.width)[:, :h, :w]
+        return _rendered_tiles(vectors[todo], np.arange(len(todo)), len(todo), camera, big)
 
     return _LAYERS.rows([RowMemo.key(big, v) for v in vectors], out, render)
+
+
+def render_nearest(vectors, owner, count: int, camera) -> np.ndarray:
+    """(count, H, W) the nearest depth of each group of parts (inf = miss): group g is
+    the (k, 14) part ``vectors`` whose ``owner`` is g, rendered together (a solid of
+    several parts, many solids at once). The same depths as :func:`render_layers`' layers
+    of a group's parts, nearest first, without holding a layer per part (a few hundred
+    posed solids of ten parts each are verified at once: :func:`~sqparts._recognize.verify_poses`).
+    Not looked up: posed solids seldom repeat."""
+    vectors = part_vectors(host_parts(vectors))
+    return _rendered_tiles(vectors, np.asarray(owner, np.int64), int(count), camera, bucket_camera(camera))
+
+
+def _rendered_tiles(v: np.ndarray, owner: np.ndarray, count: int, camera, big) -> np.ndarray:
+    """(count, H, W): the parts ``v`` rendered in the tiles their silhouettes meet
+    (``TILE_BATCH`` tiles a compiled call, on a thread per core), each tile kept at the
+    nearest of the parts of its ``owner`` that meet it; inf elsewhere."""
+    box = silhouette_boxes(v, camera)
+    t0, t1 = box[:, :2] // TILE, -(-box[:, 2:] // TILE)  # tile index ranges, rows and columns
+    counts = np.maximum(t1 - t0, 0).prod(1)
+    part = np.repeat(np.arange(len(v)), counts)
+    first = np.repeat(np.cumsum(counts) - counts, counts)
+    k = np.arange(len(part)) - first
+    span = np.maximum(t1 - t0, 1)[part, 1]
+    row, col = t0[part, 0] + k // span, t0[part, 1] + k % span
+    m = -(-len(part) // TILE_BATCH) * TILE_BATCH
+    parts_of_tiles = host_parts(pad_vectors(v[part], m))
+    corners = pad_rows(np.stack([row, col], 1).astype(np.int32) * TILE, m)
+    rows_t, cols_t = big.height // TILE, big.width // TILE
+    tiles = np.empty((m, TILE, TILE), np.float32)
+
+    def batch(j):
+        b = slice(j, j + TILE_BATCH)
+        tiles[b] = np.asarray(_render_tiles(parts_of_tiles[b], corners[b], big))
+
+    concurrently(batch, range(0, m, TILE_BATCH))
+    tiles = tiles[: len(part)]  # the rest is padding
+    key = (owner[part] * rows_t + row) * cols_t + col
+    canvas = np.full((count * rows_t * cols_t, TILE, TILE), np.inf, np.float32)
+    if len(owner) and np.bincount(owner, minlength=count).max() > 1:  # tiles of one group meet: the nearest
+        order = np.argsort(key, kind="stable")
+        key, tiles = key[order], tiles[order]
+        starts = np.flatnonzero(np.r_[True, key[1:] != key[:-1]])
+        key, tiles = key[starts], np.minimum.reduceat(tiles, starts, axis=0)
+    canvas[key] = tiles
+    canvas = canvas.reshape(count, rows_t, cols_t, TILE, TILE)
+    return canvas.transpose(0, 1, 3, 2, 4).reshape(count, big.height, big.width)[:, : camera.height, : camera.width]
 
 
 def pad_rows(a: np.ndarray, m: int) -> np.ndarray:

@@ -705,7 +705,7 @@ def verify_poses(solids, observation: Observation, figure, tolerance, levels: in
     of :func:`verification_lattice`, which bounds the rays rendered per solid. With
     ``levels`` > 1 the score is the mean of the scores at τ, τ/2, ..., τ/2^(levels-1)
     (one rendering; ``MatchSettings.verification_levels``)."""
-    from ._encoding import part_vectors, render_layers
+    from ._encoding import part_vectors, render_nearest
 
     if isinstance(levels, bool) or not isinstance(levels, (int, np.integer)) or levels < 1:
         raise ValueError(f"levels: got {levels!r}, expected an integer >= 1")
@@ -714,9 +714,8 @@ def verify_poses(solids, observation: Observation, figure, tolerance, levels: in
         return np.zeros(0)
     window, camera = verification_lattice(observation.camera, figure)
     vectors = [part_vectors(s) for s in solids]
-    layers = render_layers(np.concatenate(vectors), camera)
-    bounds = np.cumsum([0, *map(len, vectors)])
-    rendered = np.stack([layers[a:b].min(0) for a, b in zip(bounds[:-1], bounds[1:])])  # (k, H, W), inf: miss
+    owner = np.repeat(np.arange(len(vectors)), [len(v) for v in vectors])
+    rendered = render_nearest(np.concatenate(vectors), owner, len(vectors), camera)  # (k, H, W), inf: miss
     tau = np.broadcast_to(np.asarray(tolerance, float), (len(solids),))[:, None, None]
     depth, figure = observation.depth[window][None], np.asarray(figure, bool)[window][None]
     seen, model = np.isfinite(depth), np.isfinite(rendered)
