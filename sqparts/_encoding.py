@@ -467,7 +467,7 @@ def _rendered_tiles(v: np.ndarray, owner: np.ndarray, count: int, camera, big) -
     tiles = tiles[: len(part)]  # the rest is padding
     key = (owner[part] * rows_t + row) * cols_t + col
     canvas = np.full((count * rows_t * cols_t, TILE, TILE), np.inf, np.float32)
-    if len(owner) and np.bincount(owner, minlength=count).max() > 1:  # tiles of one group meet: the nearest
+    if len(key) and np.bincount(owner, minlength=count).max() > 1:  # tiles of one group meet: the nearest
         order = np.argsort(key, kind="stable")
         key, tiles = key[order], tiles[order]
         starts = np.flatnonzero(np.r_[True, key[1:] != key[:-1]])

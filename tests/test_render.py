@@ -361,3 +361,5 @@ def test_groups_rendered_together_equal_their_parts_nearest_hit(camera, rng):
     layers = render_layers(vectors, camera)
     for g in range(3):
         np.testing.assert_array_equal(together[g], layers[owner == g].min(0))
+    # Nothing in view at all: every group misses everywhere.
+    assert not np.isfinite(render_nearest(vectors[[3, 3]], [0, 0], 2, camera)).any()
