@@ -320,6 +320,9 @@ def load_camera(path) -> Camera:
     data = _load_json(path, "camera")
     if isinstance(data, dict) and _realsense_intrinsics(data) is not None:
         return camera_from_realsense(data)
+    if isinstance(data, dict) and "intrinsic_matrix" not in data and {"fx", "fy", "ppx", "ppy"} & set(data):
+        missing = ", ".join(sorted(REALSENSE_KEYS - set(data)))
+        raise ValueError(f"camera: got no {missing}, expected RealSense intrinsics with keys {sorted(REALSENSE_KEYS)}")
     return camera_from_json(data)
 
 

@@ -94,6 +94,13 @@ def test_realsense_intrinsics_errors(tmp_path, change, match):
         sqparts.load_camera(tmp_path / "rs.json")
 
 
+def test_realsense_intrinsics_missing_a_field_name_it(tmp_path):
+    """Without fy the file was read as Open3D's and refused for having no intrinsic_matrix."""
+    (tmp_path / "rs.json").write_text(json.dumps({k: v for k, v in REALSENSE.items() if k not in ("fy", "ppy")}))
+    with pytest.raises(ValueError, match=r"^camera: got no fy, ppy, expected RealSense intrinsics with keys"):
+        sqparts.load_camera(tmp_path / "rs.json")
+
+
 # --- depth from datasets ----------------------------------------------------------------
 
 
