@@ -597,6 +597,16 @@ def recover_scene(
     else:
         cleaned = None
         d = crop_depth_range(d, st.depth_range)
+    left, given = int(np.isfinite(d).sum()), int(np.isfinite(np.asarray(depth, np.float32)).sum())
+    if st.figure_ground and left < 16 and left != given:  # too few once binned and cleaned: say so
+        steps = [f"binning to {d.shape[1]}x{d.shape[0]}"] * (factor > 1) + [
+            "clean-up" if st.clean else "the depth range"
+        ]
+        hints = (["a finer --resolution"] * (factor > 1) + ["--no-clean"] * st.clean) * (given >= 16)
+        raise ValueError(
+            f"depth: got {left} of {given} returns left after {' and '.join(steps)}, expected at least 16"
+            + (f" ({' or '.join(hints)})" if hints else "")
+        )
     fg = None
     if st.figure_ground:
         fg = _figure_ground(

@@ -1094,3 +1094,21 @@ def test_a_batch_shows_a_file_name_holding_a_newline_on_one_line(files, capsys):
     assert main([*argv, "--resolution", "0", "--refine-rounds", "0"]) == 1
     err = capsys.readouterr().err
     assert f"{str(bad)!r}: " in err and str(bad) not in err, err
+
+
+def test_returns_lost_to_binning_or_clean_up_are_not_blamed_on_the_input(files, capsys):
+    """``--resolution 1`` (or clean-up taking a lone return) said the input had 0 returns."""
+    argv = ["recover", str(files / "x.npy"), "--camera", str(files / "cam.json"), "--out", str(files / "o")]
+    given = int(np.isfinite(np.load(files / "x.npy")).sum())
+    err = cli_error(capsys, [*argv, "--resolution", "1"])
+    assert err.startswith(f"sqparts: error: input: got 0 of {given} returns left after binning to 1x1 and clean-up in ")
+    assert err.endswith("expected at least 16 (a finer --resolution or --no-clean)"), err
+    lone = np.full((24, 32), np.nan, np.float32)
+    lone[5, 5] = 2.0
+    np.save(files / "lone.npy", lone)
+    argv[1] = str(files / "lone.npy")
+    err = cli_error(capsys, argv)
+    assert err == f"sqparts: error: input: got 0 of 1 returns left after clean-up in {argv[1]!r}, expected at least 16"
+    err = cli_error(capsys, [*argv, "--no-clean"])
+    assert err.startswith(f"sqparts: error: input: got 1 returns in {argv[1]!r}, expected at least 16"), err
+    assert not (files / "o").exists()
