@@ -334,13 +334,17 @@ def _realsense_intrinsics(data: dict) -> dict | None:
     ``intrinsics``, ``depth`` (as a dump of several streams); None if there are none."""
     if REALSENSE_KEYS <= set(data):
         return data
+    found = {}
     for key in ("intrinsics", "depth"):
         inner = data.get(key)
-        if isinstance(inner, dict):
-            found = _realsense_intrinsics(inner)
-            if found is not None:
-                return found
-    return None
+        if isinstance(inner, dict) and (intr := _realsense_intrinsics(inner)) is not None:
+            found[key] = intr
+    if len(found) > 1 and found["intrinsics"] != found["depth"]:
+        raise ValueError(
+            "camera: got RealSense intrinsics under both 'intrinsics' and 'depth', and they differ, "
+            "expected one set (the depth stream's)"
+        )
+    return next(iter(found.values()), None)
 
 
 def camera_from_realsense(data: dict) -> PinholeCamera:

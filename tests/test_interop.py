@@ -94,6 +94,15 @@ def test_realsense_intrinsics_errors(tmp_path, change, match):
         sqparts.load_camera(tmp_path / "rs.json")
 
 
+def test_realsense_intrinsics_given_twice_must_agree(tmp_path):
+    other = {**REALSENSE, "width": 640, "ppx": 320.0}
+    (tmp_path / "rs.json").write_text(json.dumps({"intrinsics": REALSENSE, "depth": REALSENSE}))
+    assert sqparts.load_camera(tmp_path / "rs.json").width == 848
+    (tmp_path / "rs.json").write_text(json.dumps({"intrinsics": other, "depth": REALSENSE}))
+    with pytest.raises(ValueError, match="^camera: got RealSense intrinsics under both 'intrinsics' and 'depth'"):
+        sqparts.load_camera(tmp_path / "rs.json")
+
+
 def test_realsense_intrinsics_missing_a_field_name_it(tmp_path):
     """Without fy the file was read as Open3D's and refused for having no intrinsic_matrix."""
     (tmp_path / "rs.json").write_text(json.dumps({k: v for k, v in REALSENSE.items() if k not in ("fy", "ppy")}))
