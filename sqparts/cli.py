@@ -87,7 +87,14 @@ def _argparse_message(message: str) -> str:
 
 
 class _Parser(argparse.ArgumentParser):
+    def parse_known_args(self, args=None, namespace=None):
+        self._argv = list(sys.argv[1:] if args is None else args)
+        return super().parse_known_args(args, namespace)
+
     def error(self, message):
+        argv = getattr(self, "_argv", [])
+        if message.endswith("required: COMMAND") and argv and argv[0].startswith("-"):
+            raise UsageError(f"arguments: got {argv[0]!r}, expected a COMMAND first (sqparts --help lists them)")
         raise UsageError(_argparse_message(message))
 
 

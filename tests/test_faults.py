@@ -470,6 +470,7 @@ def test_recover_numbers_are_validated_where_they_enter(files, capsys, flag, val
         (["mesh", "s.json", "--out", "m.ply", "--resolution", "two"], "--resolution: got 'two'"),
         (["demo", "--quiet=yes"], "--quiet: got 'yes'"),
         ([], "COMMAND: got nothing"),
+        (["-x"], "arguments: got '-x', expected a COMMAND first"),
         (
             ["recover", "x.npy", "--out", "o", "--up", "-1,0,0"],
             "--up: got nothing, expected one argument (a value starting with '-' goes as --up=VALUE)",
