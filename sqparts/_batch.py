@@ -394,6 +394,7 @@ def plan_batch(
     output folders are distinct, nothing would be overwritten silently, the settings are
     :func:`~sqparts.recover_scene`'s."""
     from ._io import check_new_output, load_camera
+    from ._preprocess import check_positive
     from ._recover import scene_preset
     from ._refine import RefineSettings
     from ._search import search_preset
@@ -418,6 +419,11 @@ def plan_batch(
         raise ValueError(
             "--resume: got it with --overwrite, expected one of them (resume keeps finished inputs, overwrite redoes all)"
         )
+    check_positive("depth_scale", depth_scale)
+    if sigma is not None:
+        check_positive("sigma", sigma)
+    if isinstance(inputs, (str, os.PathLike)):  # one path, not a sequence of its characters
+        inputs = [inputs]
     out = Path(out)
     if out.exists() and not out.is_dir():
         raise FileExistsError(f"--out: got {str(out)!r}, which is a file, expected a folder")

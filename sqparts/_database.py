@@ -411,6 +411,9 @@ class ModelDatabase:
     def without(self, *names) -> "ModelDatabase":
         """An in-memory copy without the named objects (nothing written); the threshold
         and its statistic kept."""
+        unknown = [n for n in names if not isinstance(n, str) or n not in self.objects]
+        if unknown:
+            raise ValueError(f"names: got {unknown[0]!r}, expected names of stored objects ({', '.join(self.names)})")
         other = ModelDatabase.__new__(ModelDatabase)
         other.path, other.threshold, other.calibration = self.path, self.threshold, self.calibration
         other.statistic = self.statistic

@@ -522,6 +522,20 @@ class EncodingCost:
     commission_mask: np.ndarray  # (H, W) bool
     layers: np.ndarray | None = dataclasses.field(default=None, repr=False)  # (n, H, W) per-part depth, inf = miss
 
+    def __post_init__(self):
+        read_only_arrays(self)
+
+
+def read_only_arrays(result) -> None:
+    """Make a frozen dataclass's array fields read-only views (immutable results: the
+    arrays it was made from stay the maker's to change)."""
+    for field in dataclasses.fields(result):
+        value = getattr(result, field.name)
+        if isinstance(value, np.ndarray) and value.flags.writeable:
+            view = value.view()
+            view.flags.writeable = False
+            object.__setattr__(result, field.name, view)
+
 
 def encoding_cost(parts: Part | None, data: RangeData, costs: Costs) -> EncodingCost:
     """Render ``parts`` together and count E (Eq. 6 evaluated on the joint rendering)."""

@@ -19,6 +19,7 @@ import collections
 import contextlib
 import json
 import math
+import numbers
 import os
 import zipfile
 from pathlib import Path
@@ -239,7 +240,37 @@ def part_from_dict(d: dict, *, index: int = 0) -> tuple[Part, dict]:
             )
     except (ValueError, TypeError) as e:
         raise ValueError(f"{where}.{e}") from None
-    return part, {k: d[k] for k in d if k in ANNOTATION_KEYS}
+    annotations = {k: d[k] for k in d if k in ANNOTATION_KEYS}
+    for key, value in annotations.items():
+        kind, check = _ANNOTATION_CHECKS[key]
+        if not check(value):
+            raise ValueError(f"{where}.{key}: got {value!r:.60}, expected {kind}")
+    return part, annotations
+
+
+def _integer(v) -> bool:
+    return isinstance(v, numbers.Integral) and not isinstance(v, (bool, np.bool_))
+
+
+def _count(v) -> bool:
+    return _integer(v) and v >= 0
+
+
+def _number(v) -> bool:
+    return isinstance(v, numbers.Real) and not isinstance(v, (bool, np.bool_)) and math.isfinite(v)
+
+
+_ANNOTATION_CHECKS = {  # as the JSON Schema (schema/parts.schema.json) types them
+    "name": ("a string", lambda v: isinstance(v, str)),
+    "gamma": ("a finite number", _number),
+    "bits_saved": ("a finite number", _number),
+    "fraction_explained": ("a number in [0, 1]", lambda v: _number(v) and 0 <= v <= 1),
+    "pixels": ("an integer >= 0", _count),
+    "level": ("an integer >= 0", _count),
+    "figure": ("an integer >= 0", _count),
+    "parent": ("an integer or null", lambda v: v is None or _integer(v)),
+    "prettify": ("an object or null", lambda v: v is None or isinstance(v, dict)),
+}
 
 
 def part_to_dict(part: Part, **annotations) -> dict:
@@ -280,6 +311,8 @@ def scene_from_dict(data) -> tuple[Part, list[dict], dict]:
 def scene_to_dict(parts: Part, annotations=None, **metadata) -> dict:
     """Scene JSON dict of a batched :class:`Part` (plus annotations and metadata)."""
     n = len(parts)
+    if annotations is not None and len(annotations) != n:
+        raise ValueError(f"annotations: got {len(annotations)}, expected one per part ({n})")
     annotations = annotations or [{} for _ in range(n)]
     return {
         "parts": [part_to_dict(parts[i], **annotations[i]) for i in range(n)],
@@ -305,8 +338,17 @@ def load_scene(path) -> Part:
 
 
 def save_scene(path, parts: Part, annotations=None, **metadata) -> None:
-    """Write a scene JSON file atomically."""
-    text = json.dumps(scene_to_dict(parts, annotations, **metadata), indent=2)
+    """Write a scene JSON file atomically, one that :func:`load_scene` reads back: known
+    annotations of their types and finite numbers (JSON has no NaN), or nothing written."""
+    try:
+        text = json.dumps(scene_to_dict(parts, annotations, **metadata), indent=2, allow_nan=False)
+    except ValueError as e:
+        if "JSON compliant" not in str(e):
+            raise
+        raise ValueError(
+            "scene: got a NaN or infinite value to write, expected finite numbers (JSON has none)"
+        ) from None
+    scene_from_dict(json.loads(text))  # what load_scene would refuse is refused now
     with atomic_write(path, "w") as f:
         f.write(text + "\n")
 

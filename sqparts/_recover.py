@@ -25,7 +25,16 @@ import numpy as np
 from ._camera import Camera, camera_points, fits_float32
 from ._compile import memo_scope
 from ._data import RangeData
-from ._encoding import Costs, Encoding, EncodingCost, encoding_cost, layer_errors, part_statistics, render_layers
+from ._encoding import (
+    Costs,
+    Encoding,
+    EncodingCost,
+    encoding_cost,
+    layer_errors,
+    part_statistics,
+    read_only_arrays,
+    render_layers,
+)
 from ._grid import lookup_preset
 from ._part import Part, stack_parts
 from ._refine import RefineSettings
@@ -127,6 +136,9 @@ class Recovery(_Fractions, _Meshes):
     history: tuple
     data: RangeData
     costs: Costs
+
+    def __post_init__(self):
+        read_only_arrays(self)
 
     @property
     def settings(self) -> dict:
@@ -456,6 +468,9 @@ class SceneRecovery(_Fractions, _Meshes):
     prettify: list | None
     timings: dict
     scene: SceneSettings
+
+    def __post_init__(self):
+        read_only_arrays(self)
 
     @property
     def parts(self) -> Part:

@@ -202,12 +202,10 @@ def default_max_size(data: RangeData) -> float:
 
 
 def check_max_size(max_size) -> float:
-    """``max_size`` as a float, checked: a finite number > 0."""
-    try:
-        value = float(max_size)
-    except (TypeError, ValueError):
-        value = math.nan
-    if not (math.isfinite(value) and value > 0) or isinstance(max_size, bool):
+    """``max_size`` as a float, checked: a finite number > 0 (a string or a bool is none)."""
+    number = isinstance(max_size, (int, float, np.integer, np.floating)) and not isinstance(max_size, (bool, np.bool_))
+    value = float(max_size) if number else math.nan
+    if not (math.isfinite(value) and value > 0):
         raise ValueError(f"max_size: got {max_size!r}, expected a finite number > 0")
     return value
 
@@ -825,6 +823,11 @@ def fit_image(
         given = np.asarray(centres)
         if given.ndim != 2 or given.shape[1] != 2 or not np.issubdtype(given.dtype, np.number):
             raise ValueError(f"centres: got shape {given.shape} of {given.dtype}, expected (n, 2) pixel (row, col)")
+        h, w = data.figure_mask.shape
+        inside = np.isfinite(given).all(1) & (given >= 0).all(1) & (given[:, 0] < h) & (given[:, 1] < w)
+        if not len(given) or not inside.all():
+            bad = given[~inside][:1].tolist() if len(given) else "none"
+            raise ValueError(f"centres: got {bad}, expected at least one (row, col) inside the {w}x{h} image")
     if centres is None:
         px = settings.side / 2.2
         spacing = settings.spacing or max(3.0, px / 3)

@@ -1113,3 +1113,111 @@ def test_returns_lost_to_binning_or_clean_up_are_not_blamed_on_the_input(files, 
     err = cli_error(capsys, [*argv, "--no-clean"])
     assert err.startswith(f"sqparts: error: input: got 1 returns in {argv[1]!r}, expected at least 16"), err
     assert not (files / "o").exists()
+
+
+@pytest.mark.parametrize(
+    "key, value, expected",
+    [
+        ("gamma", "NaN", "a finite number"),
+        ("name", {"a": [1, 2]}, "a string"),
+        ("prettify", 123, "an object or null"),
+        ("pixels", -5, "an integer >= 0"),
+        ("pixels", True, "an integer >= 0"),
+        ("fraction_explained", 1.5, "a number in [0, 1]"),
+        ("parent", 1.5, "an integer or null"),
+    ],
+)
+def test_a_part_annotation_of_the_wrong_type_is_refused(files, capsys, key, value, expected):
+    """render and mesh took annotations the JSON Schema refuses ("gamma": "NaN", a name
+    that is an object) and passed them on; each is checked as the schema types it."""
+    jsonschema = pytest.importorskip("jsonschema")
+    scene = {"parts": [{**SCENE["parts"][0], key: value}]}
+    with pytest.raises(jsonschema.ValidationError):
+        jsonschema.validate(scene, sqparts.parts_schema())
+    (files / "bad.json").write_text(json.dumps(scene))
+    err = cli_error(capsys, ["mesh", str(files / "bad.json"), "--out", str(files / "m.ply")])
+    assert err == f"sqparts: error: parts[0].{key}: got {value!r}, expected {expected}", err
+    assert not (files / "m.ply").exists()
+
+
+# --- session 45's fuzzing of the Python API ---------------------------------------------
+
+
+def test_results_are_immutable(files):
+    """A recovery's arrays were writable: ``r.figure[0, 0] = True`` changed what its
+    summary reported. Its arrays are read-only views now; the caller's own arrays stay
+    theirs to change."""
+    depth = np.load(files / "x.npy")
+    camera = sqparts.load_camera(files / "cam.json")
+    rec = sqparts.recover(depth, camera, refine=sqparts.RefineSettings.none())
+    scene = sqparts.recover_scene(
+        depth, camera, scene=sqparts.SceneSettings(resolution=0), refine=sqparts.RefineSettings.none()
+    )
+    arrays = [rec.depth, rec.figure, rec.cost.rendered, rec.cost.labels, rec.cost.explained_mask, scene.depth]
+    arrays.append(rec.cost.commission_mask)
+    for a in arrays:
+        with pytest.raises(ValueError, match="read-only"):
+            a[0, 0] = 1
+    before = rec.summary()
+    depth[:] = 5.0  # the input array, still the caller's
+    assert rec.summary() == before and np.isfinite(rec.depth).sum() < depth.size
+
+
+def test_python_api_arguments_are_checked_by_name(files, tmp_path):
+    from sqparts._database import ModelDatabase, view_from_parts
+
+    for bad in ("0.3", float("inf"), True):
+        with pytest.raises(ValueError, match=r"^max_size: got .*, expected a finite number > 0"):
+            sqparts.SearchSettings(max_size=bad)
+    depth = np.load(files / "x.npy")
+    camera = sqparts.load_camera(files / "cam.json")
+    for centres, shown in (
+        ([[np.nan, 5]], r"\[\[nan, 5.0\]\]"),
+        ([[100, 100]], r"\[\[100, 100\]\]"),
+        (np.zeros((0, 2)), "none"),
+    ):
+        with pytest.raises(
+            ValueError, match=rf"^centres: got {shown}, expected at least one \(row, col\) inside the 32x24"
+        ):
+            sqparts.recover(depth, camera, centres=centres, refine=sqparts.RefineSettings.none())
+    db = ModelDatabase(tmp_path / "db")
+    db.add_views("chair", [view_from_parts(sqparts.builtin_scene("chair").parts)], calibrate=False)
+    for name in ("nope", None, ["chair"]):
+        with pytest.raises(ValueError, match=r"^names: got .*, expected names of stored objects \(chair\)"):
+            db.without(name)
+    assert db.without("chair").names == [] and db.without().names == ["chair"]
+    for key, value in (("depth_scale", -1.0), ("sigma", -1.0)):
+        with pytest.raises(ValueError, match=rf"^{key}: got -1.0, expected a finite number > 0"):
+            list(sqparts.recover_many([files / "x.npy"], out=tmp_path / "o", camera=files / "cam.json", **{key: value}))
+    assert not (tmp_path / "o").exists()
+    # One path given as a string is one input, not a sequence of its characters.
+    records = list(
+        sqparts.recover_many(
+            str(files / "x.npy"),
+            out=tmp_path / "one",
+            camera=files / "cam.json",
+            scene=sqparts.SceneSettings(resolution=0),
+            refine=sqparts.RefineSettings.none(),
+        )
+    )
+    assert [(r["output"], r["status"]) for r in records] == [("x", "ok")]
+
+
+def test_save_scene_writes_only_what_load_scene_reads(tmp_path):
+    """save_scene wrote unknown annotations, one annotation list too many and a bare NaN,
+    each a file load_scene then refused."""
+    parts = sqparts.builtin_scene("chair").parts[:1]
+    for kwargs, match in (
+        ({"annotations": [{"foo": 1}]}, r"^parts\[0\]: got unknown key\(s\) \['foo'\]"),
+        ({"annotations": [{}, {}]}, r"^annotations: got 2, expected one per part \(1\)"),
+        ({"annotations": [{"gamma": float("nan")}]}, "^scene: got a NaN or infinite value to write"),
+        ({"E": float("nan")}, "^scene: got a NaN or infinite value to write"),
+    ):
+        with pytest.raises(ValueError, match=match):
+            sqparts.save_scene(tmp_path / "s.json", parts, **kwargs)
+        assert not (tmp_path / "s.json").exists()
+    sqparts.save_scene(tmp_path / "s.json", parts, annotations=[{"name": "seat", "gamma": 3.5}], E=12.0)
+    from sqparts._io import scene_from_dict
+
+    back, annotations, meta = scene_from_dict(json.loads((tmp_path / "s.json").read_text()))
+    assert annotations == [{"name": "seat", "gamma": 3.5}] and meta == {"E": 12.0} and len(back) == 1
