@@ -366,6 +366,12 @@ def render_range_image(
         corner, shape = jnp.zeros(2, jnp.float32), None
     else:
         corner, shape = _check_window(window)
+        row0, col0 = (int(v) for v in window[:2])
+        if row0 < 0 or col0 < 0 or row0 + shape[0] > camera.height or col0 + shape[1] > camera.width:
+            raise ValueError(
+                f"window: got {tuple(int(v) for v in window)}, expected (row0, col0, rows, cols) inside the "
+                f"{camera.width}x{camera.height} image (camera.cropped's rule)"
+            )
     depth, labels = _render_scene(scene, camera, corner, shape, newton_steps)
     return (depth, labels.astype(jnp.int32)) if return_labels else depth
 

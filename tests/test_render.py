@@ -227,6 +227,10 @@ def test_render_errors():
     for window in [(0, 0, 100000, 100000), (0, 0, 0, 5), (0, 0, -3, 5), 5, "abcd", (0, 0, 2.5, 4), (0, 0, True, 4)]:
         with pytest.raises(ValueError, match=r"window: got .*, expected \(row0, col0, rows, cols\): integers"):
             sqparts.render_range_image(part, PINHOLE, window=window)
+    # A window past the image's edge rendered rays the camera does not have.
+    for window in [(0, 0, 100, 100), (-1, 0, 4, 4), (60, 60, 5, 5)]:
+        with pytest.raises(ValueError, match=r"window: got .*, expected \(row0, col0, rows, cols\) inside the 64x64"):
+            sqparts.render_range_image(part, PINHOLE, window=window)
     with pytest.raises(ValueError, match=r"batch_size: got .*, expected a positive integer"):
         sqparts.render_each(part, PINHOLE, batch_size=0)
     o, d = PINHOLE.rays()
