@@ -760,8 +760,19 @@ def lead(score: float, others) -> float:
     query that resembles everything a little, or whose recovery matches every object
     poorly, is judged against its own level rather than an absolute one. ``score``
     itself when there are no others."""
-    others = np.asarray(others, float).ravel()
+    score, others = _scores("score", score), _scores("others", others).ravel()
     return float(score) - (float(others.mean()) if len(others) else 0.0)
+
+
+def _scores(name: str, values) -> np.ndarray:
+    """``values`` as float64 scores, or one line naming ``name`` (not numbers, or NaN/inf)."""
+    try:
+        out = np.asarray(values, float)
+    except (TypeError, ValueError):
+        raise ValueError(f"{name}: got {values!r:.60}, expected finite scores (numbers)") from None
+    if not np.isfinite(out).all():
+        raise ValueError(f"{name}: got {values!r:.60}, expected finite scores")
+    return out
 
 
 FALSE_ACCEPT = 0.05
@@ -784,7 +795,7 @@ def calibrate_threshold(genuine, impostor, *, default: float = 0.45, false_accep
     stored one, so they understate how well known objects score. With no impostor scores
     it is 0.8 x the lowest genuine score (at most ``default``); with none at all, ``default``.
     """
-    g, i = np.asarray(genuine, float), np.sort(np.asarray(impostor, float))[::-1]
+    g, i = _scores("genuine", genuine).ravel(), np.sort(_scores("impostor", impostor).ravel())[::-1]
     if len(i) == 0:
         return float(default) if len(g) == 0 else float(min(default, 0.8 * g.min()))
     k = int(np.floor(false_accept * len(i) + 1e-9))  # impostors allowed through

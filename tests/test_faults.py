@@ -1221,3 +1221,17 @@ def test_save_scene_writes_only_what_load_scene_reads(tmp_path):
 
     back, annotations, meta = scene_from_dict(json.loads((tmp_path / "s.json").read_text()))
     assert annotations == [{"name": "seat", "gamma": 3.5}] and meta == {"E": 12.0} and len(back) == 1
+
+
+def test_scores_that_are_not_finite_are_refused():
+    """lead(nan, ...) returned nan and calibrate_threshold([nan], ...) a threshold."""
+    for call, match in (
+        (lambda: sqparts.lead(np.nan, [1.0]), "^score: got nan, expected finite scores"),
+        (lambda: sqparts.lead(0.5, [np.inf]), r"^others: got \[inf\], expected finite scores"),
+        (lambda: sqparts.lead("a", ["b"]), "^score: got 'a', expected finite scores"),
+        (lambda: sqparts.calibrate_threshold([np.nan], [0.5]), r"^genuine: got \[nan\], expected finite scores"),
+        (lambda: sqparts.calibrate_threshold([0.5], [0.1, np.nan]), "^impostor: got .*, expected finite scores"),
+    ):
+        with pytest.raises(ValueError, match=match):
+            call()
+    assert sqparts.lead(0.5, [0.1, 0.2]) == pytest.approx(0.35)
