@@ -760,8 +760,8 @@ def lead(score: float, others) -> float:
     query that resembles everything a little, or whose recovery matches every object
     poorly, is judged against its own level rather than an absolute one. ``score``
     itself when there are no others."""
-    score, others = _scores("score", score), _scores("others", others).ravel()
-    return float(score) - (float(others.mean()) if len(others) else 0.0)
+    top, rest = float(_scores("score", score)), _scores("others", others).ravel()
+    return top - (float(rest.mean()) if len(rest) else 0.0)
 
 
 def _scores(name: str, values) -> np.ndarray:
