@@ -58,14 +58,8 @@ def part_surface(part: Part, *, resolution: int = 48) -> tuple[np.ndarray, np.nd
     numpy arrays (no trimesh)."""
     if part.batch_shape != ():
         raise ValueError(f"part: got batch shape {part.batch_shape}, expected a single part")
-    if not isinstance(resolution, int) or resolution < 4:
-        raise ValueError(f"resolution: got {resolution!r}, expected an integer >= 4")
-    e1, e2 = (float(x) for x in np.asarray(part.squareness))
-    q1 = _quarter_angles(e1, resolution)
-    eta_half = q1[1:-1]  # exclude 0 (added once) and π/2 (the pole)
-    eta = np.concatenate([-eta_half[::-1], [0.0], eta_half])
-    q2 = _quarter_angles(e2, resolution)
-    omega = np.concatenate([q2[:-1] + k * np.pi / 2 for k in range(4)]) - np.pi
+    check_mesh_size([part], resolution)
+    eta, omega = _angles(part, resolution)
     n_lat, n_lon = len(eta), len(omega)
     ee, ww = np.meshgrid(eta, omega, indexing="ij")
     grid = np.stack([ee.ravel(), ww.ravel()], -1)
@@ -90,8 +84,45 @@ def part_surface(part: Part, *, resolution: int = 48) -> tuple[np.ndarray, np.nd
     return verts, tris
 
 
+MAX_MESH_TRIANGLES = 50_000_000
+"""Most triangles a mesh of parts may have (about 2.4 GB of vertices and triangles in
+memory, a 1 GB binary PLY): 300 parts at the command line's default resolution have 44 M;
+beyond it, lower the resolution (a part at resolution 512 alone has 38 M)."""
+
+
+def _angles(part: Part, resolution: int) -> tuple[np.ndarray, np.ndarray]:
+    """A part's latitudes η (poles left out) and longitudes ω on its mesh."""
+    e1, e2 = (float(x) for x in np.asarray(part.squareness))
+    eta_half = _quarter_angles(e1, resolution)[1:-1]  # exclude 0 (added once) and π/2 (the pole)
+    q2 = _quarter_angles(e2, resolution)
+    return np.concatenate([-eta_half[::-1], [0.0], eta_half]), np.concatenate(
+        [q2[:-1] + k * np.pi / 2 for k in range(4)]
+    ) - np.pi
+
+
+def check_mesh_size(parts, resolution) -> None:
+    """``resolution`` checked (an integer >= 4) and the triangles of single ``parts``'
+    meshes at it counted, before any is made: at most :data:`MAX_MESH_TRIANGLES`."""
+    if not isinstance(resolution, (int, np.integer)) or isinstance(resolution, bool) or resolution < 4:
+        raise ValueError(f"resolution: got {resolution!r}, expected an integer >= 4")
+    # At least 2(r - 2) + 1 latitudes and 4(r - 1) longitudes each: an absurd resolution is
+    # refused before its angles are made.
+    least = len(parts) * 2 * (2 * int(resolution) - 3) * 4 * (int(resolution) - 1)
+    triangles = (
+        least
+        if least > MAX_MESH_TRIANGLES
+        else sum(2 * len(eta) * len(omega) for eta, omega in (_angles(p, int(resolution)) for p in parts))
+    )
+    if triangles > MAX_MESH_TRIANGLES:
+        raise ValueError(
+            f"resolution: got {resolution!r}, which gives {len(parts)} part(s) {'at least ' * (triangles == least)}"
+            f"{triangles} triangles, expected at most {MAX_MESH_TRIANGLES} (a lower resolution)"
+        )
+
+
 def scene_surface(parts: Part, *, resolution: int = 48) -> tuple[np.ndarray, np.ndarray]:
     """Every part's :func:`part_surface`, concatenated (vertices, triangles)."""
+    check_mesh_size(_parts_list(parts), resolution)  # the whole scene, before any part
     verts, faces, offset = [], [], 0
     for part in _parts_list(parts):
         v, f = part_surface(part, resolution=resolution)
@@ -108,6 +139,7 @@ def scene_mesh(parts: Part, *, resolution: int = 48, union: bool = False) -> tri
 
     each = _parts_list(parts)
     if union and len(each) > 1:
+        check_mesh_size(each, resolution)
         meshes = [part_mesh(p, resolution=resolution) for p in each]
         return trimesh.boolean.union(meshes, engine="manifold")  # pyright: ignore[reportReturnType]  # trimesh annotates Geometry; manifold gives a Trimesh
     return trimesh.Trimesh(*scene_surface(parts, resolution=resolution), process=False)
@@ -219,6 +251,7 @@ def scene_trimesh(parts: Part, *, names=None, resolution: int = 32) -> trimesh.S
     import trimesh
     import trimesh.visual
 
+    check_mesh_size(_parts_list(parts), resolution)
     meshes = [part_mesh(p, resolution=resolution) for p in _parts_list(parts)]
     colors = part_colors(len(meshes))
     scene = trimesh.Scene()
@@ -240,6 +273,7 @@ def scene_open3d(parts: Part, *, resolution: int = 32) -> list:
         import open3d as o3d
     except ImportError as e:
         raise ImportError(f"open3d: got {e}, expected open3d installed (pip install 'sqparts[interop]')") from None
+    check_mesh_size(_parts_list(parts), resolution)
     out = []
     for mesh, color in zip(
         (part_mesh(p, resolution=resolution) for p in _parts_list(parts)), part_colors(len(_parts_list(parts)))

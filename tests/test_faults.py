@@ -1235,3 +1235,31 @@ def test_scores_that_are_not_finite_are_refused():
         with pytest.raises(ValueError, match=match):
             call()
     assert sqparts.lead(0.5, [0.1, 0.2]) == pytest.approx(0.35)
+
+
+def test_a_mesh_too_large_to_make_is_refused_before_any_work(files, capsys):
+    """scene_mesh(resolution=10**6) asked numpy for 9 TiB (MemoryError), and the CLI's
+    largest --resolution made a 5 GB mesh of six parts: meshes are bounded by triangles,
+    counted before any part is made."""
+    from sqparts._mesh import MAX_MESH_TRIANGLES, part_surface
+
+    chair = sqparts.builtin_scene("chair").parts
+    for call in (
+        lambda: sqparts.scene_mesh(chair, resolution=10**6),
+        lambda: sqparts.scene_mesh(chair, resolution=10**9, union=True),
+        lambda: sqparts.scene_trimesh(chair, resolution=512),
+    ):
+        with pytest.raises(
+            ValueError, match=rf"^resolution: got \d+, which gives 6 part\(s\) .* at most {MAX_MESH_TRIANGLES}"
+        ):
+            call()
+    # The count is the mesh's own (its triangles, poles included), for round and boxy parts.
+    from sqparts._mesh import _angles
+
+    for part in (chair[0], chair[1]):
+        eta, omega = _angles(part, 40)
+        assert len(part_surface(part, resolution=40)[1]) == 2 * len(eta) * len(omega)
+    sqparts.save_scene(files / "chair.json", chair)
+    err = cli_error(capsys, ["mesh", str(files / "chair.json"), "--out", str(files / "m.ply"), "--resolution", "512"])
+    assert err.startswith("sqparts: error: --resolution: got 512, which gives 6 part(s)"), err
+    assert not (files / "m.ply").exists()
