@@ -58,8 +58,12 @@ def part_surface(part: Part, *, resolution: int = 48) -> tuple[np.ndarray, np.nd
     numpy arrays (no trimesh)."""
     if part.batch_shape != ():
         raise ValueError(f"part: got batch shape {part.batch_shape}, expected a single part")
-    check_mesh_size([part], resolution)
-    eta, omega = _angles(part, resolution)
+    ((eta, omega),) = check_mesh_size([part], resolution)
+    return _surface(part, eta, omega)
+
+
+def _surface(part: Part, eta: np.ndarray, omega: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """:func:`part_surface` on the latitudes and longitudes :func:`_angles` gives."""
     n_lat, n_lon = len(eta), len(omega)
     ee, ww = np.meshgrid(eta, omega, indexing="ij")
     grid = np.stack([ee.ravel(), ww.ravel()], -1)
@@ -100,32 +104,31 @@ def _angles(part: Part, resolution: int) -> tuple[np.ndarray, np.ndarray]:
     ) - np.pi
 
 
-def check_mesh_size(parts, resolution) -> None:
+def check_mesh_size(parts, resolution) -> list:
     """``resolution`` checked (an integer >= 4) and the triangles of single ``parts``'
-    meshes at it counted, before any is made: at most :data:`MAX_MESH_TRIANGLES`."""
+    meshes at it counted, before any is made: at most :data:`MAX_MESH_TRIANGLES`.
+    Returns each part's (latitudes, longitudes) (:func:`_angles`)."""
     if not isinstance(resolution, (int, np.integer)) or isinstance(resolution, bool) or resolution < 4:
         raise ValueError(f"resolution: got {resolution!r}, expected an integer >= 4")
     # At least 2(r - 2) + 1 latitudes and 4(r - 1) longitudes each: an absurd resolution is
     # refused before its angles are made.
     least = len(parts) * 2 * (2 * int(resolution) - 3) * 4 * (int(resolution) - 1)
-    triangles = (
-        least
-        if least > MAX_MESH_TRIANGLES
-        else sum(2 * len(eta) * len(omega) for eta, omega in (_angles(p, int(resolution)) for p in parts))
-    )
+    angles = [] if least > MAX_MESH_TRIANGLES else [_angles(p, int(resolution)) for p in parts]
+    triangles = sum(2 * len(eta) * len(omega) for eta, omega in angles) if angles else least
     if triangles > MAX_MESH_TRIANGLES:
         raise ValueError(
             f"resolution: got {resolution!r}, which gives {len(parts)} part(s) {'at least ' * (triangles == least)}"
             f"{triangles} triangles, expected at most {MAX_MESH_TRIANGLES} (a lower resolution)"
         )
+    return angles
 
 
 def scene_surface(parts: Part, *, resolution: int = 48) -> tuple[np.ndarray, np.ndarray]:
     """Every part's :func:`part_surface`, concatenated (vertices, triangles)."""
-    check_mesh_size(_parts_list(parts), resolution)  # the whole scene, before any part
+    each = _parts_list(parts)
     verts, faces, offset = [], [], 0
-    for part in _parts_list(parts):
-        v, f = part_surface(part, resolution=resolution)
+    for part, (eta, omega) in zip(each, check_mesh_size(each, resolution)):  # the whole scene, before any part
+        v, f = _surface(part, eta, omega)
         verts.append(v)
         faces.append(f + offset)
         offset += len(v)

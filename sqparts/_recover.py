@@ -603,6 +603,7 @@ def recover_scene(
     d = np.asarray(depth, np.float32)
     if d.ndim != 2:
         raise ValueError(f"depth: got shape {d.shape}, expected a 2-D range image")
+    given = int(np.isfinite(d).sum())  # returns in the input, before binning and clean-up
     factor = auto_factor(d.shape, st.resolution) if st.resolution else 1
     if factor > 1:
         d, camera = downsample(d, camera, factor)
@@ -612,7 +613,7 @@ def recover_scene(
     else:
         cleaned = None
         d = crop_depth_range(d, st.depth_range)
-    left, given = int(np.isfinite(d).sum()), int(np.isfinite(np.asarray(depth, np.float32)).sum())
+    left = int(np.isfinite(d).sum())
     if st.figure_ground and left < 16 and left != given:  # too few once binned and cleaned: say so
         steps = [f"binning to {d.shape[1]}x{d.shape[0]}"] * (factor > 1) + [
             "clean-up" if st.clean else "the depth range"

@@ -847,6 +847,7 @@ def _as_typed(message: str, argv) -> str:
 def main(argv=None) -> int:
     """Run the command line; returns the exit status (0, 2 for a user error, 130/143
     when interrupted by SIGINT/SIGTERM)."""
+    typed = sys.argv[1:] if argv is None else argv  # the flags as the user typed them
     with _signals_stop_the_run(), contextlib.ExitStack() as stack:
         try:
             with _signals_deferred():
@@ -863,9 +864,9 @@ def main(argv=None) -> int:
                 return _error(
                     f"file: got {str(e.filename)!r} ({e.strerror}), expected a path that can be read or written"
                 )
-            return _error(_as_typed(str(e) or type(e).__name__, sys.argv[1:] if argv is None else argv))
+            return _error(_as_typed(str(e) or type(e).__name__, typed))
         except (ValueError, TypeError) as e:
-            return _error(_as_typed(str(e) or type(e).__name__, sys.argv[1:] if argv is None else argv))
+            return _error(_as_typed(str(e) or type(e).__name__, typed))
         except MemoryError:
             return _error(
                 "memory: got an input too large for this machine's memory, expected a smaller image or fewer parts"
