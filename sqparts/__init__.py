@@ -155,8 +155,10 @@ _EXPORTS = {
         "align_descriptions",
         "calibrate_threshold",
         "estimate_pose",
+        "fit_pose",
         "lead",
         "match_descriptions",
+        "propose_poses",
         "verify_poses",
     ),
     "_scenes": (

@@ -57,6 +57,7 @@ from ._recognize import (
     lead,
     match_descriptions,
     observed_points,
+    propose_poses,
     verify_poses,
 )
 
@@ -439,7 +440,9 @@ class ModelDatabase:
         cut otherwise, so it is aligned once), and the match's pose is the alignment's
         (when ``settings.alignment_tolerance`` is set). Given the query's
         ``observation`` (and its ``figure`` mask, default: all its figures), every
-        refined alignment of every view is fitted to the figure's observed points
+        refined alignment of every view, and the ``settings.pose_starts`` poses the
+        observed points propose alone (:func:`~sqparts._recognize.propose_poses`), is
+        fitted to the figure's observed points
         (:func:`~sqparts._recognize.fit_pose`) and verified by rendering
         (:func:`~sqparts._recognize.verify_poses`, all in one batched call): the view
         then scores the verification of its best pose (``settings.verification_levels``
@@ -469,6 +472,7 @@ class ModelDatabase:
         if observation is not None and tolerance is not None:
             mask = observation.figures.any(0) if figure is None else figure
             points = observed_points(observation, mask)
+            sight = np.asarray(observation.camera.rays()[1])[np.asarray(mask, bool)].mean(0)
 
             def fitted(row):
                 """The row's alignments fitted to the points, each with its articulation
@@ -477,7 +481,15 @@ class ModelDatabase:
                 model = self.objects[name][k].main
                 scale = max(query.scale, model.description.scale)
                 sigma = float(settings.alignment_tolerance or 0.0) * scale  # aligned only when it is set
-                poses = [fit_pose(points, model.description, a.pose, sigma) for a in aligned]
+                starts = [a.pose for a in aligned] + propose_poses(
+                    points,
+                    model.description,
+                    sigma,
+                    rotations=settings.pose_rotations,
+                    count=settings.pose_starts,
+                    sight=sight,
+                )
+                poses = [fit_pose(points, model.description, pose, sigma) for pose in starts]
                 motions = [
                     articulate(model.tree, points, pose, sigma)
                     if settings.articulated and len(model.tree.order) > 1

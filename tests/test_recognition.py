@@ -34,6 +34,8 @@ from sqparts._recognize import (
     fit_pose,
     kinematic_tree,
     observed_points,
+    propose_poses,
+    rotation_lattice,
     shape_similarity,
     verify_poses,
 )
@@ -537,6 +539,9 @@ def test_bad_match_settings_are_refused():
         ("min_similarity", float("nan")),
         ("verification_levels", 0),
         ("verification_levels", 2.0),
+        ("pose_rotations", 0),
+        ("pose_starts", -1),
+        ("pose_starts", True),
     ]:
         with pytest.raises(ValueError, match=rf"{field}: got .*, expected"):
             sqparts.MatchSettings(**{field: value})
@@ -713,6 +718,83 @@ def test_fitting_a_pose_to_the_observed_points_recovers_the_motion():
     far = off.copy()
     far[2, 3] += 5.0  # 5 m behind: no observed point within 8 sigma (0.4 m) of its surface
     np.testing.assert_array_equal(fit_pose(points, model.description, far, 0.05), far)  # out of reach: as given
+
+
+def test_the_rotation_lattice_covers_every_rotation_evenly():
+    """512 lattice rotations: proper rotations, no two closer than 15 degrees, and every
+    one of 2000 random rotations (scipy's uniform draw) within 30 degrees of one of them,
+    where 512 random rotations leave some 36 degrees away."""
+    lattice = rotation_lattice(512)
+    np.testing.assert_allclose(
+        np.einsum("nab,ncb->nac", lattice, lattice), np.broadcast_to(np.eye(3), (512, 3, 3)), atol=1e-12
+    )
+    np.testing.assert_allclose(np.linalg.det(lattice), 1.0, atol=1e-12)
+    rotations = Rotation.from_matrix(lattice)
+    nearest = lambda r, among: (among.inv() * r).magnitude().min()  # noqa: E731
+    others = [nearest(rotations[k], rotations[np.arange(512) != k]) for k in range(512)]
+    assert np.degrees(min(others)) > 15.0
+    probes = Rotation.random(2000, random_state=1)
+    assert np.degrees(max(nearest(r, rotations) for r in probes)) < 30.0
+    drawn = Rotation.random(512, random_state=2)
+    assert np.degrees(max(nearest(r, drawn) for r in probes)) > 33.0
+
+
+def test_poses_proposed_from_the_observed_points_alone_find_the_object_turned_any_way():
+    """The chair turned 8 random ways and seen by its camera (its visible side only): of
+    four poses proposed from the observed points (no query description), each fitted to
+    them, the best verified one puts the chair's part centres within 3 cm of the truth
+    and verifies above 0.75 (at τ, τ/2 and τ/4) in at least 6 of the 8. The proposals are
+    proper rigid motions and distinct; none without a surface or points."""
+    s = sqparts.builtin_scene("chair")
+    model = view_from_parts(s.parts).main
+    sigma, tau = 0.08 * model.description.scale, 0.1 * model.description.scale
+    probe = np.asarray(model.parts.position, float)
+    found = 0
+    for k in range(8):
+        truth = np.eye(4)
+        truth[:3, :3] = Rotation.random(random_state=k).as_matrix()
+        truth[:3, 3] = np.asarray(s.parts.position, float).mean(0)
+        obs = _observed(transform_parts(model.parts, truth), s.camera)
+        points = observed_points(obs, obs.figures[0])
+        proposed = propose_poses(points, model.description, sigma, rotations=512, count=4)
+        assert len(proposed) == 4
+        for pose in proposed:
+            np.testing.assert_allclose(pose[:3, :3] @ pose[:3, :3].T, np.eye(3), atol=1e-9)
+            assert np.linalg.det(pose[:3, :3]) == pytest.approx(1.0) and np.array_equal(pose[3], [0, 0, 0, 1])
+        assert min(np.linalg.norm(a[:3, :3] - b[:3, :3]) for i, a in enumerate(proposed) for b in proposed[:i]) > 0.3
+        fitted = [fit_pose(points, model.description, pose, sigma) for pose in proposed]
+        scores = verify_poses([transform_parts(model.parts, f) for f in fitted], obs, obs.figures[0], tau, levels=3)
+        best = fitted[int(np.argmax(scores))]
+        error = np.abs(probe @ (best[:3, :3] - truth[:3, :3]).T + best[:3, 3] - truth[:3, 3]).max()
+        found += bool(error < 0.03 and scores.max() > 0.75)
+    assert found >= 6
+    assert propose_poses(points[:2], model.description, sigma, rotations=512, count=4) == []
+    assert (
+        propose_poses(points, dataclasses.replace(model.description, surface=None), sigma, rotations=8, count=4) == []
+    )
+
+
+@pytest.mark.parametrize("turn", [0, 1, 2])
+def test_a_query_cut_unlike_any_stored_view_is_posed_by_its_image(tmp_path, turn):
+    """The chair turned a random way, its recovery standing in as one box over the whole
+    figure (parts that resemble none of the stored chair's): the alignment of the two
+    recoveries has nothing to go on, the poses proposed from the image do. With them
+    (``pose_starts``, the default) the chair verifies above 0.88 and comes first; with
+    the alignment's starts alone (0) below 0.65, under the person or the castings."""
+    db = _database(tmp_path / "db")
+    s = sqparts.builtin_scene("chair")
+    turned = np.eye(4)
+    turned[:3, :3] = Rotation.random(random_state=turn).as_matrix()
+    centre = np.asarray(s.parts.position, float).mean(0)
+    turned[:3, 3] = centre - turned[:3, :3] @ centre
+    obs = _observed(transform_parts(s.parts, turned), s.camera)
+    seen = np.asarray(s.camera.points(obs.depth))[obs.figures[0]]
+    lo, hi = seen.min(0), seen.max(0)
+    blob = stack_parts([sqparts.Part(size=(hi - lo) / 2, squareness=[0.5, 0.5], position=(hi + lo) / 2)])
+    best, matches = match_figures([blob], database=db, observation=obs)
+    assert best == "chair" and matches[0].name == "chair" and matches[0].score > 0.88
+    _, alone = match_figures([blob], database=db, observation=obs, settings=sqparts.MatchSettings(pose_starts=0))
+    assert {m.name: m.score for m in alone}["chair"] < 0.65
 
 
 def test_a_view_seen_again_is_its_own_parts_from_its_own_side():
