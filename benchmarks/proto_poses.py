@@ -136,6 +136,18 @@ def match_poses(db, query, observation, figure, exclude=None) -> list:
     return list(records.values())
 
 
+def test_queries(name, spec, entry, figures, meshes):
+    """A test view's range image (rendered again, the same seed) with its figures' masks,
+    and its queries as ``match_figures`` makes them: each figure, and all together."""
+    depth, camera = B.render(name, spec, meshes)
+    labels = np.asarray(entry["labels"]).reshape(depth.shape)
+    masks = np.stack([labels == k for k in range(len(figures))])
+    queries = [(f, masks[i]) for i, f in enumerate(figures)]
+    if len(figures) > 1:
+        queries.append((stack_parts([p for f in figures for p in f]), masks.any(0)))
+    return R.Observation(depth, camera, masks), queries
+
+
 def run() -> None:
     enable_caches()
     B.set_resolution(128)
@@ -160,13 +172,7 @@ def run() -> None:
         if not figures:
             results["test"][key] = {"object": name, "queries": []}
             continue
-        depth, camera = B.render(name, spec, meshes)
-        labels = np.asarray(entry["labels"]).reshape(depth.shape)
-        masks = np.stack([labels == k for k in range(len(figures))])
-        observation = R.Observation(depth, camera, masks)
-        queries = [(f, masks[i]) for i, f in enumerate(figures)]
-        if len(figures) > 1:
-            queries.append((stack_parts([p for f in figures for p in f]), masks.any(0)))
+        observation, queries = test_queries(name, spec, entry, figures, meshes)
         results["test"][key] = {
             "object": name,
             "queries": [match_poses(db, describe(parts), observation, mask) for parts, mask in queries],
@@ -296,13 +302,7 @@ def truth(keys) -> None:
             continue
         entry = cache[key]
         figures = [B._parts(f) for f in entry["figures"]]
-        depth, camera = B.render(name, spec, meshes)
-        labels = np.asarray(entry["labels"]).reshape(depth.shape)
-        masks = np.stack([labels == k for k in range(len(figures))])
-        observation = R.Observation(depth, camera, masks)
-        queries = [(f, masks[i]) for i, f in enumerate(figures)]
-        if len(figures) > 1:
-            queries.append((stack_parts([p for f in figures for p in f]), masks.any(0)))
+        observation, queries = test_queries(name, spec, entry, figures, meshes)
         turn = B._rotation(spec["azimuth"], spec["elevation"])[:3, :3]
         best = 0.0
         for parts, mask in queries:
