@@ -472,7 +472,8 @@ class ModelDatabase:
         if observation is not None and tolerance is not None:
             mask = observation.figures.any(0) if figure is None else figure
             points = observed_points(observation, mask)
-            sight = np.asarray(observation.camera.rays()[1])[np.asarray(mask, bool)].mean(0)
+            directions = np.asarray(observation.camera.rays()[1])[np.asarray(mask, bool)]
+            sight = directions.mean(0) if len(directions) else None  # no figure: no points, no proposals
 
             def fitted(row):
                 """The row's alignments fitted to the points, each with its articulation
