@@ -416,6 +416,19 @@ def _rank_poses(tree: KDTree, rot: np.ndarray, trans: np.ndarray, points: np.nda
     return rank
 
 
+def _distinct(rank, rot, trans, count: int, reach: float) -> list[int]:
+    """Up to ``count`` poses best ``rank`` first, each differing from every one kept by
+    more than 0.3 in its rotation matrix (Frobenius) or more than ``reach`` in its
+    translation."""
+    kept: list[int] = []
+    for k in np.argsort(-np.asarray(rank), kind="stable"):
+        if len(kept) == count:
+            break
+        if all(np.linalg.norm(rot[k] - rot[o]) > 0.3 or np.linalg.norm(trans[k] - trans[o]) > reach for o in kept):
+            kept.append(int(k))
+    return kept
+
+
 def _refine_pose(q, m, mtree, r, t, sigma, qtree=None):
     """Iterative closest points from (r, t), the pose taking the model's frame to the
     query's: each step a weighted Kabsch on the nearest neighbours of the query's points
@@ -491,12 +504,7 @@ def align_candidates(
     anchors_m = np.concatenate([np.repeat(model.positions[mj], len(_RELABEL), 0), np.repeat(cm[None], len(rot), 0)])
     rot = np.concatenate([rot, rot])
     trans = anchors_q - np.einsum("sab,sb->sa", rot, anchors_m)
-    starts: list[int] = []
-    for s in np.argsort(-_rank_poses(qtree, rot, trans, m, sigma), kind="stable"):
-        if all(np.linalg.norm(rot[s] - rot[o]) > 0.3 or np.linalg.norm(trans[s] - trans[o]) > sigma for o in starts):
-            starts.append(int(s))
-        if len(starts) == settings.alignment_starts:
-            break
+    starts = _distinct(_rank_poses(qtree, rot, trans, m, sigma), rot, trans, settings.alignment_starts, sigma)
     out = []
     for s in starts:
         r, t = _refine_pose(q, m, mtree, rot[s], trans[s], sigma, qtree)
@@ -614,14 +622,8 @@ def propose_poses(
         nearest = np.einsum("sab,snb->sna", rot, tree.data[np.where(found, i, 0)]) + trans[:, None]
         trans = trans + ((few[None] - nearest) * w[..., None]).sum(1) / np.maximum(w.sum(1), 1e-12)[:, None]
     rank = _rank_poses(tree, inverse, -np.einsum("sab,sb->sa", inverse, trans), points, sigma)
-    chosen: list[int] = []
-    for k in np.argsort(-rank, kind="stable"):
-        if all(np.linalg.norm(rot[k] - rot[o]) > 0.3 for o in chosen):
-            chosen.append(int(k))
-        if len(chosen) == count:
-            break
     out = []
-    for k in chosen:
+    for k in _distinct(rank, rot, trans, count, np.inf):
         pose = np.eye(4)
         pose[:3, :3], pose[:3, 3] = rot[k], trans[k]
         out.append(pose)
