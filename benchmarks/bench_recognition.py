@@ -392,6 +392,12 @@ def main():
         "views, for runs that saved none); the matching itself is not repeated",
     )
     ap.add_argument(
+        "--recalibrate",
+        action="store_true",
+        help="with --rescore: calibrate the database of the cached learnt views again now, by today's "
+        "calibration, instead of deciding from the run's saved calibration scores",
+    )
+    ap.add_argument(
         "--verified-only",
         action="store_true",
         help="match by the verified matcher alone (no same-run comparison with the matcher before "
@@ -414,7 +420,7 @@ def main():
         plot_top1(saved["rows"], c["rows"], result_path(f"{tag}_confusion_top1", "png"))
         return
     if args.rescore:
-        rescore(tag, settings)
+        rescore(tag, settings, recalibrate=args.recalibrate)
         return
     import sqparts._compile
 
@@ -569,12 +575,13 @@ def compare_statistics(rows, db: ModelDatabase) -> dict:
     return out
 
 
-def rescore(tag: str, settings: MatchSettings) -> None:
+def rescore(tag: str, settings: MatchSettings, *, recalibrate: bool = False) -> None:
     """The saved run's rows decided again (:func:`decide`) under today's rule, by a
     database calibrated from the saved calibration's per-view scores or, when the run
-    saved none, calibrated now from the cached learnt views (the run's own database:
-    calibration is deterministic); the summary, confusion matrix and pictures remade,
-    the previous summary kept under ``before_rescore``."""
+    saved none or with ``recalibrate``, calibrated now from the cached learnt views (the
+    run's own database: calibration is deterministic, and matching does not depend on
+    the threshold); the summary, confusion matrix and pictures remade, the previous
+    summary kept under ``before_rescore``."""
     import tempfile
 
     import sqparts._compile
@@ -584,7 +591,7 @@ def rescore(tag: str, settings: MatchSettings) -> None:
     cache = json.loads(CACHE.read_text())
     db = learnt_database(plan(), cache, Path(tempfile.mkdtemp(prefix="sqparts-bench-db-")))
     before = saved["summary"]
-    if "views" in saved["calibration"]:  # the run's own calibration, decided again
+    if "views" in saved["calibration"] and not recalibrate:  # the run's own calibration, decided again
         db.calibrate_from(saved["calibration"]["views"])
         calibrate_s = before["calibration_s"]
     else:

@@ -24,11 +24,15 @@ decisions as ``results/recognition_128_levels.json``) and alternatives: articula
 priors, margins, the tolerances' weights, the explained term's exponent. ``truth`` verifies
 the true object's stored views at the pose the benchmark's ground truth gives (the
 learning and test views' rotations; translation fitted), against the best pose matching
-found, on the views named (default: every test view but the person's).
+found, on the views named (default: every test view but the person's). ``figures``
+matches the views named as the package does now (``match_figures``) and prints, per
+object, its score and the query it came from: which figure (its pixels and parts) or all
+figures together (-1).
 
     JAX_PLATFORMS=cpu python benchmarks/proto_poses.py run     # about 36 minutes
     python benchmarks/proto_poses.py analyse
     JAX_PLATFORMS=cpu python benchmarks/proto_poses.py truth goathead/test7 fish/test7
+    JAX_PLATFORMS=cpu python benchmarks/proto_poses.py figures cat/test7 human/test4
 """
 
 from __future__ import annotations
@@ -48,11 +52,11 @@ from scipy.spatial.transform import Rotation
 
 import sqparts._recognize as R
 from sqparts._compile import concurrently, enable_caches
-from sqparts._database import transform_parts, view_observation
+from sqparts._database import match_figures, transform_parts, view_observation
 from sqparts._describe import describe, part_volume
 from sqparts._encoding import part_vectors, render_nearest
 from sqparts._part import stack_parts
-from sqparts._recognize import calibrate_threshold, lead
+from sqparts._recognize import MatchSettings, calibrate_threshold, lead
 
 OUT = Path("/tmp/sqparts_poses.json")
 SETTINGS = R.MatchSettings()
@@ -328,12 +332,39 @@ def truth(keys) -> None:
         )
 
 
+def figures(keys) -> None:
+    """Each named test view matched as ``sqparts.recognize`` matches it (every figure and
+    all together, today's settings), with the query each object's best came from."""
+    enable_caches()
+    B.set_resolution(128)
+    views, meshes = B.plan(), B.all_meshes()
+    cache = json.loads(B.CACHE.read_text())
+    db = B.learnt_database(views, cache, tempfile.mkdtemp())
+    specs = {key: (name, spec) for key, name, role, spec in views if role == "test"}
+    for key in keys:
+        name, spec = specs[key]
+        entry = cache[key]
+        parts = [B._parts(f) for f in entry["figures"]]
+        observation, _ = test_queries(name, spec, entry, parts, meshes)
+        t0 = time.perf_counter()
+        _, matches = match_figures(parts, database=db, settings=MatchSettings(), observation=observation)
+        shown = ", ".join(f"{m.name} {m.score:.3f} ({m.figure})" for m in matches)
+        sizes = [(int(f.sum()), len(p)) for f, p in zip(observation.figures, parts)]
+        print(
+            f"{key} ({name}; figures' pixels and parts {sizes}; {time.perf_counter() - t0:.0f} s): {shown}", flush=True
+        )
+
+
 if __name__ == "__main__":
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    parser.add_argument("command", choices=["run", "analyse", "truth"])
-    parser.add_argument("views", nargs="*", help="truth: the test views (default: all but the person's)")
+    parser.add_argument("command", choices=["run", "analyse", "truth", "figures"])
+    parser.add_argument(
+        "views", nargs="*", help="truth: the test views (default: all but the person's); figures: the test views"
+    )
     args = parser.parse_args()
     if args.command == "truth":
         truth(args.views)
+    elif args.command == "figures":
+        figures(args.views)
     else:
         {"run": run, "analyse": analyse}[args.command]()
