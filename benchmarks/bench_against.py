@@ -56,7 +56,7 @@ for _ in range(runs):
     t = time.perf_counter()
     r = sqparts.recover(depth, cam)
     times.append(time.perf_counter() - t)
-    stages.append(r.timings)
+    stages.append(dict(r.timings))
 print("RESULT " + json.dumps({"parts": len(r.parts), "E": r.cost.total, "explained": r.fraction_explained,
     "cold_s": cold, "programs": programs, "warm_programs": built[0] - programs, "warm_s": times, "stages": stages, "vectors": np.asarray(r.parts.to_vector()).tolist()}))
 """

@@ -137,7 +137,7 @@ def main():
             "residual_rms": float(np.sqrt(np.nanmean(resid.residual**2))),
             "clean_up": None if rec.cleaned is None else rec.cleaned.summary(),
             "wall_s": wall,
-            "timings_s": rec.timings,
+            "timings_s": dict(rec.timings),
         }
         rows.append(row)
         print(f"{name}: {rec.summary()}; {resid.summary()}; wall {wall:.1f} s", flush=True)

@@ -30,6 +30,7 @@ import hashlib
 import json
 import re
 import time
+from collections.abc import Mapping, Sequence
 from pathlib import Path
 from typing import TYPE_CHECKING
 
@@ -42,6 +43,7 @@ if TYPE_CHECKING:
 from ._camera import json_numbers
 from ._compile import concurrently
 from ._describe import Description, describe, merged_alternatives, part_volume, surface_cloud
+from ._encoding import freeze_fields
 from ._io import _load_json, atomic_write, scene_from_dict, scene_to_dict
 from ._part import Part, stack_parts
 from ._recognize import (
@@ -256,6 +258,9 @@ class RecognitionMatch:
     kind: str
     model_parts: Part
     articulation: np.ndarray | None = None
+
+    def __post_init__(self):
+        freeze_fields(self)
 
     def posed_parts(self) -> Part:
         """The matched stored parts moved into the query's camera frame by ``pose``
@@ -842,15 +847,18 @@ class Recognition:
     database's :meth:`~ModelDatabase.evidence` for the matches' scores, is below
     ``threshold``), ``statistic`` (what the evidence is: ``"score"`` or ``"lead"``),
     ``matches`` (one per stored object, best first), the ``recovery`` of the input and the
-    seconds taken (``timings``)."""
+    seconds taken (``timings``). Immutable, as a recovery is."""
 
     best: str | None
-    matches: list
+    matches: Sequence
     threshold: float
     evidence: float
     statistic: str
     recovery: Recovery | SceneRecovery
-    timings: dict
+    timings: Mapping
+
+    def __post_init__(self):
+        freeze_fields(self)
 
     def to_json(self) -> dict:
         return {
@@ -859,7 +867,7 @@ class Recognition:
             "evidence": self.evidence,
             "statistic": self.statistic,
             "matches": [m.to_json() for m in self.matches],
-            "timings_s": self.timings,
+            "timings_s": dict(self.timings),
         }
 
     def summary(self) -> str:

@@ -37,6 +37,7 @@ from __future__ import annotations
 
 import dataclasses
 import math
+import types
 from typing import TYPE_CHECKING
 
 import jax
@@ -523,18 +524,34 @@ class EncodingCost:
     layers: np.ndarray | None = dataclasses.field(default=None, repr=False)  # (n, H, W) per-part depth, inf = miss
 
     def __post_init__(self):
-        read_only_arrays(self)
+        freeze_fields(self)
 
 
-def read_only_arrays(result) -> None:
-    """Make a frozen dataclass's array fields read-only views (immutable results: the
-    arrays it was made from stay the maker's to change)."""
+def freeze_fields(result) -> None:
+    """Make a frozen dataclass's fields immutable as well (immutable results: what it was
+    made from stays the maker's to change): arrays become read-only views, dicts read-only
+    mappings (``types.MappingProxyType``) and lists tuples, all the way down (a list of
+    per-part dicts: a tuple of read-only mappings). Other values are kept as they are."""
     for field in dataclasses.fields(result):
         value = getattr(result, field.name)
-        if isinstance(value, np.ndarray) and value.flags.writeable:
-            view = value.view()
-            view.flags.writeable = False
-            object.__setattr__(result, field.name, view)
+        frozen = _frozen(value)
+        if frozen is not value:
+            object.__setattr__(result, field.name, frozen)
+
+
+def _frozen(value):
+    if isinstance(value, np.ndarray):
+        if not value.flags.writeable:
+            return value
+        view = value.view()
+        view.flags.writeable = False
+        return view
+    if isinstance(value, (dict, types.MappingProxyType)):
+        return types.MappingProxyType({k: _frozen(v) for k, v in value.items()})
+    if isinstance(value, (list, tuple)) and not hasattr(value, "_fields"):  # not a named tuple
+        items = [_frozen(v) for v in value]
+        return value if isinstance(value, tuple) and all(a is b for a, b in zip(items, value)) else tuple(items)
+    return value
 
 
 def encoding_cost(parts: Part | None, data: RangeData, costs: Costs) -> EncodingCost:

@@ -22,6 +22,7 @@ import math
 import numbers
 import os
 import zipfile
+from collections.abc import Mapping
 from pathlib import Path
 
 import numpy as np
@@ -290,8 +291,14 @@ def part_to_dict(part: Part, **annotations) -> dict:
 
 
 def _jsonable(v):
+    """``v`` as JSON data: arrays as nested lists; the read-only mappings and tuples of an
+    immutable result (:func:`sqparts._encoding.freeze_fields`) as dicts and lists."""
     if isinstance(v, (np.ndarray, np.generic)) or hasattr(v, "__array__"):
         return np.asarray(v).tolist()
+    if isinstance(v, Mapping):
+        return {k: _jsonable(x) for k, x in v.items()}
+    if isinstance(v, (list, tuple)):
+        return [_jsonable(x) for x in v]
     return v
 
 

@@ -17,6 +17,7 @@ from __future__ import annotations
 
 import dataclasses
 import time
+from collections.abc import Mapping, Sequence
 from typing import TYPE_CHECKING
 
 import jax
@@ -30,9 +31,9 @@ from ._encoding import (
     Encoding,
     EncodingCost,
     encoding_cost,
+    freeze_fields,
     layer_errors,
     part_statistics,
-    read_only_arrays,
     render_layers,
 )
 from ._grid import lookup_preset
@@ -93,7 +94,7 @@ class Recovery(_Fractions, _Meshes):
     ----------
     parts : Part
         The recovered parts (batched), in the camera frame.
-    part_stats : list of dict
+    part_stats : tuple of mappings
         Per part: visible ``pixels``, ``gamma`` (Eq. 4) and ``bits_saved`` (Eq. 5) in
         the joint rendering.
     cost : EncodingCost
@@ -106,7 +107,7 @@ class Recovery(_Fractions, _Meshes):
     regions : int
         Regions searched.
     selection_method : str
-    timings : dict
+    timings : mapping
         Seconds per stage: ``search``, ``selection``, ``refinement``, ``total``.
     search, select, refine :
         The settings objects it ran with (``search`` resolved on the data: its
@@ -120,14 +121,14 @@ class Recovery(_Fractions, _Meshes):
     """
 
     parts: Part
-    part_stats: list
+    part_stats: Sequence
     cost: EncodingCost
     initial_parts: Part
     initial_cost: EncodingCost
     candidates: int
     regions: int
     selection_method: str
-    timings: dict
+    timings: Mapping
     search: SearchSettings
     select: SelectSettings
     refine: RefineSettings
@@ -138,7 +139,7 @@ class Recovery(_Fractions, _Meshes):
     costs: Costs
 
     def __post_init__(self):
-        read_only_arrays(self)
+        freeze_fields(self)
 
     @property
     def settings(self) -> dict:
@@ -447,7 +448,7 @@ class SceneRecovery(_Fractions, _Meshes):
 
     Attributes
     ----------
-    figures : list of Recovery, largest figure first.
+    figures : tuple of Recovery, largest figure first.
     camera : the camera of the (possibly binned) image the search ran on.
     depth : that image after clean-up, NaN = no return.
     factor : the binning factor applied to the input.
@@ -459,18 +460,18 @@ class SceneRecovery(_Fractions, _Meshes):
         records its search, select and refine settings).
     """
 
-    figures: list
+    figures: Sequence
     camera: Camera
     depth: np.ndarray
     factor: int
     cleaned: CleanedRange | None
     figure_ground: FigureGround | None
-    prettify: list | None
-    timings: dict
+    prettify: Sequence | None
+    timings: Mapping
     scene: SceneSettings
 
     def __post_init__(self):
-        read_only_arrays(self)
+        freeze_fields(self)
 
     @property
     def parts(self) -> Part:

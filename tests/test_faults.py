@@ -3,6 +3,7 @@ is a test here. The promise: one line ``sqparts: error: ARGUMENT: got X, expecte
 and exit 2; outputs that appear together or not at all; no silent overwrite; SIGINT /
 SIGTERM stop the run with 130 / 143 at any moment; finite reverse-mode gradients."""
 
+import dataclasses
 import json
 import os
 import signal
@@ -1161,6 +1162,23 @@ def test_results_are_immutable(files):
     before = rec.summary()
     depth[:] = 5.0  # the input array, still the caller's
     assert rec.summary() == before and np.isfinite(rec.depth).sum() < depth.size
+    # Its dicts and lists too (session 47): timings, per-part statistics, the figures.
+    for mapping in (rec.timings, rec.part_stats[0], scene.timings, scene.figures[0].timings):
+        with pytest.raises(TypeError):
+            mapping["total"] = 0.0  # type: ignore[index]
+    assert isinstance(scene.figures, tuple) and isinstance(rec.part_stats, tuple)
+    with pytest.raises(AttributeError):
+        scene.figures.append(rec)  # type: ignore[attr-defined]
+    stats = {"pixels": 3}
+    made = dataclasses.replace(rec, part_stats=[stats], timings={"total": 1.0})
+    stats["pixels"] = 4  # what it was made from stays the maker's
+    assert made.part_stats[0]["pixels"] == 3 and made.timings["total"] == 1.0
+    # Written as before: plain JSON objects and lists.
+    data = json.loads(json.dumps(scene.scene_dict()))
+    assert data["timings_s"] == dict(scene.timings)
+    assert data["figures"][0]["timings_s"] == dict(scene.figures[0].timings)
+    one = json.loads(json.dumps(rec.scene_dict()))
+    assert one["timings_s"] == dict(rec.timings) and one["parts"][0]["pixels"] == rec.part_stats[0]["pixels"]
 
 
 def test_python_api_arguments_are_checked_by_name(files, tmp_path):
