@@ -25,7 +25,7 @@ import math
 
 import numpy as np
 
-from ._encoding import Costs
+from ._encoding import Costs, freeze_fields
 from ._part import Part, rotation_matrix, rotation_vector, stack_parts
 
 # --- prettifying ------------------------------------------------------------------------
@@ -230,6 +230,9 @@ class ResidualModel:
     fractal: FractalSurface
     model: np.ndarray
     model_plus_residual: np.ndarray
+
+    def __post_init__(self):
+        freeze_fields(self)
 
     def summary(self) -> str:
         f = self.fractal

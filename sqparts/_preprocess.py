@@ -24,6 +24,7 @@ from __future__ import annotations
 
 import dataclasses
 import math
+from collections.abc import Sequence
 
 import numpy as np
 from scipy import ndimage
@@ -32,6 +33,7 @@ from scipy.sparse.csgraph import connected_components
 
 from ._camera import Camera, camera_points
 from ._camera import check_range_image as _check_depth
+from ._encoding import freeze_fields
 
 DEFAULT_TEAR = 8.0
 """Depth jump, in pixel footprints, that tears the rubber sheet."""
@@ -203,6 +205,9 @@ class CleanedRange:
     outliers: np.ndarray
     quantum: float | None
     noise: float = 0.0
+
+    def __post_init__(self):
+        freeze_fields(self)
 
     def summary(self) -> str:
         q = "continuous" if self.quantum is None else f"quantum {self.quantum:.3g}"
@@ -463,7 +468,7 @@ class FigureGround:
 
     Attributes
     ----------
-    figures : list of (H, W) bool masks, largest first. A mask may include pixels with no
+    figures : tuple of (H, W) bool masks, largest first. A mask may include pixels with no
         return inside the figure's outline that the hole policy calls missing data
         (:func:`missing_returns`): those are neither explained nor errors of commission.
     planes : the background planes removed (table, floor, wall), largest first.
@@ -473,11 +478,14 @@ class FigureGround:
     labels : (H, W) int, figure index per pixel, -1 = none.
     """
 
-    figures: list
-    planes: list
+    figures: Sequence
+    planes: Sequence
     ground: Plane | None
     background: np.ndarray
     labels: np.ndarray
+
+    def __post_init__(self):
+        freeze_fields(self)
 
     @property
     def up(self) -> np.ndarray | None:

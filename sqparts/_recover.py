@@ -725,7 +725,7 @@ class MultiscaleRecovery:
 
     Attributes
     ----------
-    levels : list of Recovery, coarsest first.
+    levels : tuple of Recovery, coarsest first.
     factors : the binning factor of each level's image.
     cameras : each level's camera.
     max_sizes : each level's largest semi-axis searched.
@@ -733,11 +733,14 @@ class MultiscaleRecovery:
         most of its pixels (-1: none, and every part of level 0).
     """
 
-    levels: list
-    factors: list
-    cameras: list
-    max_sizes: list
-    parents: list
+    levels: Sequence
+    factors: Sequence
+    cameras: Sequence
+    max_sizes: Sequence
+    parents: Sequence
+
+    def __post_init__(self):
+        freeze_fields(self)
 
     def summary(self) -> str:
         return "; ".join(

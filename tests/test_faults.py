@@ -928,7 +928,7 @@ def test_an_image_of_one_row_has_no_background_plane():
     cam = sqparts.OrthographicCamera(width=48, height=1, pixel_size=0.05, cx=23.5, cy=0.0)
     depth = np.full((1, 48), 3.0, np.float32)
     fg = sqparts.figure_ground(depth, cam, min_pixels=16)
-    assert fg.planes == [] and fg.background.sum() == 0 and len(fg.figures) == 1
+    assert fg.planes == () and fg.background.sum() == 0 and len(fg.figures) == 1
 
 
 @pytest.mark.parametrize(
@@ -1169,6 +1169,11 @@ def test_results_are_immutable(files):
     assert isinstance(scene.figures, tuple) and isinstance(rec.part_stats, tuple)
     with pytest.raises(AttributeError):
         scene.figures.append(rec)  # type: ignore[attr-defined]
+    fg, cleaned = scene.figure_ground, scene.cleaned
+    assert fg is not None and cleaned is not None and isinstance(fg.figures, tuple) and isinstance(fg.planes, tuple)
+    for a in (fg.figures[0], fg.labels, cleaned.depth, cleaned.flying):
+        with pytest.raises(ValueError, match="read-only"):
+            a[0, 0] = 1
     stats = {"pixels": 3}
     made = dataclasses.replace(rec, part_stats=[stats], timings={"total": 1.0})
     stats["pixels"] = 4  # what it was made from stays the maker's

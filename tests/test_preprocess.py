@@ -206,7 +206,7 @@ def test_figure_ground_without_ground_keeps_everything(table_scene):
     depth, truth = table_scene
     parts_only = np.where(truth[0] | truth[1], depth, np.nan)
     fg = sqparts.figure_ground(parts_only, CAM)
-    assert fg.ground is None and fg.planes == []
+    assert fg.ground is None and fg.planes == ()
     assert len(fg.figures) == 2
     returns = np.isfinite(parts_only)
     assert sum(int((m & returns).sum()) for m in fg.figures) == int((truth[0] | truth[1]).sum())

@@ -80,7 +80,7 @@ def test_multiscale_two_scales():
     head = limb([0, -0.47, 3], [0, -0.33, 3], 0.07, 0.07, (1.0, 1.0))
     depth = np.asarray(sqparts.render_range_image(sqparts.stack_parts([body, head]), cam))
     ms = sqparts.recover_multiscale(depth, cam, levels=2, refine=sqparts.RefineSettings(rounds=1))
-    assert ms.factors == [2, 1] and [c.width for c in ms.cameras] == [32, 64]
+    assert ms.factors == (2, 1) and [c.width for c in ms.cameras] == [32, 64]
     assert ms.max_sizes[0] == pytest.approx(2 * ms.max_sizes[1])
     coarse, fine = ms.levels
     assert len(coarse.parts) == 1
