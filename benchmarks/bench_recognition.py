@@ -325,20 +325,37 @@ def recognise_view(job) -> dict:
     return row
 
 
-def decide(rows, db: ModelDatabase) -> None:
+def decide(rows, db: ModelDatabase, statistic: str | None = None) -> None:
     """Accept or reject each row's best object by the calibrated database's rule
     (:meth:`ModelDatabase.evidence` against its threshold), for the view as it is (known)
     and for the database without the view's object (unknown: the same matches less its
-    own, each object's best being found on its own, so no second match is needed)."""
+    own, each object's best being found on its own, so no second match is needed),
+    calibrated as a database that never had it (:meth:`ModelDatabase.without`, exact
+    from the same stored views' scores), and, for comparison with runs before session
+    48, by the whole database's threshold (``unknown_best_shared``). ``statistic``: the
+    rule forced on every database (:func:`compare_statistics`)."""
+
+    def calibrated(d: ModelDatabase) -> ModelDatabase:
+        if statistic is not None:
+            d.calibrate_from(d.calibration["views"], statistic=statistic)
+        return d
+
+    known = calibrated(db.without()) if statistic is not None else db
+    left: dict[str, ModelDatabase] = {}
     for r in rows:
-        scores = r["scores"]
-        unknown = {n: s for n, s in scores.items() if n != r["object"]}
-        r["evidence"] = db.evidence(scores.values())
-        r["best"] = r["top"] if scores and r["evidence"] >= db.threshold else None
-        r["unknown_evidence"] = db.evidence(unknown.values())
-        r["unknown_top_score"] = max(unknown.values(), default=0.0)
+        name, scores = r["object"], r["scores"]
+        if name not in left:
+            left[name] = calibrated(db.without(name)) if name in db.objects else known
+        unknown = {n: s for n, s in scores.items() if n != name}
         top = max(unknown, key=unknown.__getitem__) if unknown else None
-        r["unknown_best"] = top if unknown and r["unknown_evidence"] >= db.threshold else None
+        r["evidence"] = known.evidence(scores.values())
+        r["best"] = r["top"] if scores and r["evidence"] >= known.threshold else None
+        r["unknown_evidence"] = left[name].evidence(unknown.values())
+        r["unknown_threshold"] = left[name].threshold
+        r["unknown_top_score"] = max(unknown.values(), default=0.0)
+        r["unknown_best"] = top if unknown and r["unknown_evidence"] >= left[name].threshold else None
+        shared = known.evidence(unknown.values())
+        r["unknown_best_shared"] = top if unknown and shared >= known.threshold else None
 
 
 def summarise(rows, threshold, calibrate_s, calibration) -> dict:
@@ -353,6 +370,7 @@ def summarise(rows, threshold, calibrate_s, calibration) -> dict:
             "accepted_and_correct": float(np.mean([r["best"] == r["object"] for r in rows])),
             "known_wrongly_rejected": float(np.mean([r["best"] is None for r in rows])),
             "unknown_rejected": float(np.mean([r["unknown_best"] is None for r in rows])),
+            "unknown_rejected_shared_threshold": float(np.mean([r["unknown_best_shared"] is None for r in rows])),
             "threshold": threshold,
             "seconds_per_recognition_median": float(np.median(seconds)),
             "seconds_per_recognition_mean": float(np.mean(seconds)),
@@ -561,7 +579,7 @@ def compare_statistics(rows, db: ModelDatabase) -> dict:
         other = db.without()
         other.calibrate_from(db.calibration["views"], statistic=statistic)
         decided = [dict(r) for r in rows]
-        decide(decided, other)
+        decide(decided, db, statistic)
         known = np.array([r["evidence"] for r in decided])
         unknown = np.array([r["unknown_evidence"] for r in decided])
         out[statistic] = {

@@ -415,8 +415,11 @@ class ModelDatabase:
             self._write_index()
 
     def without(self, *names) -> "ModelDatabase":
-        """An in-memory copy without the named objects (nothing written); the threshold
-        and its statistic kept."""
+        """An in-memory copy without the named objects (nothing written), calibrated as
+        a database that never had them: from the calibration's scores less those of
+        the named objects' views and against them (exact, as a view's score against an
+        object is its best over that object's views alone; nothing is matched). A
+        database whose calibration kept no scores keeps its threshold and statistic."""
         unknown = [n for n in names if not isinstance(n, str) or n not in self.objects]
         if unknown:
             raise ValueError(f"names: got {unknown[0]!r}, expected names of stored objects ({', '.join(self.names)})")
@@ -425,6 +428,17 @@ class ModelDatabase:
         other.statistic = self.statistic
         other.objects = {k: v for k, v in self.objects.items() if k not in names}
         other._digests = {k: v for k, v in self._digests.items() if k not in names}
+        if names and "views" in self.calibration:
+            kept = [
+                {**v, "scores": {n: s for n, s in v["scores"].items() if n not in names}}
+                for v in self.calibration["views"]
+                if v["object"] not in names
+            ]
+            other.calibrate_from(kept)
+            if "settings" in self.calibration:
+                other.calibration["settings"] = self.calibration["settings"]
+            if "objects" in self.calibration:
+                other.calibration["objects"] = {n: d for n, d in self.calibration["objects"].items() if n not in names}
         return other
 
     def match(

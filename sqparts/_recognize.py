@@ -864,9 +864,9 @@ def _scores(name: str, values) -> np.ndarray:
 
 
 FALSE_ACCEPT = 0.05
-"""The share of the stored views' impostor scores that :func:`calibrate_threshold` lets
-through: the rate at which a view of an object the database does not know is expected to
-be taken for one it does."""
+"""The rate at which a view of an object the database does not know may be taken for one
+it does: :func:`calibrate_threshold` bounds the chance that a new impostor like the stored
+views' passes by it."""
 
 
 def calibrate_threshold(genuine, impostor, *, default: float = 0.45, false_accept: float = FALSE_ACCEPT) -> float:
@@ -875,18 +875,23 @@ def calibrate_threshold(genuine, impostor, *, default: float = 0.45, false_accep
     values (a view against its own object, the view itself left out); the values are
     scores, or their :func:`lead` over the other objects, as the database decides.
 
-    The threshold rejects all but a ``false_accept`` share of the impostor scores (the
-    Neyman-Pearson choice: the unknown-object error is the one fixed), midway between the
-    highest impostor score it must reject and the next higher score of either kind (0.05
-    above it when there is none). The genuine scores do not move it: a view left out is
-    farther from its object's other views than a new view usually is from its nearest
-    stored one, so they understate how well known objects score. With no impostor scores
-    it is 0.8 x the lowest genuine score (at most ``default``); with none at all, ``default``.
+    The threshold is the split-conformal quantile of the n impostor values (the
+    Neyman-Pearson choice: the unknown-object error is the one fixed): it lets
+    floor((n + 1) x ``false_accept``) - 1 of them through, so that a new impostor
+    exchangeable with them passes with probability at most ``false_accept``. (The plain
+    empirical quantile, k = floor(n x ``false_accept``) through, bounds that chance by
+    (k + 1) / (n + 1) only: 5.4% with 36 stored views at 5%.) With fewer than
+    2 / ``false_accept`` - 1 values (39 at 5%) none passes. It sits midway between the highest impostor
+    value it must reject and the next higher value of either kind (0.05 above it when
+    there is none). The genuine values do not move it: a view left out is farther from
+    its object's other views than a new view usually is from its nearest stored one, so
+    they understate how well known objects score. With no impostor values it is 0.8 x the
+    lowest genuine value (at most ``default``); with none at all, ``default``.
     """
     g, i = _scores("genuine", genuine).ravel(), np.sort(_scores("impostor", impostor).ravel())[::-1]
     if len(i) == 0:
         return float(default) if len(g) == 0 else float(min(default, 0.8 * g.min()))
-    k = int(np.floor(false_accept * len(i) + 1e-9))  # impostors allowed through
+    k = max(int(np.floor(false_accept * (len(i) + 1) + 1e-9)) - 1, 0)  # impostors allowed through
     if k >= len(i):
         return float(i[-1] - 1e-3)
     rejected = i[k]

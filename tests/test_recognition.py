@@ -181,9 +181,25 @@ def test_recognition_best_and_rejection(tmp_path):
     chair = sqparts.builtin_scene("chair").parts
     best, matches = match_figures([moved(chair[1:])[0]], database=db)  # a leg hidden
     assert best == "chair" and matches[0].name == "chair"
-    best, matches = match_figures([sqparts.builtin_scene("castings").parts], database=db.without("castings"))
-    assert db.statistic == "score"  # three objects, fewer than a cohort: the score decides
-    assert best is None and matches[0].score < db.threshold
+    others = db.without("castings")
+    best, matches = match_figures([sqparts.builtin_scene("castings").parts], database=others)
+    assert others.statistic == "score"  # two objects, fewer than a cohort: the score decides
+    assert best is None and matches[0].score < others.threshold
+
+
+def test_a_database_without_an_object_is_calibrated_as_one_that_never_had_it(tmp_path):
+    """without() calibrates from the kept per-view scores (nothing matched): the same
+    threshold, statistic and scores as calibrating the remaining objects from nothing."""
+    db = _database(tmp_path / "db")
+    left = db.without("human")
+    fresh = _database(tmp_path / "fresh", names=("chair", "castings"))
+    assert left.names == fresh.names and left.statistic == fresh.statistic
+    assert left.threshold == pytest.approx(fresh.threshold, abs=1e-6)
+    assert left.threshold != pytest.approx(db.threshold, abs=1e-3)
+    for v, w in zip(left.calibration["views"], fresh.calibration["views"], strict=True):
+        assert (v["object"], v["view"]) == (w["object"], w["view"])
+        assert v["scores"] == pytest.approx(w["scores"], abs=1e-6)
+    assert left.calibrated_for() and db.names == ["castings", "chair", "human"]
 
 
 def test_the_lead_is_the_best_score_less_the_mean_of_the_others(tmp_path):
@@ -275,13 +291,34 @@ def test_threshold_is_calibrated_between_genuine_and_impostor_scores():
     assert sqparts.calibrate_threshold([0.8, 0.9], [0.2, 0.3]) == pytest.approx(0.55)
     assert sqparts.calibrate_threshold([], [0.6]) == pytest.approx(0.65)
     assert sqparts.calibrate_threshold([], []) == 0.45
-    # Of 40 impostor scores 5% (2) may pass: the threshold sits between the 3rd highest
-    # and the next score above it, whatever the genuine scores below it.
-    impostor = np.linspace(0.0, 0.78, 40)
-    t = sqparts.calibrate_threshold([0.1, 0.9], impostor)
-    assert t == pytest.approx(0.5 * (impostor[-3] + impostor[-2]))
-    assert np.mean(impostor >= t) == pytest.approx(0.05)
+    # Of n impostor scores the largest k with (k + 1) / (n + 1) <= 5% (found by brute
+    # force) pass: the threshold sits between the (k + 1)th highest and the next score
+    # above it, whatever the genuine scores below it.
+    for n in (10, 36, 38, 39, 40, 59, 79, 100, 400):
+        impostor = np.linspace(0.0, 0.78, n)
+        k = max([j for j in range(n) if (j + 1) / (n + 1) <= 0.05 + 1e-12], default=0)
+        t = sqparts.calibrate_threshold([0.1, 0.9], impostor)
+        upper = impostor[n - k] if k else 0.9  # the next score above the highest rejected one
+        assert t == pytest.approx(0.5 * (impostor[n - 1 - k] + upper)), n
+        assert np.sum(impostor >= t) == k
     assert sqparts.calibrate_threshold([0.1, 0.9], impostor, false_accept=0.0) == pytest.approx(0.84)
+
+
+def test_threshold_bounds_the_chance_that_a_new_impostor_passes():
+    """The calibrated threshold's promise, checked by simulation: a new impostor score
+    drawn like the n stored ones passes with probability at most (k + 1) / (n + 1) <= 5%,
+    whatever the law of the scores (the split-conformal bound; k of the n pass)."""
+    rng = np.random.default_rng(0)
+    laws = (rng.uniform, rng.standard_normal, rng.exponential, lambda size: rng.pareto(3.0, size))
+    for n, law in zip((36, 100, 19, 59), laws):
+        trials = 4000
+        draws = law(size=(trials, n + 1))
+        t = np.array([sqparts.calibrate_threshold([], d[:n]) for d in draws])
+        k = int(np.sum(draws[0, :n] >= t[0]))
+        assert all(np.sum(d[:n] >= s) == k for d, s in zip(draws, t))
+        bound = (k + 1) / (n + 1)
+        assert bound <= 0.05
+        assert np.mean(draws[:, n] >= t) <= bound + 3 * np.sqrt(bound * (1 - bound) / trials), n
 
 
 @pytest.mark.parametrize("name", ["", "a/b", ".hidden", "database", "x" * 101, 3])
