@@ -569,7 +569,8 @@ def roc_area(a, b) -> float:
 
 def compare_statistics(rows, db: ModelDatabase) -> dict:
     """Each rejection statistic (the best score, its lead) on the same rows, thresholded
-    as the database would calibrate it from the same stored views' scores: known views
+    as the database would calibrate it from the same stored views' scores (the unknown
+    views by the database without their object, as :func:`decide`): known views
     rejected, unknown views rejected; and, for reference, the ROC area of the known
     views' evidence against the unknown views' and the known views rejected at the
     threshold that rejects 90% of the unknown ones (chosen on the test views: not a

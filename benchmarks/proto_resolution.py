@@ -65,7 +65,7 @@ def finish(resolution, tests, rows, threshold, calibrate_s, calibration, recover
     for r in rows:  # the calibrated threshold, as recognise_view applies it
         r["best"] = r["top"] if r["top_score"] >= threshold else None
         other = max((n for n in r["scores"] if n != r["object"]), key=r["scores"].get)
-        r["unknown_best"] = other if r["unknown_top_score"] >= threshold else None
+        r["unknown_best"] = r["unknown_best_shared"] = other if r["unknown_top_score"] >= threshold else None
     out = B.summarise(rows, threshold, calibrate_s, calibration)
     out["summary"]["recovery_wall_s"] = recovery_s
     save(

@@ -424,15 +424,15 @@ class ModelDatabase:
         if unknown:
             raise ValueError(f"names: got {unknown[0]!r}, expected names of stored objects ({', '.join(self.names)})")
         other = ModelDatabase.__new__(ModelDatabase)
-        other.path, other.threshold, other.calibration = self.path, self.threshold, self.calibration
+        other.path, other.threshold, other.calibration = self.path, self.threshold, dict(self.calibration)
         other.statistic = self.statistic
         other.objects = {k: v for k, v in self.objects.items() if k not in names}
         other._digests = {k: v for k, v in self._digests.items() if k not in names}
         if names and "views" in self.calibration:
-            kept = [
-                {**v, "scores": {n: s for n, s in v["scores"].items() if n not in names}}
+            kept = [  # of the objects it has (a calibration may name files removed since)
+                {**v, "scores": {n: s for n, s in v["scores"].items() if n in other.objects}}
                 for v in self.calibration["views"]
-                if v["object"] not in names
+                if v["object"] in other.objects
             ]
             other.calibrate_from(kept)
             if "settings" in self.calibration:

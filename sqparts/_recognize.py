@@ -866,7 +866,7 @@ def _scores(name: str, values) -> np.ndarray:
 FALSE_ACCEPT = 0.05
 """The rate at which a view of an object the database does not know may be taken for one
 it does: :func:`calibrate_threshold` bounds the chance that a new impostor like the stored
-views' passes by it."""
+views' passes by it (by 1 / (n + 1) where n, the stored views, is below 19)."""
 
 
 def calibrate_threshold(genuine, impostor, *, default: float = 0.45, false_accept: float = FALSE_ACCEPT) -> float:
@@ -877,11 +877,12 @@ def calibrate_threshold(genuine, impostor, *, default: float = 0.45, false_accep
 
     The threshold is the split-conformal quantile of the n impostor values (the
     Neyman-Pearson choice: the unknown-object error is the one fixed): it lets
-    floor((n + 1) x ``false_accept``) - 1 of them through, so that a new impostor
-    exchangeable with them passes with probability at most ``false_accept``. (The plain
-    empirical quantile, k = floor(n x ``false_accept``) through, bounds that chance by
-    (k + 1) / (n + 1) only: 5.4% with 36 stored views at 5%.) With fewer than
-    2 / ``false_accept`` - 1 values (39 at 5%) none passes. It sits midway between the highest impostor
+    k = floor((n + 1) x ``false_accept``) - 1 of them through (at least none), so that a
+    new impostor exchangeable with them passes with probability at most (k + 1) / (n + 1):
+    ``false_accept`` from 1 / ``false_accept`` - 1 values on (19 at 5%), 1 / (n + 1) below
+    that, where rejecting all of them is the most the values allow. (The plain empirical
+    quantile, k = floor(n x ``false_accept``) through, bounds it by 5.4% with 36 values
+    at 5%.) Below 2 / ``false_accept`` - 1 values (39 at 5%) none passes. It sits midway between the highest impostor
     value it must reject and the next higher value of either kind (0.05 above it when
     there is none). The genuine values do not move it: a view left out is farther from
     its object's other views than a new view usually is from its nearest stored one, so
