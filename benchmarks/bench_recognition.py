@@ -325,7 +325,7 @@ def recognise_view(job) -> dict:
     return row
 
 
-def decide(rows, db: ModelDatabase, statistic: str | None = None) -> None:
+def decide(rows, db: ModelDatabase, statistic: str | None = None) -> ModelDatabase:
     """Accept or reject each row's best object by the calibrated database's rule
     (:meth:`ModelDatabase.evidence` against its threshold), for the view as it is (known)
     and for the database without the view's object (unknown: the same matches less its
@@ -333,14 +333,15 @@ def decide(rows, db: ModelDatabase, statistic: str | None = None) -> None:
     calibrated as a database that never had it (:meth:`ModelDatabase.without`, exact
     from the same stored views' scores), and, for comparison with runs before session
     48, by the whole database's threshold (``unknown_best_shared``). ``statistic``: the
-    rule forced on every database (:func:`compare_statistics`)."""
+    rule forced on every database (:func:`compare_statistics`). Returns the database
+    the known views were decided by."""
 
     def calibrated(d: ModelDatabase) -> ModelDatabase:
         if statistic is not None:
             d.calibrate_from(d.calibration["views"], statistic=statistic)
         return d
 
-    known = calibrated(db.without()) if statistic is not None else db
+    known = calibrated(db.without())
     left: dict[str, ModelDatabase] = {}
     for r in rows:
         name, scores = r["object"], r["scores"]
@@ -356,6 +357,7 @@ def decide(rows, db: ModelDatabase, statistic: str | None = None) -> None:
         r["unknown_best"] = top if unknown and r["unknown_evidence"] >= left[name].threshold else None
         shared = known.evidence(unknown.values())
         r["unknown_best_shared"] = top if unknown and shared >= known.threshold else None
+    return known
 
 
 def summarise(rows, threshold, calibrate_s, calibration) -> dict:
@@ -577,10 +579,8 @@ def compare_statistics(rows, db: ModelDatabase) -> dict:
     result, a measure of separation)."""
     out = {}
     for statistic in STATISTICS:
-        other = db.without()
-        other.calibrate_from(db.calibration["views"], statistic=statistic)
         decided = [dict(r) for r in rows]
-        decide(decided, db, statistic)
+        other = decide(decided, db, statistic)
         known = np.array([r["evidence"] for r in decided])
         unknown = np.array([r["unknown_evidence"] for r in decided])
         out[statistic] = {

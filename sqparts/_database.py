@@ -43,7 +43,6 @@ if TYPE_CHECKING:
 from ._camera import json_numbers
 from ._compile import concurrently
 from ._describe import Description, describe, merged_alternatives, part_volume, surface_cloud
-from ._encoding import freeze_fields
 from ._io import _load_json, atomic_write, scene_from_dict, scene_to_dict
 from ._part import Part, stack_parts
 from ._recognize import (
@@ -62,6 +61,7 @@ from ._recognize import (
     propose_poses,
     verify_poses,
 )
+from ._typing import freeze_fields
 
 DATABASE_FORMAT = "sqparts-database/2"
 _READ_FORMATS = ("sqparts-database/1", DATABASE_FORMAT)

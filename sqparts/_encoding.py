@@ -37,7 +37,6 @@ from __future__ import annotations
 
 import dataclasses
 import math
-import types
 from typing import TYPE_CHECKING
 
 import jax
@@ -48,7 +47,7 @@ from ._camera import PinholeCamera, bucket_camera, fits_float32
 from ._compile import RowMemo, concurrently, persistent_jit
 from ._part import Part
 from ._render import DEFAULT_NEWTON_STEPS, cast_part
-from ._typing import Array, Bool, Float
+from ._typing import Array, Bool, Float, freeze_fields
 
 if TYPE_CHECKING:
     from ._data import RangeData
@@ -525,33 +524,6 @@ class EncodingCost:
 
     def __post_init__(self):
         freeze_fields(self)
-
-
-def freeze_fields(result) -> None:
-    """Make a frozen dataclass's fields immutable as well (immutable results: what it was
-    made from stays the maker's to change): arrays become read-only views, dicts read-only
-    mappings (``types.MappingProxyType``) and lists tuples, all the way down (a list of
-    per-part dicts: a tuple of read-only mappings). Other values are kept as they are."""
-    for field in dataclasses.fields(result):
-        value = getattr(result, field.name)
-        frozen = _frozen(value)
-        if frozen is not value:
-            object.__setattr__(result, field.name, frozen)
-
-
-def _frozen(value):
-    if isinstance(value, np.ndarray):
-        if not value.flags.writeable:
-            return value
-        view = value.view()
-        view.flags.writeable = False
-        return view
-    if isinstance(value, (dict, types.MappingProxyType)):
-        return types.MappingProxyType({k: _frozen(v) for k, v in value.items()})
-    if isinstance(value, (list, tuple)) and not hasattr(value, "_fields"):  # not a named tuple
-        items = [_frozen(v) for v in value]
-        return value if isinstance(value, tuple) and all(a is b for a, b in zip(items, value)) else tuple(items)
-    return value
 
 
 def encoding_cost(parts: Part | None, data: RangeData, costs: Costs) -> EncodingCost:

@@ -292,7 +292,7 @@ def part_to_dict(part: Part, **annotations) -> dict:
 
 def _jsonable(v):
     """``v`` as JSON data: arrays as nested lists; the read-only mappings and tuples of an
-    immutable result (:func:`sqparts._encoding.freeze_fields`) as dicts and lists."""
+    immutable result (:func:`sqparts._typing.freeze_fields`) as dicts and lists."""
     if isinstance(v, (np.ndarray, np.generic)) or hasattr(v, "__array__"):
         return np.asarray(v).tolist()
     if isinstance(v, Mapping):

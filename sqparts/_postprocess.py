@@ -25,8 +25,9 @@ import math
 
 import numpy as np
 
-from ._encoding import Costs, freeze_fields
+from ._encoding import Costs
 from ._part import Part, rotation_matrix, rotation_vector, stack_parts
+from ._typing import freeze_fields
 
 # --- prettifying ------------------------------------------------------------------------
 

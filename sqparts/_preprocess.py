@@ -33,7 +33,7 @@ from scipy.sparse.csgraph import connected_components
 
 from ._camera import Camera, camera_points
 from ._camera import check_range_image as _check_depth
-from ._encoding import freeze_fields
+from ._typing import freeze_fields
 
 DEFAULT_TEAR = 8.0
 """Depth jump, in pixel footprints, that tears the rubber sheet."""

@@ -884,10 +884,11 @@ def calibrate_threshold(genuine, impostor, *, default: float = 0.45, false_accep
     quantile, k = floor(n x ``false_accept``) through, bounds it by 5.4% with 36 values
     at 5%.) Below 2 / ``false_accept`` - 1 values (39 at 5%) none passes. The threshold
     sits midway between the highest impostor value it must reject and the next higher
-    value of either kind (0.05 above it when there is none). The genuine values do not move it: a view left out is farther from
-    its object's other views than a new view usually is from its nearest stored one, so
-    they understate how well known objects score. With no impostor values it is 0.8 x the
-    lowest genuine value (at most ``default``); with none at all, ``default``.
+    value of either kind (0.05 above it when there is none). The genuine values do not
+    move it: a view left out is farther from its object's other views than a new view
+    usually is from its nearest stored one, so they understate how well known objects
+    score. With no impostor values it is 0.8 x the lowest genuine value (at most
+    ``default``); with none at all, ``default``.
     """
     g, i = _scores("genuine", genuine).ravel(), np.sort(_scores("impostor", impostor).ravel())[::-1]
     if len(i) == 0:

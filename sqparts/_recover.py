@@ -31,7 +31,6 @@ from ._encoding import (
     Encoding,
     EncodingCost,
     encoding_cost,
-    freeze_fields,
     layer_errors,
     part_statistics,
     render_layers,
@@ -42,6 +41,7 @@ from ._refine import RefineSettings
 from ._render import render_range_image
 from ._search import SearchSettings, fit_image, search_preset
 from ._select import SelectionProblem, SelectSettings, select_rendered
+from ._typing import freeze_fields
 
 if TYPE_CHECKING:
     from ._preprocess import CleanedRange, FigureGround

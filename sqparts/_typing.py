@@ -1,5 +1,36 @@
-"""Shared jaxtyping aliases for sqparts signatures."""
+"""Shared jaxtyping aliases for sqparts signatures, and the immutability of its results."""
 
+import dataclasses
+import types
+
+import numpy as np
 from jaxtyping import Array, ArrayLike, Bool, Float, Int, PRNGKeyArray
 
-__all__ = ["Array", "ArrayLike", "Bool", "Float", "Int", "PRNGKeyArray"]
+__all__ = ["Array", "ArrayLike", "Bool", "Float", "Int", "PRNGKeyArray", "freeze_fields"]
+
+
+def freeze_fields(result) -> None:
+    """Make a frozen dataclass's fields immutable as well (immutable results: what it was
+    made from stays the maker's to change): arrays become read-only views, dicts read-only
+    mappings (``types.MappingProxyType``) and lists tuples, all the way down (a list of
+    per-part dicts: a tuple of read-only mappings). Other values are kept as they are."""
+    for field in dataclasses.fields(result):
+        value = getattr(result, field.name)
+        frozen = _frozen(value)
+        if frozen is not value:
+            object.__setattr__(result, field.name, frozen)
+
+
+def _frozen(value):
+    if isinstance(value, np.ndarray):
+        if not value.flags.writeable:
+            return value
+        view = value.view()
+        view.flags.writeable = False
+        return view
+    if isinstance(value, (dict, types.MappingProxyType)):
+        return types.MappingProxyType({k: _frozen(v) for k, v in value.items()})
+    if isinstance(value, (list, tuple)) and not hasattr(value, "_fields"):  # not a named tuple
+        items = [_frozen(v) for v in value]
+        return value if isinstance(value, tuple) and all(a is b for a, b in zip(items, value)) else tuple(items)
+    return value
