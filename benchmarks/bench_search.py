@@ -40,12 +40,15 @@ CUSTOM = {
 }
 
 
-def run_grid(name, grid, cases):
+def run_grid(name, grid, cases, refine=None):
+    """Every case fitted with the ``region`` preset on ``grid`` (``refine``: its
+    ``refine_orientations``, None: the preset's)."""
+    fields = {} if refine is None else {"refine_orientations": refine}
     rows = []
     t_compile = None
     for k, c in enumerate(cases):
         data = sqparts.prepare(c["depth"], c["camera"], figure=c["figure"])
-        st = sqparts.make_settings(data, grid=grid, max_size=0.3)
+        st = sqparts.make_settings(data, grid=grid, max_size=0.3, **fields)
         t0 = time.perf_counter()
         fit = sqparts.fit_region(data, st, c["centre"])
         jax.block_until_ready(fit.gamma)
@@ -81,6 +84,7 @@ def run_grid(name, grid, cases):
         )
     return {
         "grid": name,
+        "refine_orientations": st.refine_orientations,
         "hypotheses": grid.size,
         "compile_s": t_compile,
         "median_wall_s": statistics.median(r["wall_s"] for r in rows),
@@ -140,10 +144,11 @@ def plot(results, path):
 
     fig, ax = plt.subplots(1, 2, figsize=(10, 4))
     for r in results:
-        ax[0].scatter(r["hypotheses"], r["success_rate"], label=r["grid"])
-        ax[0].annotate(r["grid"], (r["hypotheses"], r["success_rate"]))
+        name = r["grid"] + (f" +{r['refine_orientations']}" if r["refine_orientations"] else "")
+        ax[0].scatter(r["hypotheses"], r["success_rate"], label=name)
+        ax[0].annotate(name, (r["hypotheses"], r["success_rate"]))
         ax[1].scatter(r["median_wall_s"], r["median_chamfer_rel"])
-        ax[1].annotate(r["grid"], (r["median_wall_s"], r["median_chamfer_rel"]))
+        ax[1].annotate(name, (r["median_wall_s"], r["median_chamfer_rel"]))
     ax[0].set_xscale("log")
     ax[0].set_xlabel("hypotheses per region")
     ax[0].set_ylabel("success rate (Chamfer <= 2%)")
@@ -157,15 +162,22 @@ def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--cases", type=int, default=16)
     ap.add_argument("--grids", nargs="*", default=["coarse", "default", "orient-45", "orient-30", "sizes-5"])
+    ap.add_argument(
+        "--refine-orientations",
+        nargs="*",
+        type=int,
+        default=[None],
+        help="each grid once per value (survivors refined in orientation; default: the region preset's)",
+    )
     ap.add_argument("--no-throughput", action="store_true")
     args = ap.parse_args()
     cases = [make_case(i, VARIANTS) for i in range(args.cases)]
     results = []
-    for name in args.grids:
+    for name, refine in ((n, r) for n in args.grids for r in args.refine_orientations):
         grid = CUSTOM[name] if name in CUSTOM else sqparts.grid_preset(name)
-        results.append(run_grid(name, grid, cases))
+        results.append(run_grid(name, grid, cases, refine))
         print(
-            f"{name}: {grid.size} hypotheses, success {results[-1]['success_rate']:.0%}, "
+            f"{name} (refine_orientations {results[-1]['refine_orientations']}): {grid.size} hypotheses, success {results[-1]['success_rate']:.0%}, "
             f"median Chamfer {results[-1]['median_chamfer_rel']:.3f}, {results[-1]['median_wall_s']:.2f} s/region",
             flush=True,
         )

@@ -86,7 +86,10 @@ class SearchSettings:
     ``stride``-th pixel (None: 4 here; :func:`~sqparts.recover_scene` gives each figure the
     widest lattice, at most 4, that still sees every member able to pay for a part,
     :func:`~sqparts._preprocess.pruning_stride`) and the best ``survivors`` rescored at full resolution (``prune=False``: every hypothesis
-    at full resolution); the ``polish_candidates`` best
+    at full resolution), together with the orientation neighbours of the
+    ``refine_orientations`` best distinct survivors (coarse to fine,
+    :func:`_orientation_neighbours`: each turned by half the grid's orientation step about
+    each of its own axes, both ways); the ``polish_candidates`` best
     distinct survivors are polished (``polish_rounds`` of region growing ×
     ``polish_steps`` Levenberg-Marquardt steps, rounded up to a multiple of
     :data:`~sqparts._polish.POLISH_CALL_STEPS`: all regions' candidates together,
@@ -109,6 +112,7 @@ class SearchSettings:
     polish_rounds: int = 3
     polish_candidates: int = 3
     restarts: int = 0
+    refine_orientations: int = 0
     region_method: str = "skeleton"
     spacing: float | None = None
     prune: bool = True
@@ -122,7 +126,7 @@ class SearchSettings:
                 continue
             if not isinstance(v, (int, np.integer)) or isinstance(v, bool) or v <= 0:
                 raise ValueError(f"{name}: got {v!r}, expected a positive integer")
-        for name in ("polish_steps", "polish_rounds", "polish_candidates", "restarts"):
+        for name in ("polish_steps", "polish_rounds", "polish_candidates", "restarts", "refine_orientations"):
             v = getattr(self, name)
             if not (isinstance(v, (int, np.integer)) and not isinstance(v, bool) and v >= 0):
                 raise ValueError(f"{name}: got {v!r}, expected an integer >= 0")
@@ -178,15 +182,25 @@ SEARCH_PRESETS = {
     "fast": SearchSettings(),
     "paper": SearchSettings(grid="default"),
     "region": SearchSettings(
-        grid="default", top_k=4, polish_steps=20, polish_rounds=6, polish_candidates=24, restarts=3
+        grid="default",
+        top_k=4,
+        polish_steps=20,
+        polish_rounds=6,
+        polish_candidates=24,
+        restarts=3,
+        refine_orientations=16,
     ),
 }
 """Named search settings. ``"fast"`` (recovery's default): the coarse grid (3 168
 hypotheses), the few best starts per region polished lightly and without restarts, since
 selection and joint refinement follow. ``"paper"``: the same on the paper's ~2^16 grid
-(70 848 hypotheses). ``"region"``: one region on its own (:func:`fit_region`), polished
-long and restarted: boxy, rigid objects come back with ε ≈ 0.1 rather than as rounded
-blobs (figures in ``benchmarks/README.md``)."""
+(70 848 hypotheses). ``"region"``: one region on its own (:func:`fit_region`), its 16
+best distinct survivors refined in orientation (``refine_orientations``), polished long
+and restarted: boxy, rigid objects come back with ε ≈ 0.1 rather than as rounded blobs.
+Refined orientations make a single region's fit better (on the coarse grid 88% -> 96% of
+``bench_search.py``'s 48 parts within 2% Chamfer, what the paper's grid gives) but not a
+multi-part recovery, whose E moved both ways on a family of scenes and got worse in
+sum, so ``"fast"`` does not refine (figures in ``benchmarks/README.md``)."""
 
 
 def search_preset(name_or_settings) -> SearchSettings:
@@ -548,30 +562,53 @@ def _image_key(data: RangeData) -> bytes:
 
 def _choose(data: RangeData, settings: SearchSettings, centre) -> _Chosen:
     """Score every hypothesis at one region (on a subsample when ``prune``), rescore the
-    survivors at full resolution and keep the ``max(top_k, polish_candidates)`` best
-    distinct ones (:func:`_distinct`); a region chosen before in this recovery is looked
-    up (:data:`_CHOSEN`)."""
-    hyp = _grid_arrays(settings.grid)
+    survivors and their orientation neighbours at full resolution and keep the
+    ``max(top_k, polish_candidates)`` best distinct ones (:func:`_distinct`); a region
+    chosen before in this recovery is looked up (:data:`_CHOSEN`)."""
     key = RowMemo.key(_image_key(data), settings, tuple(int(c) for c in centre))
     row = _CHOSEN.get(key)
     if row is None:
-        row = _choose_row(data, settings, centre, hyp)
+        row = _choose_row(data, settings, centre)
         _CHOSEN.put(key, row)
-    k = (len(row) - 1) // 2
-    chosen = row[:k].astype(np.int64)
+    table = row[:-1].reshape(-1, 12)
     return _Chosen(
-        hyp["orientation"][chosen],
-        hyp["shape"][chosen],
-        row[k : 2 * k].astype(np.float32),
+        table[:, :3].astype(np.float32),
+        table[:, 3:11].astype(np.float32),
+        table[:, 11].astype(np.float32),
         float(row[-1]),
         float(settings.max_size),  # pyright: ignore[reportArgumentType]  # resolved settings: a float
     )
 
 
-def _choose_row(data: RangeData, settings: SearchSettings, centre, hyp) -> np.ndarray:
-    """:func:`_choose`'s result as one row: the chosen hypotheses' indices in the grid,
-    their offsets, the ratio (float64)."""
+def _orientation_neighbours(orientation: np.ndarray, step: float) -> np.ndarray:
+    """(6n, 3): each of the (n, 3) relative orientations (rotation vectors) turned by
+    ``step`` degrees about each of its own three axes, both ways (tilting the longest axis
+    two ways, and rolling about it): the next finer orientations around a coarse grid's
+    hypothesis (section 3.3.2's coarse-to-fine search)."""
+    from scipy.spatial.transform import Rotation
+
+    turns = Rotation.from_rotvec(np.concatenate([np.eye(3), -np.eye(3)]) * math.radians(step))
+    base = Rotation.from_rotvec(np.asarray(orientation, np.float64).reshape(-1, 3))
+    return np.concatenate([(base[i] * turns).as_rotvec() for i in range(len(base))]).reshape(-1, 3)
+
+
+def _choose_row(data: RangeData, settings: SearchSettings, centre) -> np.ndarray:
+    """:func:`_choose`'s result as one row (float64): per chosen hypothesis its
+    orientation (3), shape (8) and offset (1), then the ratio."""
+    hyp = _grid_arrays(settings.grid)
     n = len(hyp["orientation"])
+    grid: Grid = settings.grid  # pyright: ignore[reportAssignmentType]  # resolved in __post_init__
+    step = min(grid.axis_step, grid.roll_step) / 2
+
+    def refined(pool: dict, order: np.ndarray) -> dict:
+        """The pool's ``refine_orientations`` best distinct members (``order``: best
+        first) turned by half the grid's step: the hypotheses to add to it."""
+        best = order[_distinct(pool["orientation"][order], pool["shape"][order], settings.refine_orientations)]
+        return {
+            "orientation": _orientation_neighbours(pool["orientation"][best], step).astype(np.float32),
+            "shape": np.repeat(pool["shape"][best], 6, axis=0),
+        }
+
     if settings.prune and settings.lattice > 1 and settings.survivors < n:
         gam = np.empty(n, np.float32)
         for side, sel in _by_window(settings.grid, settings.window):
@@ -580,21 +617,26 @@ def _choose_row(data: RangeData, settings: SearchSettings, centre, hyp) -> np.nd
             )
             gam[sel] = np.asarray(g)
         keep = np.argsort(-gam, kind="stable")[: settings.survivors]
-        sub = {k: v[keep] for k, v in hyp.items()}
-        gam_full, off_full = score_region(data, settings, centre, hypotheses=sub, stride=1)
-        index = keep
+        pool = {k: v[keep] for k, v in hyp.items()}
+        if settings.refine_orientations:  # scored in the same full-resolution call
+            more = refined(pool, np.arange(len(keep)))
+            pool = {k: np.concatenate([pool[k], more[k]]) for k in pool}
+        gam_full, off_full = (np.asarray(a) for a in score_region(data, settings, centre, hypotheses=pool, stride=1))
     else:
-        gam_full, off_full = score_region(data, settings, centre, stride=1)
-        index = np.arange(n)
-    k = min(settings.top_k, len(index))
-    gam_full = np.asarray(gam_full)
+        pool = hyp
+        gam_full, off_full = (np.asarray(a) for a in score_region(data, settings, centre, stride=1))
+        if settings.refine_orientations:
+            more = refined(pool, np.argsort(-gam_full, kind="stable"))
+            g, o = score_region(data, settings, centre, hypotheses=more, stride=1)
+            pool = {k: np.concatenate([pool[k], more[k]]) for k in pool}
+            gam_full, off_full = np.concatenate([gam_full, np.asarray(g)]), np.concatenate([off_full, np.asarray(o)])
+    k = min(settings.top_k, len(gam_full))
     ranked = np.argsort(-gam_full, kind="stable")
     g_sorted = gam_full[ranked]
     ratio = float(g_sorted[0] / g_sorted[1]) if k > 1 and g_sorted[1] > 0 else float("inf")
-    best = ranked[
-        _distinct(hyp["orientation"][index[ranked]], hyp["shape"][index[ranked]], max(k, settings.polish_candidates))
-    ]
-    return np.concatenate([index[best], np.asarray(off_full, np.float64)[best], [ratio]]).astype(np.float64)
+    best = ranked[_distinct(pool["orientation"][ranked], pool["shape"][ranked], max(k, settings.polish_candidates))]
+    table = np.concatenate([pool["orientation"][best], pool["shape"][best], off_full[best, None]], axis=1)
+    return np.concatenate([table.reshape(-1), [ratio]]).astype(np.float64)
 
 
 class _Scored(eqx.Module):

@@ -153,9 +153,12 @@ def test_fit_regions_batched_equals_one_region_at_a_time(data):
         np.testing.assert_allclose(np.asarray(fit.parts.to_vector()), np.asarray(alone.parts.to_vector()), atol=1e-5)
         np.testing.assert_array_equal(np.asarray(fit.gamma), np.asarray(alone.gamma))
         np.testing.assert_array_equal(np.asarray(fit.explained), np.asarray(alone.explained))
-    # Per-region scales: a region given a smaller max_size poses smaller hypotheses.
-    small = sqparts.fit_regions(data, st, centres[:1], max_sizes=[0.1])[0]
-    assert np.asarray(small.parts.size).max() < np.asarray(batched[0].parts.size).max()
+    # Per-region scales: a region given a smaller max_size poses smaller hypotheses
+    # (unpolished: polishing may grow them onto the part).
+    posed = dataclasses.replace(st, polish_steps=0)
+    small = sqparts.fit_regions(data, posed, centres[:1], max_sizes=[0.1])[0]
+    assert np.asarray(small.parts.size).max() <= 0.1 + 1e-6
+    assert np.asarray(sqparts.fit_regions(data, posed, centres[:1])[0].parts.size).max() > 0.1
     with pytest.raises(ValueError, match=r"max_sizes: got 2 sizes, expected 3"):
         sqparts.fit_regions(data, st, centres, max_sizes=[0.1, 0.2])
     assert sqparts.fit_regions(data, st, np.zeros((0, 2), int)) == []
@@ -451,3 +454,54 @@ def test_every_matrix_product_runs_at_full_precision():
         assert products, f"{name}: no matrix products traced"
         for params in products:
             assert "precision=(Precision.HIGHEST, Precision.HIGHEST)" in params, f"{name}: {params}"
+
+
+def test_orientation_neighbours_turn_each_hypothesis_about_its_own_axes():
+    from scipy.spatial.transform import Rotation
+
+    from sqparts._search import _orientation_neighbours
+
+    base = Rotation.random(5, random_state=3)
+    out = Rotation.from_rotvec(_orientation_neighbours(base.as_rotvec(), 20.0)).as_matrix().reshape(5, 6, 3, 3)
+    for i, r in enumerate(base.as_matrix()):
+        for k in range(6):
+            local = r.T @ out[i, k]  # the turn in the hypothesis's own frame
+            axis = k % 3
+            sign = 1 if k < 3 else -1
+            expected = Rotation.from_rotvec(sign * np.radians(20.0) * np.eye(3)[axis]).as_matrix()
+            np.testing.assert_allclose(local, expected, atol=1e-9)
+
+
+def test_coarse_to_fine_orientation_finds_a_part_between_the_grid_orientations():
+    # A part posed half a grid step (22.5 deg) from one of a 45-degree grid's orientations:
+    # the grid alone does not hold it, its orientation neighbours do; the best hypothesis
+    # then scores as the truth itself does (scored on its own as an independent pose).
+    from scipy.spatial.transform import Rotation
+
+    cam = sqparts.OrthographicCamera(width=48, height=48, pixel_size=0.006, cx=24.0, cy=24.0)  # pixel 24: the axis
+    grid = sqparts.Grid(
+        lengths=(1.0,), ratios1=(0.45,), ratios2=(0.6,), squareness1=(0.5,), squareness2=(0.8,),
+        axis_step=45.0, roll_step=45.0, bends=(0.0,),
+    )  # fmt: skip
+    rel = grid.relative_orientations()
+    tilted = rel[np.argmin(np.abs(np.linalg.norm(rel, axis=1) - np.radians(45.0)))]  # an axis 45 deg off the ray
+    truth_rel = (Rotation.from_rotvec(tilted) * Rotation.from_rotvec([np.radians(22.5), 0.0, 0.0])).as_rotvec()
+    shape = grid.shapes()[0]
+    max_size = 0.1
+    truth = sqparts.Part(
+        size=shape[:3] * max_size, squareness=shape[3:5], position=[0.0, 0.0, 2.0], orientation=truth_rel
+    )
+    data = sqparts.prepare(np.asarray(sqparts.render_range_image(truth, cam)), cam)
+    centre = np.array([24, 24])
+    st = sqparts.make_settings(
+        data, "fast", grid=grid, max_size=max_size, polish_steps=0, top_k=1, prune=False, refine_orientations=16
+    )
+    alone = {"orientation": truth_rel[None].astype(np.float32), "shape": shape[None].astype(np.float32)}
+    truth_gamma = float(np.asarray(sqparts.score_region(data, st, centre, hypotheses=alone, stride=1)[0])[0])
+    assert truth_gamma > 0.9 * data.figure_mask.sum()
+    coarse = float(sqparts.fit_region(data, dataclasses.replace(st, refine_orientations=0), centre).gamma[0])
+    fine = float(sqparts.fit_region(data, st, centre).gamma[0])
+    assert coarse < 0.9 * truth_gamma
+    assert fine >= truth_gamma - 1.0
+    with pytest.raises(ValueError, match=r"refine_orientations: got -1, expected an integer >= 0"):
+        sqparts.SearchSettings(refine_orientations=-1)
