@@ -197,8 +197,9 @@ selection and joint refinement follow. ``"paper"``: the same on the paper's ~2^1
 (70 848 hypotheses). ``"region"``: one region on its own (:func:`fit_region`), its 16
 best distinct survivors refined in orientation (``refine_orientations``), polished long
 and restarted: boxy, rigid objects come back with ε ≈ 0.1 rather than as rounded blobs.
-Refined orientations make a single region's fit better (on the coarse grid 88% -> 96% of
-``bench_search.py``'s 48 parts within 2% Chamfer, what the paper's grid gives) but not a
+Refined orientations make a single region's fit better (of ``bench_search.py``'s 48
+parts within 2% Chamfer: on the paper's grid 92% -> 96%, on the coarse grid 88% -> 96%)
+but not a
 multi-part recovery, whose E moved both ways on a family of scenes and got worse in
 sum, so ``"fast"`` does not refine (figures in ``benchmarks/README.md``)."""
 
@@ -584,8 +585,9 @@ def _orientation_neighbours(orientation: np.ndarray, step: float) -> np.ndarray:
     """(6n, 3): each of the (n, 3) relative orientations (rotation vectors) turned by
     ``step`` degrees about each of its own three axes, both ways (tilting the longest axis
     two ways, and rolling about it): the next finer orientations around a coarse grid's
-    hypothesis. Section 3.3.2 finds Γ most sensitive to orientation (10-15 degrees take it
-    to two-thirds of its peak), so this is where a coarse grid's next level pays."""
+    hypothesis. Section 3.3.2 finds Γ relatively sensitive to orientation (10-15 degrees
+    take it to two-thirds of its peak, where sizes may change by 50%), so this is where a
+    coarse grid's next level pays."""
     from scipy.spatial.transform import Rotation
 
     turns = Rotation.from_rotvec(np.concatenate([np.eye(3), -np.eye(3)]) * math.radians(step))
@@ -610,6 +612,7 @@ def _choose_row(data: RangeData, settings: SearchSettings, centre) -> np.ndarray
             "shape": np.repeat(pool["shape"][best], 6, axis=0),
         }
 
+    grid_hypotheses = n  # the pool's first rows: the ratio is the grid's own
     if settings.prune and settings.lattice > 1 and settings.survivors < n:
         gam = np.empty(n, np.float32)
         for side, sel in _by_window(settings.grid, settings.window):
@@ -619,6 +622,7 @@ def _choose_row(data: RangeData, settings: SearchSettings, centre) -> np.ndarray
             gam[sel] = np.asarray(g)
         keep = np.argsort(-gam, kind="stable")[: settings.survivors]
         pool = {k: v[keep] for k, v in hyp.items()}
+        grid_hypotheses = len(keep)
         if settings.refine_orientations:  # scored in the same full-resolution call
             more = refined(pool, np.arange(len(keep)))
             pool = {k: np.concatenate([pool[k], more[k]]) for k in pool}
@@ -633,7 +637,9 @@ def _choose_row(data: RangeData, settings: SearchSettings, centre) -> np.ndarray
             gam_full, off_full = np.concatenate([gam_full, np.asarray(g)]), np.concatenate([off_full, np.asarray(o)])
     k = min(settings.top_k, len(gam_full))
     ranked = np.argsort(-gam_full, kind="stable")
-    g_sorted = gam_full[ranked]
+    # Best Γ over the runner-up among the grid's hypotheses (a refined neighbour of the
+    # best is not a rival to it).
+    g_sorted = np.sort(gam_full[:grid_hypotheses])[::-1]
     ratio = float(g_sorted[0] / g_sorted[1]) if k > 1 and g_sorted[1] > 0 else float("inf")
     best = ranked[_distinct(pool["orientation"][ranked], pool["shape"][ranked], max(k, settings.polish_candidates))]
     table = np.concatenate([pool["orientation"][best], pool["shape"][best], off_full[best, None]], axis=1)
