@@ -176,9 +176,11 @@ def main() -> None:
     for name, refine in ((n, r) for n in args.grids for r in args.refine_orientations):
         grid = CUSTOM[name] if name in CUSTOM else sqparts.grid_preset(name)
         results.append(run_grid(name, grid, cases, refine))
+        r = results[-1]
         print(
-            f"{name} (refine_orientations {results[-1]['refine_orientations']}): {grid.size} hypotheses, success {results[-1]['success_rate']:.0%}, "
-            f"median Chamfer {results[-1]['median_chamfer_rel']:.3f}, {results[-1]['median_wall_s']:.2f} s/region",
+            f"{name} (refine_orientations {r['refine_orientations']}): {grid.size} hypotheses, "
+            f"success {r['success_rate']:.0%}, median Chamfer {r['median_chamfer_rel']:.3f}, "
+            f"{r['median_wall_s']:.2f} s/region",
             flush=True,
         )
     payload = {"cases": args.cases, "image": "64x64", "dtype": "float32", "densities": results}

@@ -199,9 +199,8 @@ best distinct survivors refined in orientation (``refine_orientations``), polish
 and restarted: boxy, rigid objects come back with ε ≈ 0.1 rather than as rounded blobs.
 Refined orientations make a single region's fit better (of ``bench_search.py``'s 48
 parts within 2% Chamfer: on the paper's grid 92% -> 96%, on the coarse grid 88% -> 96%)
-but not a
-multi-part recovery, whose E moved both ways on a family of scenes and got worse in
-sum, so ``"fast"`` does not refine (figures in ``benchmarks/README.md``)."""
+but not a multi-part recovery, whose E moved both ways on a family of scenes and got
+worse in sum, so ``"fast"`` does not refine (figures in ``benchmarks/README.md``)."""
 
 
 def search_preset(name_or_settings) -> SearchSettings:
@@ -590,9 +589,9 @@ def _orientation_neighbours(orientation: np.ndarray, step: float) -> np.ndarray:
     coarse grid's next level pays."""
     from scipy.spatial.transform import Rotation
 
-    turns = Rotation.from_rotvec(np.concatenate([np.eye(3), -np.eye(3)]) * math.radians(step))
-    base = Rotation.from_rotvec(np.asarray(orientation, np.float64).reshape(-1, 3))
-    return np.concatenate([(base[i] * turns).as_rotvec() for i in range(len(base))]).reshape(-1, 3)
+    base = np.repeat(np.asarray(orientation, np.float64).reshape(-1, 3), 6, axis=0)
+    turns = np.tile(np.concatenate([np.eye(3), -np.eye(3)]) * math.radians(step), (len(base) // 6, 1))
+    return (Rotation.from_rotvec(base) * Rotation.from_rotvec(turns)).as_rotvec()
 
 
 def _choose_row(data: RangeData, settings: SearchSettings, centre) -> np.ndarray:
@@ -603,14 +602,15 @@ def _choose_row(data: RangeData, settings: SearchSettings, centre) -> np.ndarray
     grid: Grid = settings.grid  # pyright: ignore[reportAssignmentType]  # resolved in __post_init__
     step = min(grid.axis_step, grid.roll_step) / 2
 
-    def refined(pool: dict, order: np.ndarray) -> dict:
-        """The pool's ``refine_orientations`` best distinct members (``order``: best
-        first) turned by half the grid's step: the hypotheses to add to it."""
+    def with_neighbours(pool: dict, order: np.ndarray) -> dict:
+        """The pool and, after it, its ``refine_orientations`` best distinct members
+        (``order``: best first) turned by half the grid's step."""
         best = order[_distinct(pool["orientation"][order], pool["shape"][order], settings.refine_orientations)]
-        return {
+        more = {
             "orientation": _orientation_neighbours(pool["orientation"][best], step).astype(np.float32),
             "shape": np.repeat(pool["shape"][best], 6, axis=0),
         }
+        return {k: np.concatenate([pool[k], more[k]]) for k in pool}
 
     grid_hypotheses = n  # the pool's first rows: the ratio is the grid's own
     if settings.prune and settings.lattice > 1 and settings.survivors < n:
@@ -624,16 +624,14 @@ def _choose_row(data: RangeData, settings: SearchSettings, centre) -> np.ndarray
         pool = {k: v[keep] for k, v in hyp.items()}
         grid_hypotheses = len(keep)
         if settings.refine_orientations:  # scored in the same full-resolution call
-            more = refined(pool, np.arange(len(keep)))
-            pool = {k: np.concatenate([pool[k], more[k]]) for k in pool}
+            pool = with_neighbours(pool, np.arange(len(keep)))
         gam_full, off_full = (np.asarray(a) for a in score_region(data, settings, centre, hypotheses=pool, stride=1))
     else:
         pool = hyp
         gam_full, off_full = (np.asarray(a) for a in score_region(data, settings, centre, stride=1))
         if settings.refine_orientations:
-            more = refined(pool, np.argsort(-gam_full, kind="stable"))
-            g, o = score_region(data, settings, centre, hypotheses=more, stride=1)
-            pool = {k: np.concatenate([pool[k], more[k]]) for k in pool}
+            pool = with_neighbours(pool, np.argsort(-gam_full, kind="stable"))
+            g, o = score_region(data, settings, centre, hypotheses={k: v[n:] for k, v in pool.items()}, stride=1)
             gam_full, off_full = np.concatenate([gam_full, np.asarray(g)]), np.concatenate([off_full, np.asarray(o)])
     k = min(settings.top_k, len(gam_full))
     ranked = np.argsort(-gam_full, kind="stable")
