@@ -18,6 +18,7 @@ Case i cycles through the 12 combinations (pinhole or not, variant, deformed or 
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import statistics
 import sys
 import time
@@ -73,9 +74,20 @@ def main() -> None:
     ap.add_argument(
         "--search", default=None, help="a search preset for recover (fast, paper, region; default: recover's own)"
     )
+    ap.add_argument(
+        "--refine-orientations",
+        type=int,
+        default=None,
+        help="SearchSettings.refine_orientations for the preset (default: the preset's own)",
+    )
     args = ap.parse_args()
     kwargs = {} if args.search is None else {"search": args.search}
-    rows = [run_case(k, make_case(k, VARIANTS, seed=SEED, pixels=args.pixels), kwargs) for k in range(args.cases)]
+    search = kwargs
+    if args.refine_orientations is not None:
+        preset = sqparts.SEARCH_PRESETS[args.search or "fast"]
+        search = {"search": dataclasses.replace(preset, refine_orientations=args.refine_orientations)}
+        kwargs = {"search": args.search or "fast", "refine_orientations": args.refine_orientations}
+    rows = [run_case(k, make_case(k, VARIANTS, seed=SEED, pixels=args.pixels), search) for k in range(args.cases)]
     success = float(np.mean([r["success"] for r in rows]))
     one = float(np.mean([r["one_part"] for r in rows]))
     both = float(np.mean([r["success"] and r["one_part"] for r in rows]))

@@ -111,6 +111,7 @@ _EXPORTS = {
         "Move",
         "OnGain",
         "RefineSettings",
+        "SettleParts",
         "SplitParts",
         "accept_edits",
         "refine_moves",

@@ -35,6 +35,7 @@ s = -κ0 + (b - κ1) Γ, and λ = (cost of a commission error) / (b - κ1).
 
 from __future__ import annotations
 
+import collections
 import dataclasses
 import math
 from typing import TYPE_CHECKING
@@ -561,6 +562,15 @@ class Composition:
         visible = _visible(np.where(nearer, layer, self.depth), np.where(nearer, m, self.index))
         return _count(m + 1, *visible, data, costs, np.concatenate([self.layers, layer[None]]))
 
+    def replacing(self, i: int, layer: np.ndarray, data: RangeData, costs: Costs) -> EncodingCost:
+        """:func:`layers_cost` of the stack with ``layer`` (H, W) put in at index ``i``,
+        the stack being every other part's (the edit that replaces part ``i`` by one part):
+        the same rendering, labels (ties go to the earlier part) and E."""
+        index = np.where(self.index >= i, self.index + 1, self.index)  # the stack's parts' indices after it
+        nearer = (layer < self.depth) | ((layer == self.depth) & (index > i))
+        visible = _visible(np.where(nearer, layer, self.depth), np.where(nearer, i, index))
+        return _count(len(self.layers) + 1, *visible, data, costs, np.insert(self.layers, i, layer, axis=0))
+
 
 @dataclasses.dataclass(frozen=True, eq=False)
 class Edit:
@@ -603,17 +613,25 @@ def edit_costs(cost: EncodingCost, edits, data: RangeData, costs: Costs) -> list
     rendering): the one evaluator of every change refinement and post-processing try. Only
     the new parts are rendered, all edits' together (:func:`render_edits`); an edit that
     adds one part on top of others composes the others' nearest hit once for all edits
-    that remove the same parts (:class:`Composition`)."""
+    that remove the same parts (:class:`Composition`), and so does a part replaced by
+    one part in several edits."""
     layers = layers_of(cost)
     rests: dict[tuple[int, ...], Composition] = {}
+    edits = render_edits(edits, data.camera)
+    replaced = collections.Counter(e.remove for e in edits if len(e.add) == 1)
     out = []
-    for e in render_edits(edits, data.camera):
+    for e in edits:
         new = e.layers
         assert new is not None  # rendered above
-        if len(new) == 1 and len(e.remove) != 1:
+        if len(new) == 1 and (len(e.remove) != 1 or replaced[e.remove] > 1):
             if e.remove not in rests:
                 rests[e.remove] = Composition(np.delete(layers, list(e.remove), 0))
-            out.append(rests[e.remove].adding(new[0], data, costs))
+            rest = rests[e.remove]
+            out.append(
+                rest.replacing(e.remove[0], new[0], data, costs)
+                if len(e.remove) == 1
+                else rest.adding(new[0], data, costs)
+            )
         else:
             out.append(layers_cost(e.apply(layers, new), data, costs))
     return out

@@ -31,7 +31,9 @@ E. The moves, in :meth:`RefineSettings.moves`'s order:
   into one bent part (section 4.1), or a group into one part started from its pixels'
   moments (a flat box for a laptop seen as patches); :class:`OnGain` then grows the parts
   again, drops those the merge made redundant, and merges again, until merging no
-  longer lowers E: the descent runs to its fixed point.
+  longer lowers E: the descent runs to its fixed point;
+- :class:`SettleParts`: the paper's final optimisation (section 3.5): each part's
+  parameters stepped one at a time, all parts rendered together, a step kept if E falls.
 """
 
 from __future__ import annotations
@@ -61,7 +63,7 @@ from ._encoding import (
     pixel_errors,
     render_edits,
 )
-from ._part import Part, from_unconstrained, to_unconstrained
+from ._part import BEND_RANGE, SQUARENESS_RANGE, TAPER_RANGE, Part, from_unconstrained, to_unconstrained
 from ._polish import (
     background_rays,
     figure_points,
@@ -443,6 +445,63 @@ class DropParts(Move):
         return [[Edit((int(i),)) for i in which]]
 
 
+def _coordinate_neighbours(vectors: np.ndarray, pixels: np.ndarray, scale: float) -> np.ndarray:
+    """Each of the parts ``vectors`` (n, 14) with one parameter a step up and a step down
+    (at ``scale`` times): the position a pixel (``pixels``, (n,): a pixel's width at each
+    part's depth) along each camera axis, the orientation 0.1 rad about each of the part's
+    own axes, each semi-axis 10%, each squareness a factor 1.4, bend and taper 0.1; each
+    kept in its range. Returns (n, 28, 14)."""
+    from scipy.spatial.transform import Rotation
+
+    v = np.asarray(vectors, np.float64)
+    n = len(v)
+    out = np.repeat(v[:, None], 28, axis=1)
+    up_down = np.array([1.0, -1.0])
+    turns = (up_down[:, None, None] * np.eye(3) * 0.1 * scale).reshape(6, 3)  # about x, y, z; then back
+    for k in range(3):
+        out[:, 2 * k, k] += pixels * scale
+        out[:, 2 * k + 1, k] -= pixels * scale
+    own = Rotation.from_rotvec(np.repeat(v[:, 3:6], 6, axis=0)) * Rotation.from_rotvec(np.tile(turns, (n, 1)))
+    out[:, 6:12, 3:6] = own.as_rotvec().reshape(n, 6, 3)
+    for j, (k, f) in enumerate([(k, f) for k in (6, 7, 8) for f in (1 + 0.1 * scale, 1 - 0.1 * scale)]):
+        out[:, 12 + j, k] *= f
+    for j, (k, f) in enumerate([(k, f) for k in (9, 10) for f in (1 + 0.4 * scale, 1 / (1 + 0.4 * scale))]):
+        out[:, 18 + j, k] = np.clip(out[:, 18 + j, k] * f, *SQUARENESS_RANGE)
+    for j, (k, d) in enumerate([(k, d) for k in (11, 12, 13) for d in 0.1 * scale * up_down]):
+        out[:, 22 + j, k] = np.clip(out[:, 22 + j, k] + d, *BEND_RANGE if k < 13 else TAPER_RANGE)
+    return out.astype(np.float32)
+
+
+@dataclasses.dataclass(frozen=True, kw_only=True)
+class SettleParts(Move):
+    """The paper's final optimisation (section 3.5): all parts rendered together, one
+    part's parameter changed at a time, and the change kept if E falls. Each pass
+    proposes every part with each of its 14 parameters a step up and a step down
+    (:func:`_coordinate_neighbours`, steps ``scale`` times a pixel, 0.1 rad, 10% of a
+    semi-axis, a factor 1.4 in squareness, 0.1 in bend and taper);
+    :func:`accept_edits` keeps the best, then each other part's that still lowers E.
+    Polishing fits the visible points' radial distances, which E only approximates: an
+    outline's corners (squareness), the extent of a part's hidden side, the pixels
+    within ±σ/2 at its rim are where this descent still gains."""
+
+    name: ClassVar[str] = "settle"
+    passes: int = MAX_PASSES
+    scale: float = 1.0
+
+    def __post_init__(self):
+        super().__post_init__()
+        s = self.scale
+        if isinstance(s, bool) or not isinstance(s, (int, float)) or not 0 < s < float("inf"):
+            raise ValueError(f"scale: got {s!r}, expected a finite number > 0")
+
+    def propose(self, vectors, cost, data, costs, step):
+        pixels = np.array([float(data.camera.pixel_size_at(float(v[2]))) for v in vectors])
+        trials = _coordinate_neighbours(vectors, pixels, self.scale)
+        return [
+            [Edit((i,), t[None]) for i in range(len(vectors)) for t in trials[i] if not np.array_equal(t, vectors[i])]
+        ]
+
+
 _CROP = 32
 _RANDOM_TRIALS = 35
 
@@ -568,7 +627,7 @@ def _merge_candidates(a: np.ndarray, b: np.ndarray) -> np.ndarray:
 
 
 def _moment_candidates(points: np.ndarray, sigma: float) -> np.ndarray:
-    """(12, 14) vectors of single parts summarising the 3-D surface ``points`` (n, 3) from
+    """(13, 14) vectors of single parts summarising the 3-D surface ``points`` (n, 3) from
     their moments: centred on them, axes along their principal directions (longest = z,
     least = y, nearly the viewing direction of a visible surface), semi-axes from their
     1-99% extents. The depth (y) semi-axis is either thin (a plate: a laptop lid, a
@@ -577,7 +636,9 @@ def _moment_candidates(points: np.ndarray, sigma: float) -> np.ndarray:
     camera; box-like, round or a cylinder. Three of the solids are bent and tapered as
     the points' centre line and width say (:func:`_deformation_moments`: footnote 11's
     bending of the longest axis and tapering along it), so one limb that the search
-    cut in two, or a bent part it fitted with a straight one, is summarised as one."""
+    cut in two, or a bent part it fitted with a straight one, is summarised as one. The
+    last is a plate bent through itself (:func:`_plate_bend`: a chair's back, a curved
+    panel), which the bent solids, as deep as they are wide, do not reach."""
     from scipy.spatial.transform import Rotation
 
     p = np.asarray(points, np.float64)
@@ -632,7 +693,38 @@ def _moment_candidates(points: np.ndarray, sigma: float) -> np.ndarray:
     out.append(
         [*(front + x * offset[0] + y * rim), *rv, half[1], rim, half[0], 1.0, 1.0, float(np.hypot(*bend)), 0.0, taper]
     )
+    # A plate bent through itself (a chair's back, a curved panel): its surface's depth
+    # fitted as a quadric over the plate (:func:`_plate_bend`) bends it along the
+    # direction of larger principal curvature; local x then lies along the view, and the
+    # plate is thin there.
+    depth, curve, dirs = _plate_bend(local)
+    k = int(np.argmax(np.abs(curve)))
+    along = dirs[0, k] * z + dirs[1, k] * x
+    s_lo, s_hi = np.percentile(local[:, :2] @ dirs, [1, 99], axis=0)
+    length, width = np.maximum((s_hi - s_lo) / 2 / 0.98, sigma / 2)[[k, 1 - k]]
+    at = dirs @ ((s_lo + s_hi) / 2)  # the plate's centre in (z, x)
+    centre = mid + z * at[0] + x * at[1] + y * (depth(*at) + thin)
+    b = float(np.clip(curve[k] * length, -0.9, 0.9))
+    out.append([*centre, *rotvec(y, np.cross(along, y), along), thin, width, length, 0.1, 0.1, b, 0.0, 0.0])
     return np.asarray(out, np.float32)
+
+
+def _plate_bend(local: np.ndarray):
+    """A plate's bend through itself from its visible surface points ``local`` (n, 3) in
+    the moment frame (columns: along the longest axis z, the middle axis x, the least
+    axis y, nearly the view): the depth fitted as a quadric y = c0 + c1 z + c2 x + h_zz
+    z² + 2 h_zx z x + h_xx x² by least squares. Returns (the quadric as a function of z
+    and x, its principal curvatures (2,) (the eigenvalues of h: a part bent along a
+    direction s deflects its tip at a3 by bend·a3 = h_s a3², so bend = h_s a3), and
+    their directions (2, 2) as columns in (z, x))."""
+    zz, xx, yy = local[:, 0], local[:, 1], local[:, 2]
+    c = np.linalg.lstsq(np.stack([np.ones_like(zz), zz, xx, zz * zz, 2 * zz * xx, xx * xx], 1), yy, rcond=None)[0]
+    curve, dirs = np.linalg.eigh(np.array([[c[3], c[4]], [c[4], c[5]]]))
+
+    def depth(z, x):
+        return float(c[0] + c[1] * z + c[2] * x + c[3] * z * z + 2 * c[4] * z * x + c[5] * x * x)
+
+    return depth, curve, dirs
 
 
 def _rim_depth(local: np.ndarray, sigma: float, *, slices: int = 8) -> float:
@@ -899,15 +991,18 @@ class RefineSettings:
     a multiple of :data:`~sqparts._polish.POLISH_CALL_STEPS`; 0 = none), then ``split``
     (:class:`SplitParts`), ``fill`` (:class:`FillGaps`: the blobs still unexplained
     searched again at their own scale, for small parts: hands, feet), dropping parts that
-    do not pay (:class:`DropParts`), and ``merge`` (:class:`MergeParts`, each merge
-    followed by growing and dropping again, until merging no longer lowers E), each kept
-    only when E falls. ``RefineSettings.none()``: no refinement."""
+    do not pay (:class:`DropParts`), ``merge`` (:class:`MergeParts`, each merge
+    followed by growing and dropping again, until merging no longer lowers E), and
+    last the paper's final optimisation of every parameter on E itself
+    (:class:`SettleParts`, once per step scale in ``settle``; () = none), each kept only
+    when E falls. ``RefineSettings.none()``: no refinement."""
 
     rounds: int = 2
     steps: int = 20
     split: bool = True
     fill: bool = True
     merge: bool = True
+    settle: tuple[float, ...] = (1.0,)
 
     def __post_init__(self):
         r = self.rounds
@@ -918,14 +1013,20 @@ class RefineSettings:
         for name in ("split", "fill", "merge"):
             if not isinstance(getattr(self, name), bool):
                 raise ValueError(f"{name}: got {getattr(self, name)!r}, expected True or False")
+        scales = self.settle
+        if not isinstance(scales, (tuple, list)) or not all(
+            isinstance(x, (int, float)) and not isinstance(x, bool) and 0 < x < float("inf") for x in scales
+        ):
+            raise ValueError(f"settle: got {scales!r}, expected a tuple of step scales > 0 (() for none)")
+        object.__setattr__(self, "settle", tuple(float(x) for x in scales))
 
     @classmethod
     def none(cls) -> RefineSettings:
-        return cls(rounds=0, split=False, fill=False, merge=False)
+        return cls(rounds=0, split=False, fill=False, merge=False, settle=())
 
     @property
     def active(self) -> bool:
-        return self.rounds > 0 or self.split or self.fill or self.merge
+        return self.rounds > 0 or self.split or self.fill or self.merge or bool(self.settle)
 
     def moves(self, search=None) -> tuple:
         """The moves these settings ask for, in order; ``search`` (the first search's
@@ -939,6 +1040,7 @@ class RefineSettings:
         if self.merge:
             again = (GrowParts(passes=MERGE_POLISH_ROUNDS, steps=self.steps), DropParts())
             moves.append(OnGain(MergeParts(passes=1, steps=self.steps), then=again, repeat=MAX_PASSES))
+        moves.extend(SettleParts(scale=s) for s in self.settle)
         return tuple(moves)
 
     def refine(self, parts: Part, data: RangeData, costs: Costs, search=None):

@@ -198,4 +198,12 @@ def test_move_settings_are_checked():
     with pytest.raises(ValueError, match=r"repeat: got 0, expected an integer in \[1, 1000\]"):
         sqparts.OnGain(sqparts.DropParts(), repeat=0)
     moves = sqparts.RefineSettings(rounds=2, split=False, fill=True, merge=True).moves(search=None)
-    assert [type(m).__name__ for m in moves] == ["GrowParts", "DropParts", "OnGain"]
+    assert [type(m).__name__ for m in moves] == ["GrowParts", "DropParts", "OnGain", "SettleParts"]
+    scales = sqparts.RefineSettings(settle=[1, 0.5]).moves(search=None)[-2:]
+    assert [type(m).__name__ for m in scales] == ["SettleParts"] * 2 and [m.scale for m in scales] == [1.0, 0.5]
+    assert not sqparts.RefineSettings.none().active and sqparts.RefineSettings.none().settle == ()
+    for bad in ((0.0,), (-1.0,), (float("inf"),), (True,), "1", 1.0):
+        with pytest.raises(ValueError, match=r"settle: got .*, expected a tuple of step scales > 0 \(\(\) for none\)"):
+            sqparts.RefineSettings(settle=bad)
+    with pytest.raises(ValueError, match=r"scale: got 0, expected a finite number > 0"):
+        sqparts.SettleParts(scale=0)
