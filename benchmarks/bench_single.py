@@ -81,13 +81,15 @@ def main() -> None:
         help="SearchSettings.refine_orientations for the preset (default: the preset's own)",
     )
     args = ap.parse_args()
-    kwargs = {} if args.search is None else {"search": args.search}
-    search = kwargs
+    recorded = {} if args.search is None else {"search": args.search}  # as saved in the JSON
+    recover_kwargs = dict(recorded)
     if args.refine_orientations is not None:
-        preset = sqparts.SEARCH_PRESETS[args.search or "fast"]
-        search = {"search": dataclasses.replace(preset, refine_orientations=args.refine_orientations)}
-        kwargs = {"search": args.search or "fast", "refine_orientations": args.refine_orientations}
-    rows = [run_case(k, make_case(k, VARIANTS, seed=SEED, pixels=args.pixels), search) for k in range(args.cases)]
+        preset = sqparts.search_preset(args.search or "fast")
+        recover_kwargs = {"search": dataclasses.replace(preset, refine_orientations=args.refine_orientations)}
+        recorded = {"search": args.search or "fast", "refine_orientations": args.refine_orientations}
+    rows = [
+        run_case(k, make_case(k, VARIANTS, seed=SEED, pixels=args.pixels), recover_kwargs) for k in range(args.cases)
+    ]
     success = float(np.mean([r["success"] for r in rows]))
     one = float(np.mean([r["one_part"] for r in rows]))
     both = float(np.mean([r["success"] and r["one_part"] for r in rows]))
@@ -103,7 +105,7 @@ def main() -> None:
             "cases": args.cases,
             "image": f"{args.pixels}x{args.pixels}",
             "dtype": "float32",
-            "recover_kwargs": kwargs,
+            "recover_kwargs": recorded,
             "success_rate": success,
             "one_part_rate": one,
             "success_and_one_part_rate": both,

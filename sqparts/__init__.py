@@ -59,6 +59,7 @@ _EXPORTS = {
         "commission_mask",
         "description_length",
         "edit_costs",
+        "edit_totals",
         "encoding_cost",
         "encoding_for",
         "gamma",

@@ -35,7 +35,6 @@ s = -κ0 + (b - κ1) Γ, and λ = (cost of a commission error) / (b - κ1).
 
 from __future__ import annotations
 
-import collections
 import dataclasses
 import math
 from typing import TYPE_CHECKING
@@ -562,15 +561,6 @@ class Composition:
         visible = _visible(np.where(nearer, layer, self.depth), np.where(nearer, m, self.index))
         return _count(m + 1, *visible, data, costs, np.concatenate([self.layers, layer[None]]))
 
-    def replacing(self, i: int, layer: np.ndarray, data: RangeData, costs: Costs) -> EncodingCost:
-        """:func:`layers_cost` of the stack with ``layer`` (H, W) put in at index ``i``,
-        the stack being every other part's (the edit that replaces part ``i`` by one part):
-        the same rendering, labels (ties go to the earlier part) and E."""
-        index = np.where(self.index >= i, self.index + 1, self.index)  # the stack's parts' indices after it
-        nearer = (layer < self.depth) | ((layer == self.depth) & (index > i))
-        visible = _visible(np.where(nearer, layer, self.depth), np.where(nearer, i, index))
-        return _count(len(self.layers) + 1, *visible, data, costs, np.insert(self.layers, i, layer, axis=0))
-
 
 @dataclasses.dataclass(frozen=True, eq=False)
 class Edit:
@@ -613,27 +603,44 @@ def edit_costs(cost: EncodingCost, edits, data: RangeData, costs: Costs) -> list
     rendering): the one evaluator of every change refinement and post-processing try. Only
     the new parts are rendered, all edits' together (:func:`render_edits`); an edit that
     adds one part on top of others composes the others' nearest hit once for all edits
-    that remove the same parts (:class:`Composition`), and so does a part replaced by
-    one part in several edits."""
+    that remove the same parts (:class:`Composition`)."""
     layers = layers_of(cost)
     rests: dict[tuple[int, ...], Composition] = {}
-    edits = render_edits(edits, data.camera)
-    replaced = collections.Counter(e.remove for e in edits if len(e.add) == 1)
     out = []
-    for e in edits:
+    for e in render_edits(edits, data.camera):
         new = e.layers
         assert new is not None  # rendered above
-        if len(new) == 1 and (len(e.remove) != 1 or replaced[e.remove] > 1):
+        if len(new) == 1 and len(e.remove) != 1:
             if e.remove not in rests:
                 rests[e.remove] = Composition(np.delete(layers, list(e.remove), 0))
-            rest = rests[e.remove]
-            out.append(
-                rest.replacing(e.remove[0], new[0], data, costs)
-                if len(e.remove) == 1
-                else rest.adding(new[0], data, costs)
-            )
+            out.append(rests[e.remove].adding(new[0], data, costs))
         else:
             out.append(layers_cost(e.apply(layers, new), data, costs))
+    return out
+
+
+def edit_totals(cost: EncodingCost, edits, data: RangeData, costs: Costs) -> np.ndarray:
+    """(len(edits),) E of each of ``edits`` as :func:`edit_costs` counts it, without
+    keeping each edit's rendering and masks: what an accept rule ranks many edits by.
+    E depends only on the nearest hit, so an edit that puts one part in place of others
+    is counted on the others' nearest depth, taken once for all edits that remove the
+    same parts (many steps of one part: 28 edits, one composition)."""
+    layers = layers_of(cost)
+    n = len(layers)
+    rests: dict[tuple[int, ...], np.ndarray] = {}
+    out = np.empty(len(edits))
+    for k, e in enumerate(render_edits(edits, data.camera)):
+        new = e.layers
+        assert new is not None  # rendered above
+        if len(new) != 1:
+            out[k] = layers_cost(e.apply(layers, new), data, costs).total
+            continue
+        gone = tuple(sorted({int(i) % n for i in e.remove})) if n else ()
+        if gone not in rests:
+            rest = np.delete(layers, list(gone), 0)
+            rests[gone] = rest.min(0) if len(rest) else np.full(new.shape[1:], np.inf, np.float32)
+        counts = layer_counts(np.minimum(rests[gone], new[0]), data)
+        out[k] = costs.total(n - len(gone) + 1, *counts)
     return out
 
 

@@ -55,6 +55,7 @@ from ._encoding import (
     Edit,
     EncodingCost,
     edit_costs,
+    edit_totals,
     encoding_cost,
     host_parts,
     layers_of,
@@ -130,19 +131,18 @@ def accept_edits(vectors: np.ndarray, cost: EncodingCost, edits, data: RangeData
     kept if it still lowers E; an edit of a part that a kept edit changed is skipped.
     Returns (vectors, cost), unchanged if no edit lowers E."""
     edits = render_edits(edits, data.camera)
-    scored = edit_costs(cost, edits, data, costs)
-    order = sorted((k for k, c in enumerate(scored) if c.total < cost.total - 1e-9), key=lambda k: scored[k].total)
+    totals = edit_totals(cost, edits, data, costs)
+    order = sorted((k for k, t in enumerate(totals) if t < cost.total - 1e-9), key=lambda k: totals[k])
     where = np.arange(len(vectors))  # each part's index now; -1 = changed by a kept edit
-    kept = False
     for k in order:
         e = edits[k]
         if (where[list(e.remove)] < 0).any():
             continue
         now = dataclasses.replace(e, remove=tuple(int(where[i]) for i in e.remove))
-        c = edit_costs(cost, [now], data, costs)[0] if kept else scored[k]
+        c = edit_costs(cost, [now], data, costs)[0]
         if c.total >= cost.total - 1e-9:
             continue
-        vectors, cost, kept = now.apply(vectors, np.asarray(e.add, np.float32)), c, True
+        vectors, cost = now.apply(vectors, np.asarray(e.add, np.float32)), c
         in_place = len(e.remove) == len(e.add)
         where[list(e.remove)] = -1
         if not in_place and e.remove:
@@ -451,18 +451,16 @@ def _coordinate_neighbours(vectors: np.ndarray, pixels: np.ndarray, scale: float
     part's depth) along each camera axis, the orientation 0.1 rad about each of the part's
     own axes, each semi-axis 10%, each squareness a factor 1.4, bend and taper 0.1; each
     kept in its range. Returns (n, 28, 14)."""
-    from scipy.spatial.transform import Rotation
+    from ._search import _orientation_neighbours
 
     v = np.asarray(vectors, np.float64)
     n = len(v)
     out = np.repeat(v[:, None], 28, axis=1)
     up_down = np.array([1.0, -1.0])
-    turns = (up_down[:, None, None] * np.eye(3) * 0.1 * scale).reshape(6, 3)  # about x, y, z; then back
     for k in range(3):
         out[:, 2 * k, k] += pixels * scale
         out[:, 2 * k + 1, k] -= pixels * scale
-    own = Rotation.from_rotvec(np.repeat(v[:, 3:6], 6, axis=0)) * Rotation.from_rotvec(np.tile(turns, (n, 1)))
-    out[:, 6:12, 3:6] = own.as_rotvec().reshape(n, 6, 3)
+    out[:, 6:12, 3:6] = _orientation_neighbours(v[:, 3:6], 0.1 * scale).reshape(n, 6, 3)
     for j, (k, f) in enumerate([(k, f) for k in (6, 7, 8) for f in (1 + 0.1 * scale, 1 - 0.1 * scale)]):
         out[:, 12 + j, k] *= f
     for j, (k, f) in enumerate([(k, f) for k in (9, 10) for f in (1 + 0.4 * scale, 1 / (1 + 0.4 * scale))]):
@@ -470,6 +468,15 @@ def _coordinate_neighbours(vectors: np.ndarray, pixels: np.ndarray, scale: float
     for j, (k, d) in enumerate([(k, d) for k in (11, 12, 13) for d in 0.1 * scale * up_down]):
         out[:, 22 + j, k] = np.clip(out[:, 22 + j, k] + d, *BEND_RANGE if k < 13 else TAPER_RANGE)
     return out.astype(np.float32)
+
+
+MAX_STEP_SCALE = 5.0
+"""Largest step scale of :class:`SettleParts` (a semi-axis's step down is then half of it)."""
+
+
+def _step_scale(x) -> bool:
+    ok = isinstance(x, (int, float, np.integer, np.floating)) and not isinstance(x, (bool, np.bool_))
+    return ok and 0 < x <= MAX_STEP_SCALE
 
 
 @dataclasses.dataclass(frozen=True, kw_only=True)
@@ -490,11 +497,12 @@ class SettleParts(Move):
 
     def __post_init__(self):
         super().__post_init__()
-        s = self.scale
-        if isinstance(s, bool) or not isinstance(s, (int, float)) or not 0 < s < float("inf"):
-            raise ValueError(f"scale: got {s!r}, expected a finite number > 0")
+        if not _step_scale(self.scale):
+            raise ValueError(f"scale: got {self.scale!r}, expected a number in (0, {MAX_STEP_SCALE}]")
 
     def propose(self, vectors, cost, data, costs, step):
+        if len(vectors) == 0:
+            return [[]]
         pixels = np.array([float(data.camera.pixel_size_at(float(v[2]))) for v in vectors])
         trials = _coordinate_neighbours(vectors, pixels, self.scale)
         return [
@@ -714,9 +722,9 @@ def _plate_bend(local: np.ndarray):
     the moment frame (columns: along the longest axis z, the middle axis x, the least
     axis y, nearly the view): the depth fitted as a quadric y = c0 + c1 z + c2 x + h_zz
     z² + 2 h_zx z x + h_xx x² by least squares. Returns (the quadric as a function of z
-    and x, its principal curvatures (2,) (the eigenvalues of h: a part bent along a
-    direction s deflects its tip at a3 by bend·a3 = h_s a3², so bend = h_s a3), and
-    their directions (2, 2) as columns in (z, x))."""
+    and x, the eigenvalues (2,) of h, half the surface's principal curvatures (a part
+    bent along a direction s deflects its tip at a3 by bend·a3 = h_s a3², so bend =
+    h_s a3), and their directions (2, 2) as columns in (z, x))."""
     zz, xx, yy = local[:, 0], local[:, 1], local[:, 2]
     c = np.linalg.lstsq(np.stack([np.ones_like(zz), zz, xx, zz * zz, 2 * zz * xx, xx * xx], 1), yy, rcond=None)[0]
     curve, dirs = np.linalg.eigh(np.array([[c[3], c[4]], [c[4], c[5]]]))
@@ -968,6 +976,7 @@ def refine_parts(
     steps: int = 20,
     split: bool = True,
     merge: bool = True,
+    settle: tuple[float, ...] = (1.0,),
     search=None,
 ):
     """Joint refinement with :class:`RefineSettings`' moves: ``rounds`` passes of
@@ -975,8 +984,12 @@ def refine_parts(
     ``split``), :class:`FillGaps` (when ``search``, the first search's
     :class:`~sqparts.SearchSettings`, is given), :class:`DropParts` and
     :class:`MergeParts` (when ``merge``; then growing and dropping again if a merge was
-    made, and merging again, until a merge no longer lowers E). Returns (parts, final cost, history of E after each stage)."""
-    settings = RefineSettings(rounds=rounds, steps=steps, split=split, fill=search is not None, merge=merge)
+    made, and merging again, until a merge no longer lowers E), then :class:`SettleParts`
+    once per step scale in ``settle`` (() = none). Returns (parts, final cost, history of
+    E after each stage)."""
+    settings = RefineSettings(
+        rounds=rounds, steps=steps, split=split, fill=search is not None, merge=merge, settle=settle
+    )
     return refine_moves(parts, data, costs, settings.moves(search))
 
 
@@ -1014,10 +1027,10 @@ class RefineSettings:
             if not isinstance(getattr(self, name), bool):
                 raise ValueError(f"{name}: got {getattr(self, name)!r}, expected True or False")
         scales = self.settle
-        if not isinstance(scales, (tuple, list)) or not all(
-            isinstance(x, (int, float)) and not isinstance(x, bool) and 0 < x < float("inf") for x in scales
-        ):
-            raise ValueError(f"settle: got {scales!r}, expected a tuple of step scales > 0 (() for none)")
+        if not isinstance(scales, (tuple, list)) or len(scales) > 8 or not all(_step_scale(x) for x in scales):
+            raise ValueError(
+                f"settle: got {scales!r}, expected a tuple of at most 8 step scales in (0, {MAX_STEP_SCALE}] (() for none)"
+            )
         object.__setattr__(self, "settle", tuple(float(x) for x in scales))
 
     @classmethod

@@ -582,15 +582,16 @@ def _choose(data: RangeData, settings: SearchSettings, centre) -> _Chosen:
 
 def _orientation_neighbours(orientation: np.ndarray, step: float) -> np.ndarray:
     """(6n, 3): each of the (n, 3) relative orientations (rotation vectors) turned by
-    ``step`` degrees about each of its own three axes, both ways (tilting the longest axis
-    two ways, and rolling about it): the next finer orientations around a coarse grid's
-    hypothesis. Section 3.3.2 finds Γ relatively sensitive to orientation (10-15 degrees
-    take it to two-thirds of its peak, where sizes may change by 50%), so this is where a
-    coarse grid's next level pays."""
+    ``step`` radians about each of its own three axes, one way (x, y, z) then the other
+    (tilting the longest axis two ways, and rolling about it): the next finer orientations
+    around a coarse grid's hypothesis, and refinement's steps in orientation
+    (:class:`~sqparts._refine.SettleParts`). Section 3.3.2 finds Γ relatively sensitive
+    to orientation (10-15 degrees take it to two-thirds of its peak, where sizes may
+    change by 50%), so this is where a coarse grid's next level pays."""
     from scipy.spatial.transform import Rotation
 
     base = np.repeat(np.asarray(orientation, np.float64).reshape(-1, 3), 6, axis=0)
-    turns = np.tile(np.concatenate([np.eye(3), -np.eye(3)]) * math.radians(step), (len(base) // 6, 1))
+    turns = np.tile(np.concatenate([np.eye(3), -np.eye(3)]) * step, (len(base) // 6, 1))
     return (Rotation.from_rotvec(base) * Rotation.from_rotvec(turns)).as_rotvec()
 
 
@@ -607,7 +608,7 @@ def _choose_row(data: RangeData, settings: SearchSettings, centre) -> np.ndarray
         (``order``: best first) turned by half the grid's step."""
         best = order[_distinct(pool["orientation"][order], pool["shape"][order], settings.refine_orientations)]
         more = {
-            "orientation": _orientation_neighbours(pool["orientation"][best], step).astype(np.float32),
+            "orientation": _orientation_neighbours(pool["orientation"][best], math.radians(step)).astype(np.float32),
             "shape": np.repeat(pool["shape"][best], 6, axis=0),
         }
         return {k: np.concatenate([pool[k], more[k]]) for k in pool}

@@ -202,8 +202,12 @@ def test_move_settings_are_checked():
     scales = sqparts.RefineSettings(settle=[1, 0.5]).moves(search=None)[-2:]
     assert [type(m).__name__ for m in scales] == ["SettleParts"] * 2 and [m.scale for m in scales] == [1.0, 0.5]
     assert not sqparts.RefineSettings.none().active and sqparts.RefineSettings.none().settle == ()
-    for bad in ((0.0,), (-1.0,), (float("inf"),), (True,), "1", 1.0):
-        with pytest.raises(ValueError, match=r"settle: got .*, expected a tuple of step scales > 0 \(\(\) for none\)"):
+    assert sqparts.RefineSettings(settle=[1, np.float32(0.5)]).settle == (1.0, 0.5)
+    for bad in ((0.0,), (-1.0,), (float("inf"),), (6.0,), (True,), "1", 1.0, (1.0,) * 9):
+        with pytest.raises(
+            ValueError, match=r"settle: got .*, expected a tuple of at most 8 step scales in \(0, 5.0\]"
+        ):
             sqparts.RefineSettings(settle=bad)
-    with pytest.raises(ValueError, match=r"scale: got 0, expected a finite number > 0"):
-        sqparts.SettleParts(scale=0)
+    for bad in (0, float("nan"), 6.0, True):
+        with pytest.raises(ValueError, match=r"scale: got .*, expected a number in \(0, 5.0\]"):
+            sqparts.SettleParts(scale=bad)

@@ -461,7 +461,11 @@ def test_orientation_neighbours_turn_each_hypothesis_about_its_own_axes():
     from sqparts._search import _orientation_neighbours
 
     base = Rotation.random(5, random_state=3)
-    out = Rotation.from_rotvec(_orientation_neighbours(base.as_rotvec(), 20.0)).as_matrix().reshape(5, 6, 3, 3)
+    out = (
+        Rotation.from_rotvec(_orientation_neighbours(base.as_rotvec(), np.radians(20.0)))
+        .as_matrix()
+        .reshape(5, 6, 3, 3)
+    )
     for i, r in enumerate(base.as_matrix()):
         for k in range(6):
             local = r.T @ out[i, k]  # the turn in the hypothesis's own frame
