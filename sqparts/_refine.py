@@ -125,10 +125,11 @@ def _grow(data: RangeData, inputs, *, steps: int) -> np.ndarray:
 
 def accept_edits(vectors: np.ndarray, cost: EncodingCost, edits, data: RangeData, costs: Costs):
     """The accept rule of every move: of the ``edits`` to the parts with (n, 14)
-    ``vectors`` and joint cost ``cost``, evaluated together
-    (:func:`~sqparts._encoding.edit_costs`), the best improving edit is kept; then each
+    ``vectors`` and joint cost ``cost``, ranked together by their E
+    (:func:`~sqparts._encoding.edit_totals`), the best improving edit is kept; then each
     next best that improved on its own is tried again on the parts as they now are, and
-    kept if it still lowers E; an edit of a part that a kept edit changed is skipped.
+    kept if it still lowers E (:func:`~sqparts._encoding.edit_costs`); an edit of a part
+    that a kept edit changed is skipped.
     Returns (vectors, cost), unchanged if no edit lowers E."""
     edits = render_edits(edits, data.camera)
     totals = edit_totals(cost, edits, data, costs)
@@ -476,7 +477,7 @@ MAX_STEP_SCALE = 5.0
 
 def _step_scale(x) -> bool:
     ok = isinstance(x, (int, float, np.integer, np.floating)) and not isinstance(x, (bool, np.bool_))
-    return ok and 0 < x <= MAX_STEP_SCALE
+    return bool(ok and 0 < x <= MAX_STEP_SCALE)
 
 
 @dataclasses.dataclass(frozen=True, kw_only=True)
