@@ -504,7 +504,7 @@ class SettleParts(Move):
     def propose(self, vectors, cost, data, costs, step):
         if len(vectors) == 0:
             return [[]]
-        pixels = np.array([float(data.camera.pixel_size_at(float(v[2]))) for v in vectors])
+        pixels = np.asarray(data.camera.pixel_size_at(vectors[:, 2].astype(np.float64)), np.float64)
         trials = _coordinate_neighbours(vectors, pixels, self.scale)
         return [
             [Edit((i,), t[None]) for i in range(len(vectors)) for t in trials[i] if not np.array_equal(t, vectors[i])]
