@@ -573,6 +573,18 @@ class Edit:
     add: np.ndarray = dataclasses.field(default_factory=lambda: np.zeros((0, 14), np.float32))
     layers: np.ndarray | None = dataclasses.field(default=None, repr=False)
 
+    def __post_init__(self):
+        # Any sequence of integers (a list, a numpy array) is the same edit as its tuple.
+        remove = self.remove
+        items: list = np.asarray(remove, dtype=object).reshape(-1).tolist()
+        if any(isinstance(i, (bool, np.bool_)) or not isinstance(i, (int, np.integer)) for i in items):
+            raise ValueError(f"remove: got {remove!r}, expected a sequence of part indices (integers)")
+        object.__setattr__(self, "remove", tuple(int(i) for i in items))
+        add = np.asarray(self.add, np.float32)
+        if add.ndim not in (1, 2) or add.shape[-1] != 14:
+            raise ValueError(f"add: got shape {add.shape}, expected (k, 14) part vectors")
+        object.__setattr__(self, "add", add.reshape(-1, 14))
+
     def apply(self, rows: np.ndarray, new: np.ndarray) -> np.ndarray:
         """``rows`` (one per current part: vectors or depth layers) with the edit made,
         ``new`` the added parts' rows."""

@@ -964,6 +964,11 @@ def refine_moves(parts: Part, data: RangeData, costs: Costs, moves):
     return Part.from_vector(vectors), final, [("initial", cost.total), *history]
 
 
+SETTLE_SCALES = (1.0, 0.5, 0.25)
+"""The final optimisation's step scales (:class:`SettleParts`, one after another): once
+the full steps no longer lower E, half and then a quarter of them do (the step halving
+of a pattern search; each stage only ever lowers E)."""
+
 MERGE_POLISH_ROUNDS = 4
 """Most rounds of region growing after a merge (each kept only if E falls)."""
 
@@ -977,7 +982,7 @@ def refine_parts(
     steps: int = 20,
     split: bool = True,
     merge: bool = True,
-    settle: tuple[float, ...] = (1.0,),
+    settle: tuple[float, ...] = SETTLE_SCALES,
     search=None,
 ):
     """Joint refinement with :class:`RefineSettings`' moves: ``rounds`` passes of
@@ -1008,15 +1013,16 @@ class RefineSettings:
     do not pay (:class:`DropParts`), ``merge`` (:class:`MergeParts`, each merge
     followed by growing and dropping again, until merging no longer lowers E), and
     last the paper's final optimisation of every parameter on E itself
-    (:class:`SettleParts`, once per step scale in ``settle``; () = none), each kept only
-    when E falls. ``RefineSettings.none()``: no refinement."""
+    (:class:`SettleParts`, once per step scale in ``settle``, :data:`SETTLE_SCALES` by
+    default; () = none), each kept only when E falls. ``RefineSettings.none()``: no
+    refinement."""
 
     rounds: int = 2
     steps: int = 20
     split: bool = True
     fill: bool = True
     merge: bool = True
-    settle: tuple[float, ...] = (1.0,)
+    settle: tuple[float, ...] = SETTLE_SCALES
 
     def __post_init__(self):
         r = self.rounds

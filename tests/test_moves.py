@@ -198,7 +198,8 @@ def test_move_settings_are_checked():
     with pytest.raises(ValueError, match=r"repeat: got 0, expected an integer in \[1, 1000\]"):
         sqparts.OnGain(sqparts.DropParts(), repeat=0)
     moves = sqparts.RefineSettings(rounds=2, split=False, fill=True, merge=True).moves(search=None)
-    assert [type(m).__name__ for m in moves] == ["GrowParts", "DropParts", "OnGain", "SettleParts"]
+    assert [type(m).__name__ for m in moves] == ["GrowParts", "DropParts", "OnGain"] + ["SettleParts"] * 3
+    assert [m.scale for m in moves[-3:]] == [1.0, 0.5, 0.25]  # the steps halved, twice
     scales = sqparts.RefineSettings(settle=[1, 0.5]).moves(search=None)[-2:]
     assert [type(m).__name__ for m in scales] == ["SettleParts"] * 2 and [m.scale for m in scales] == [1.0, 0.5]
     assert not sqparts.RefineSettings.none().active and sqparts.RefineSettings.none().settle == ()
