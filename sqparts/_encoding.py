@@ -602,7 +602,7 @@ def render_edits(edits, camera) -> list[Edit]:
     edits = list(edits)
     todo = [e for e in edits if e.layers is None]
     if todo:
-        vectors = np.concatenate([np.asarray(e.add, np.float32).reshape(-1, 14) for e in todo])
+        vectors = np.concatenate([e.add for e in todo])
         layers = render_layers(vectors, camera)
         ends = np.cumsum([0] + [len(e.add) for e in todo])
         done = {id(e): layers[a:b] for e, a, b in zip(todo, ends[:-1], ends[1:])}

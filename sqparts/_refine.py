@@ -143,7 +143,7 @@ def accept_edits(vectors: np.ndarray, cost: EncodingCost, edits, data: RangeData
         c = edit_costs(cost, [now], data, costs)[0]
         if c.total >= cost.total - 1e-9:
             continue
-        vectors, cost = now.apply(vectors, np.asarray(e.add, np.float32)), c
+        vectors, cost = now.apply(vectors, e.add), c
         in_place = len(e.remove) == len(e.add)
         where[list(e.remove)] = -1
         if not in_place and e.remove:
@@ -232,7 +232,7 @@ class SplitParts(Move):
             halves[:, 0:3] = [v[0:3] - axis, v[0:3] + axis]
             halves[:, 8] = v[8] / 2
             halves[:, 11:14] = 0.0
-            trials.append(Edit((i,), halves.astype(np.float32)))
+            trials.append(Edit((i,), halves))
         n = len(vectors) + 1  # the halves are the last two parts of a trial
         for _ in range(self.rounds if trials else 0):
             scores = edit_costs(cost, trials := render_edits(trials, data.camera), data, costs)
@@ -885,9 +885,7 @@ class MergeParts(Move):
             return out
 
         fitted = np.concatenate([fit(slice(0, n_pairs), 1), fit(slice(n_pairs, len(inits)), 2)])
-        return [
-            [Edit(group, v[None].astype(np.float32)) for v, group in zip(np.concatenate([fitted, start]), members * 2)]
-        ]
+        return [[Edit(group, v[None]) for v, group in zip(np.concatenate([fitted, start]), members * 2)]]
 
 
 @dataclasses.dataclass(frozen=True)
