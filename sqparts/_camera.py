@@ -254,7 +254,12 @@ class OrthographicCamera(_Camera):
         return o, d
 
     def pixel_size_at(self, depth):
-        return jnp.full_like(jnp.asarray(depth), self.pixel_size)
+        # The same at every depth. Host input gets a numpy array: filling one with JAX
+        # outside a trace would compile a program per shape.
+        if isinstance(depth, jax.Array):
+            return jnp.full_like(depth, self.pixel_size)
+        depth = np.asarray(depth)
+        return np.full(depth.shape, self.pixel_size, depth.dtype if depth.dtype.kind == "f" else np.float64)
 
     def _scaled_fields(self, f):
         return {"pixel_size": self.pixel_size * f}

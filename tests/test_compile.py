@@ -301,6 +301,31 @@ def test_recovery_programs_bounded_and_shared_within_a_bucket(one_part):
     np.testing.assert_allclose(rec2.parts.to_vector(), rec.parts.to_vector(), rtol=1e-4, atol=1e-5)
 
 
+@pytest.mark.parametrize(
+    "camera",
+    [
+        CAM,
+        sqparts.OrthographicCamera(width=48, height=48, pixel_size=0.004, cx=23.5, cy=23.5),
+        sqparts.ScannerCamera(width=48, height=48, azimuth_step=0.004, elevation_step=0.005, cx=23.5, cy=23.5),
+    ],
+    ids=["pinhole", "orthographic", "scanner"],
+)
+def test_pixel_footprints_of_host_depths_compile_nothing(camera):
+    # Host depths (a float, numpy) get numpy footprints without a compiled program; traced
+    # ones the same values in JAX.
+    depth = np.array([[0.5, 1.2], [2.0, 3.5]], np.float32)
+    with count_programs() as host:
+        one = camera.pixel_size_at(1.2)
+        many = camera.pixel_size_at(depth)
+        wide = camera.pixel_size_at(depth.astype(np.float64))
+    assert host["n"] == 0
+    assert isinstance(many, np.ndarray) and many.shape == depth.shape and many.dtype == np.float32
+    assert wide.dtype == np.float64
+    traced = np.asarray(jax.jit(camera.pixel_size_at)(jnp.asarray(depth)))
+    np.testing.assert_allclose(many, traced, rtol=1e-6)
+    assert float(one) == pytest.approx(float(traced[0, 1]), rel=1e-6)
+
+
 @pytest.mark.slow
 def test_recovery_from_exported_programs(one_part, tmp_path):
     """A recovery run from exported programs in a "new process" (nothing loaded, JAX's
