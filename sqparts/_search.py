@@ -350,44 +350,27 @@ def _map_chunks(fn, chunks, replicated):
     )
 
 
-@persistent_jit(static_argnames=("camera", "pad", "window", "stride", "batch", "newton_steps"))
+@persistent_jit(static_argnames=("camera", "pad", "window", "stride", "newton_steps"))
 def _score_hypotheses(
-    arrays,
-    orientation_rel,
-    shape,
-    region,
-    start,
-    corner,
-    centre,
-    max_size,
-    *,
-    camera,
-    pad,
-    window,
-    stride,
-    batch,
-    newton_steps,
+    arrays, orientation_rel, shape, region, corner, centre, max_size, *, camera, pad, window, stride, newton_steps
 ):
     """Γ and depth offset p of hypotheses at several regions (the one parallel
-    operation), in chunks of ``batch``: chunk j is the table's rows ``start[j]`` to
-    ``start[j] + batch`` (``orientation_rel`` (m, 3), ``shape`` (m, 8)) posed at region
-    ``region[j]`` (``corner``, ``centre``: (r, 2); ``max_size``: (r,)); a chunk of region
-    -1 is padding, skipped (Γ -inf)."""
+    operation): ``orientation_rel`` (c, b, 3) and ``shape`` (c, b, 8) are c chunks of b
+    hypotheses, chunk j posed at region ``region[j]`` (``corner``, ``centre``: (r, 2);
+    ``max_size``: (r,)); a chunk of region -1 is padding, skipped (Γ -inf)."""
     depth, fig, sigma, lam = arrays
     s = slice(stride // 2, None, stride)
     weight = jnp.float32(stride * stride)
+    b = orientation_rel.shape[1]
 
-    def inputs(corner, centre):
-        measured, figure, origins, directions, *ray = _region_inputs(depth, fig, camera, pad, corner, centre, window)
-        return (measured[s, s], figure[s, s], origins[s, s], directions[s, s], *ray)
-
-    regions = jax.vmap(inputs)(corner, centre)  # each region's window, once per call
-
-    def chunk(job, orientation_rel, shape, regions, sigma, lam, max_size):
-        r, first = job
+    def chunk(job, depth, fig, sigma, lam, corner, centre, max_size):
+        r, orientations, shapes = job
 
         def score(r):
-            measured, figure, origins, directions, c_o, c_d, surface_t = (a[r] for a in regions)
+            measured, figure, origins, directions, c_o, c_d, surface_t = _region_inputs(
+                depth, fig, camera, pad, corner[r], centre[r], window
+            )
+            measured, figure, origins, directions = (a[s, s] for a in (measured, figure, origins, directions))
 
             def one(o, shp):
                 part = pose_hypothesis(o, shp, max_size[r], c_o, c_d, surface_t)
@@ -404,15 +387,14 @@ def _score_hypotheses(
                     newton_steps=newton_steps,
                 )
 
-            rows = (jax.lax.dynamic_slice_in_dim(a, first, batch) for a in (orientation_rel, shape))
-            return jax.vmap(one)(*rows)
+            return jax.vmap(one)(orientations, shapes)
 
         def skip(r):
-            return jnp.full(batch, -jnp.inf, jnp.float32), jnp.zeros(batch, jnp.float32)
+            return jnp.full(b, -jnp.inf, jnp.float32), jnp.zeros(b, jnp.float32)
 
         return jax.lax.cond(r >= 0, score, skip, jnp.maximum(r, 0))
 
-    gam, off = _map_chunks(chunk, (region, start), (orientation_rel, shape, regions, sigma, lam, max_size))
+    gam, off = _map_chunks(chunk, (region, orientation_rel, shape), (depth, fig, sigma, lam, corner, centre, max_size))
     return jnp.where(jnp.isfinite(gam), gam, -jnp.inf), off
 
 
@@ -448,15 +430,16 @@ def score_regions(
     (``hypotheses`` None), the same set at every region (a dict of (n, 3) relative
     ``"orientation"`` and (n, 8) ``"shape"``) or one set per region ((r, n, 3) and (r,
     n, 8)); ``max_sizes`` (r,) replaces ``settings.max_size`` per region. All regions'
-    hypotheses go through one compiled program, in chunks (``settings.batch_size`` at
-    most, about :data:`CHUNK_RAYS` rays a chunk), :data:`REGION_BUCKET` regions a call; a
-    set shared by the regions is passed once. Returns (r, n) host arrays."""
+    hypotheses go through one compiled program, chunked (``settings.batch_size`` at most,
+    about :data:`CHUNK_RAYS` rays a chunk), :data:`REGION_BUCKET` regions a call.
+    Returns (r, n) host arrays."""
     hyp = hypotheses or _grid_arrays(settings.grid)
     centres = np.asarray(centres, np.int32).reshape(-1, 2)
     r = len(centres)
     orientation, shape = (np.asarray(hyp[k], np.float32) for k in ("orientation", "shape"))
-    shared = orientation.ndim == 2
-    n = orientation.shape[-2]
+    if orientation.ndim == 2:
+        orientation, shape = (np.broadcast_to(a, (r, *a.shape)) for a in (orientation, shape))
+    n = orientation.shape[1]
     sizes = np.full(r, settings.max_size, np.float32) if max_sizes is None else np.asarray(max_sizes, np.float32)
     stride = stride or settings.lattice
     # Chunks of about 2^16 rays keep temporaries in cache (one huge vmap is slower).
@@ -465,39 +448,27 @@ def score_regions(
     cap = int(max(1, min(settings.batch_size, CHUNK_RAYS // pixels)))
     batch = -(-n // (-(-n // (cap * devices)) * devices))  # as few chunks as the cap allows, least padding
     chunks = int(math.ceil(n / (batch * devices)) * devices)  # per region
-    padded = chunks * batch
-
-    def table(a, regions):
-        """Rows padded to ``padded`` per set (with the set's first row, not read)."""
-        a = a.reshape(-1, n, a.shape[-1])[regions]
-        return np.concatenate([a, np.repeat(a[:, :1], padded - n, axis=1)], axis=1).reshape(-1, a.shape[-1])
-
+    o = np.zeros((r, chunks * batch, 3), np.float32)
+    o[:, :n] = orientation
+    s = np.repeat(shape[:, :1], chunks * batch, axis=1)
+    s[:, :n] = shape
     corners = centres - np.int32(settings.side // 2)
     gam, off = np.empty((r, n), np.float32), np.empty((r, n), np.float32)
     for first in range(0, r, REGION_BUCKET):
         rows = np.arange(first, min(r, first + REGION_BUCKET))
         m = len(rows)
-        sets = np.zeros(1, np.int64) if shared else rows
-        # Chunk j of region k: rows j·batch of the shared table, or of region k's own.
-        own = np.arange(REGION_BUCKET)[:, None] * padded * (not shared)
-        start = (own + np.arange(chunks)[None] * batch).astype(np.int32)
-        region = np.where(np.arange(REGION_BUCKET) < m, np.arange(REGION_BUCKET), -1).astype(np.int32)
 
         def bucket(a, fill: float = 0.0):
             out = np.full((REGION_BUCKET, *a.shape[1:]), fill, a.dtype)
             out[:m] = a[rows]
             return out
 
-        o, sh = table(orientation, sets), table(shape, sets)
-        if not shared:  # every region's own rows, the padding regions' too (not read)
-            o = np.concatenate([o, np.zeros(((REGION_BUCKET - m) * padded, 3), np.float32)])
-            sh = np.concatenate([sh, np.repeat(sh[:1], (REGION_BUCKET - m) * padded, axis=0)])
+        region = np.where(np.arange(REGION_BUCKET) < m, np.arange(REGION_BUCKET), -1).astype(np.int32)
         g, p = _score_hypotheses(
             data.arrays,
-            o,
-            sh,
+            bucket(o).reshape(-1, batch, 3),
+            bucket(s).reshape(-1, batch, 8),
             np.repeat(region, chunks),
-            start.reshape(-1),
             bucket(corners),
             bucket(centres),
             bucket(sizes, 1.0),
@@ -505,7 +476,6 @@ def score_regions(
             pad=data.pad,
             window=settings.side,
             stride=stride,
-            batch=batch,
             newton_steps=settings.newton_steps,
         )
         gam[rows] = np.asarray(g).reshape(REGION_BUCKET, -1)[:m, :n]
