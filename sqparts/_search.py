@@ -611,31 +611,14 @@ def _choose_all(data: RangeData, settings: SearchSettings, centres, sizes, *, pr
     neighbours at full resolution and keep each region's ``max(top_k,
     polish_candidates)`` best distinct ones (:func:`_choose_rows`): the regions in
     :func:`~sqparts._compile.balanced_groups` of at most :data:`REGION_BUCKET`, run
-    :func:`~sqparts._compile.concurrently` (``progress`` wraps the regions, each counted
-    when its group is done). A region chosen
+    :func:`~sqparts._compile.concurrently` (``progress`` wraps them). A region chosen
     before in this recovery is looked up (:data:`_CHOSEN`)."""
     per_region = [dataclasses.replace(settings, max_size=float(m)) for m in sizes]
     keys = [RowMemo.key(_image_key(data), st, tuple(int(c) for c in centre)) for st, centre in zip(per_region, centres)]
     known = {i: row for i, k in enumerate(keys) if (row := _CHOSEN.get(k)) is not None}
     todo = np.array([i for i in range(len(keys)) if i not in known], np.int64)
     groups = [todo[g] for g in balanced_groups(len(todo), REGION_BUCKET)]
-
-    wrap = progress or (lambda it: it)
-
-    def by_region(calls):
-        """The groups' calls as :func:`concurrently` waits for them, ``progress``
-        ticking once per region of each call done."""
-        ticks = iter(wrap(range(len(todo))))
-        for group, call in zip(groups, calls):
-            yield call
-            for _ in group:
-                next(ticks, None)
-        for _ in ticks:
-            pass
-
-    done = concurrently(
-        lambda g: _choose_rows(data, settings, centres[g], sizes[g]), groups, progress=by_region if progress else None
-    )
+    done = concurrently(lambda g: _choose_rows(data, settings, centres[g], sizes[g]), groups, progress=progress)
     for group, out in zip(groups, done):
         for i, row in zip(group, out):
             known[int(i)] = row
@@ -834,7 +817,7 @@ def fit_regions(
     Γ improves; with ``restarts``, each region's best polished part is restarted
     (:func:`_restart_starts`) and polished again. ``max_sizes`` (n,) replaces
     ``settings.max_size`` per region (the window stays ``settings.window``); ``progress``
-    wraps the regions' grid searches (e.g. ``tqdm.tqdm``)."""
+    wraps the grid searches of the groups of regions (e.g. ``tqdm.tqdm``)."""
     centres = np.asarray(centres, np.int32).reshape(-1, 2)
     if max_sizes is None:
         sizes = [settings.max_size] * len(centres)
