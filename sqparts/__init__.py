@@ -93,7 +93,6 @@ _EXPORTS = {
         "make_settings",
         "region_centers",
         "score_region",
-        "score_regions",
         "search_preset",
     ),
     "_select": (
