@@ -1,0 +1,111 @@
+"""The grid search of a whole image (``fit_image``: every region's grid, candidates and
+their polishing) against another checkout, warm, in one process per scene, grid and
+checkout, the checkouts' processes interleaved. Records each run's warm times, the XLA
+programs its first search built, and whether every region's candidates and Γ are the
+same, bit for bit, as the other checkout's.
+
+    git worktree add --detach /tmp/wt-base <rev>
+    JAX_PLATFORMS=cpu python benchmarks/bench_search_image.py --base /tmp/wt-base \\
+        --scenes human castings --grids coarse default --runs 3 --rounds 2
+
+Writes ``benchmarks/results/search_image.json``.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import statistics
+import subprocess
+import sys
+import tempfile
+from pathlib import Path
+
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+
+from _common import save
+
+ROOT = Path(__file__).resolve().parents[1]
+
+CHILD = r"""
+import json, sys, time
+import jax
+import numpy as np
+import sqparts
+built = [0]
+jax.monitoring.register_event_duration_secs_listener(
+    lambda name, secs, **kw: built.__setitem__(0, built[0] + (name == "/jax/core/compile/backend_compile_duration")))
+scene, grid, runs = sys.argv[1], sys.argv[2], int(sys.argv[3])
+s = sqparts.builtin_scene(scene)
+depth = np.asarray(sqparts.render_range_image(s.parts, s.camera))
+settings = sqparts.SearchSettings(grid=grid)
+built[0] = 0
+t = time.perf_counter()
+fits, _, _ = sqparts.fit_image(depth, s.camera, settings)
+cold, programs = time.perf_counter() - t, built[0]
+times = []
+for _ in range(runs):
+    t = time.perf_counter()
+    fits, _, _ = sqparts.fit_image(depth, s.camera, settings)
+    times.append(time.perf_counter() - t)
+print("RESULT " + json.dumps({"regions": len(fits), "cold_s": cold, "programs": programs, "warm_s": times,
+    "vectors": [np.asarray(f.parts.to_vector()).tolist() for f in fits],
+    "gamma": [np.asarray(f.gamma).tolist() for f in fits]}))
+"""
+
+
+def run(checkout: Path, scene: str, grid: str, runs: int) -> dict:
+    env = dict(os.environ, PYTHONPATH=str(checkout), JAX_PLATFORMS="cpu")
+    p = subprocess.run(
+        [sys.executable, "-c", CHILD, scene, grid, str(runs)],
+        env=env,
+        capture_output=True,
+        text=True,
+        cwd=tempfile.gettempdir(),  # no checkout on the path but PYTHONPATH's
+    )
+    if p.returncode != 0:
+        raise RuntimeError(f"{checkout}: {scene} ({grid}) failed:\n{p.stderr[-3000:]}")
+    return json.loads(next(line[7:] for line in p.stdout.splitlines() if line.startswith("RESULT ")))
+
+
+def main():
+    ap = argparse.ArgumentParser()
+    ap.add_argument("--base", required=True, type=Path, help="checkout of the baseline")
+    ap.add_argument("--scenes", nargs="+", default=["human", "castings"])
+    ap.add_argument("--grids", nargs="+", default=["coarse", "default"])
+    ap.add_argument("--runs", type=int, default=3, help="warm searches per process")
+    ap.add_argument("--rounds", type=int, default=2)
+    args = ap.parse_args()
+    checkouts = {"base": args.base.resolve(), "new": ROOT}
+    rows = []
+    for scene in args.scenes:
+        for grid in args.grids:
+            got = {v: [] for v in checkouts}
+            for _ in range(args.rounds):
+                for v, checkout in checkouts.items():
+                    got[v].append(run(checkout, scene, grid, args.runs))
+            warm = {v: statistics.median([t for r in got[v] for t in r["warm_s"]]) for v in checkouts}
+            base, new = got["base"][-1], got["new"][-1]
+            row = {
+                "scene": scene,
+                "grid": grid,
+                "regions": new["regions"],
+                "identical": base["vectors"] == new["vectors"] and base["gamma"] == new["gamma"],
+                "warm_median_s": warm,
+                "warm_s": {v: [t for r in got[v] for t in r["warm_s"]] for v in checkouts},
+                "cold_s": {v: [r["cold_s"] for r in got[v]] for v in checkouts},
+                "programs_first_search": {v: got[v][-1]["programs"] for v in checkouts},
+                "speedup": warm["base"] / warm["new"],
+            }
+            rows.append(row)
+            print(
+                f"{scene} ({grid}, {row['regions']} regions): base {warm['base']:.2f} s, new {warm['new']:.2f} s "
+                f"(x{row['speedup']:.2f}); identical: {row['identical']}",
+                flush=True,
+            )
+    save("search_image", {"base": str(checkouts["base"]), "runs": args.runs, "rounds": args.rounds, "rows": rows})
+
+
+if __name__ == "__main__":
+    main()
