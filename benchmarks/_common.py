@@ -8,6 +8,8 @@ import os
 import platform
 import statistics
 import subprocess
+import sys
+import tempfile
 import time
 from pathlib import Path
 
@@ -58,6 +60,32 @@ def time_call(fn, *args, repeats: int = 5):
         jax.block_until_ready(fn(*args))
         times.append(time.perf_counter() - t0)
     return first, statistics.median(times), times
+
+
+CHILD_PREAMBLE = r"""
+import json, sys, time
+import jax
+import numpy as np
+import sqparts
+built = [0]
+jax.monitoring.register_event_duration_secs_listener(
+    lambda name, secs, **kw: built.__setitem__(0, built[0] + (name == "/jax/core/compile/backend_compile_duration")))
+"""
+"""The start of a child script for :func:`run_in_checkout`: imports, and ``built[0]``
+counting the XLA programs built."""
+
+
+def run_in_checkout(checkout: Path, child: str, *args: str) -> dict:
+    """Run the script ``child`` with ``args`` in a new process importing ``sqparts`` from
+    ``checkout`` (on the CPU, from a folder holding no other checkout); returns the JSON
+    it prints after ``RESULT ``."""
+    env = dict(os.environ, PYTHONPATH=str(checkout), JAX_PLATFORMS="cpu")
+    p = subprocess.run(
+        [sys.executable, "-c", child, *args], env=env, capture_output=True, text=True, cwd=tempfile.gettempdir()
+    )
+    if p.returncode != 0:
+        raise RuntimeError(f"{checkout}: {' '.join(args)} failed:\n{p.stderr[-3000:]}")
+    return json.loads(next(line[7:] for line in p.stdout.splitlines() if line.startswith("RESULT ")))
 
 
 def result_path(name: str, ext: str = "json") -> Path:

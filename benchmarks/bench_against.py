@@ -17,28 +17,20 @@ from __future__ import annotations
 
 import argparse
 import json
-import os
 import statistics
-import subprocess
 import sys
-import tempfile
 from pathlib import Path
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 
-from _common import save
+from _common import CHILD_PREAMBLE, run_in_checkout, save
 from bench_cli import CAMERA, SCENE
 
 ROOT = Path(__file__).resolve().parents[1]
 
-CHILD = r"""
-import json, sys, time
-import jax
-import numpy as np
-import sqparts
-built = [0]
-jax.monitoring.register_event_duration_secs_listener(
-    lambda name, secs, **kw: built.__setitem__(0, built[0] + (name == "/jax/core/compile/backend_compile_duration")))
+CHILD = (
+    CHILD_PREAMBLE
+    + r"""
 name, runs, scene, camera = sys.argv[1], int(sys.argv[2]), json.loads(sys.argv[3]), json.loads(sys.argv[4])
 if name == "single":
     parts, cam = sqparts.scene_from_dict(scene)[0], sqparts.camera_from_json(camera)
@@ -60,20 +52,11 @@ for _ in range(runs):
 print("RESULT " + json.dumps({"parts": len(r.parts), "E": r.cost.total, "explained": r.fraction_explained,
     "cold_s": cold, "programs": programs, "warm_programs": built[0] - programs, "warm_s": times, "stages": stages, "vectors": np.asarray(r.parts.to_vector()).tolist()}))
 """
+)
 
 
 def run(checkout: Path, scene: str, runs: int) -> dict:
-    env = dict(os.environ, PYTHONPATH=str(checkout), JAX_PLATFORMS="cpu")
-    p = subprocess.run(
-        [sys.executable, "-c", CHILD, scene, str(runs), json.dumps(SCENE), json.dumps(CAMERA)],
-        env=env,
-        capture_output=True,
-        text=True,
-        cwd=tempfile.gettempdir(),  # no checkout on the path but PYTHONPATH's
-    )
-    if p.returncode != 0:
-        raise RuntimeError(f"{checkout}: {scene} failed:\n{p.stderr[-3000:]}")
-    return json.loads(next(line[7:] for line in p.stdout.splitlines() if line.startswith("RESULT ")))
+    return run_in_checkout(checkout, CHILD, scene, str(runs), json.dumps(SCENE), json.dumps(CAMERA))
 
 
 def main():

@@ -14,28 +14,19 @@ Writes ``benchmarks/results/search_image.json``.
 from __future__ import annotations
 
 import argparse
-import json
-import os
 import statistics
-import subprocess
 import sys
-import tempfile
 from pathlib import Path
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 
-from _common import save
+from _common import CHILD_PREAMBLE, run_in_checkout, save
 
 ROOT = Path(__file__).resolve().parents[1]
 
-CHILD = r"""
-import json, sys, time
-import jax
-import numpy as np
-import sqparts
-built = [0]
-jax.monitoring.register_event_duration_secs_listener(
-    lambda name, secs, **kw: built.__setitem__(0, built[0] + (name == "/jax/core/compile/backend_compile_duration")))
+CHILD = (
+    CHILD_PREAMBLE
+    + r"""
 scene, grid, runs = sys.argv[1], sys.argv[2], int(sys.argv[3])
 s = sqparts.builtin_scene(scene)
 depth = np.asarray(sqparts.render_range_image(s.parts, s.camera))
@@ -53,20 +44,11 @@ print("RESULT " + json.dumps({"regions": len(fits), "cold_s": cold, "programs": 
     "vectors": [np.asarray(f.parts.to_vector()).tolist() for f in fits],
     "gamma": [np.asarray(f.gamma).tolist() for f in fits]}))
 """
+)
 
 
 def run(checkout: Path, scene: str, grid: str, runs: int) -> dict:
-    env = dict(os.environ, PYTHONPATH=str(checkout), JAX_PLATFORMS="cpu")
-    p = subprocess.run(
-        [sys.executable, "-c", CHILD, scene, grid, str(runs)],
-        env=env,
-        capture_output=True,
-        text=True,
-        cwd=tempfile.gettempdir(),  # no checkout on the path but PYTHONPATH's
-    )
-    if p.returncode != 0:
-        raise RuntimeError(f"{checkout}: {scene} ({grid}) failed:\n{p.stderr[-3000:]}")
-    return json.loads(next(line[7:] for line in p.stdout.splitlines() if line.startswith("RESULT ")))
+    return run_in_checkout(checkout, CHILD, scene, grid, str(runs))
 
 
 def main():
