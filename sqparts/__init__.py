@@ -93,6 +93,7 @@ _EXPORTS = {
         "make_settings",
         "region_centers",
         "score_region",
+        "score_regions",
         "search_preset",
     ),
     "_select": (

@@ -281,14 +281,16 @@ def workers() -> int:
 
 def balanced_groups(n: int, size: int) -> list[np.ndarray]:
     """Indices 0..n-1 in consecutive groups of at most ``size``, as few as there can be
-    but at least one per :func:`workers` thread (while there are items), their sizes
-    differing by at most one: compiled calls of ``size`` padded rows, run
-    :func:`concurrently`, then finish together (12 parts: two calls of 6, not 8 and 4;
-    2 parts: two calls of one, not one of two)."""
+    but, when the calls run on the CPU's own cores, at least one per :func:`workers`
+    thread (while there are items), their sizes differing by at most one: compiled calls
+    of ``size`` padded rows, run :func:`concurrently`, then finish together (12 parts:
+    two calls of 6, not 8 and 4; 2 parts: two calls of one, not one of two). On an
+    accelerator one call of many rows beats several small ones: as few as there can be."""
     if n <= 0:
         return []
     count = -(-n // size)
-    count = min(n, -(-count // workers()) * workers())
+    if jax.default_backend() == "cpu":
+        count = min(n, -(-count // workers()) * workers())
     return np.array_split(np.arange(n), count)
 
 

@@ -1,12 +1,14 @@
 """The massively parallel local search (paper sections 3.3-3.4, 3.6 and the Appendix).
 
-For a region of the image, every hypothesis of a :class:`~sqparts.Grid` is posed at the
-region (its orientation taken relative to the viewing ray through the region centre, its
-centre on that ray behind the measured surface), rendered over the region's window and
-scored with Γ (Eq. 4): one jit-compiled computation, vmapped over pixels, chunked over
-hypotheses with ``jax.lax.map(..., batch_size=...)`` and sharded over ``jax.devices()``
-with ``jax.shard_map``. It is compiled once per (grid size, window, camera), never per
-region or per image.
+At each region of the image, every hypothesis of a :class:`~sqparts.Grid` is posed at
+the region (its orientation taken relative to the viewing ray through the region centre,
+its centre on that ray behind the measured surface), rendered over the region's window
+and scored with Γ (Eq. 4): one jit-compiled computation for all regions' hypotheses
+together (:func:`score_regions`), vmapped over the pixels and the hypotheses of a chunk,
+a loop over a call's regions (up to :data:`REGION_BUCKET`, the loop as long as the live
+ones), each a loop over its chunks of hypotheses, sharded over ``jax.devices()`` with
+``jax.shard_map``. It is compiled once per (grid size, window,
+camera), never per region, number of regions or image.
 
 **Pruning** (section 3.6): every hypothesis is first scored on a pixel subsample
 (``stride``: every stride-th row and column, each pixel standing for stride² pixels);
@@ -35,7 +37,7 @@ from jax.sharding import Mesh
 from jax.sharding import PartitionSpec as P
 
 from ._camera import Camera, camera_points
-from ._compile import RowMemo, concurrently, persistent_jit
+from ._compile import RowMemo, balanced_groups, concurrently, persistent_jit
 from ._data import RangeData, prepare
 from ._encoding import (
     PART_BUCKET,
@@ -327,58 +329,101 @@ def _score_one(part, origins, directions, measured, figure, weight, *, sigma, la
     return mu - lam * eps, offset
 
 
-def _map_hypotheses(fn, batched, replicated, batch_size: int):
-    """Apply ``fn(one, *replicated)`` over the leading axis of ``batched``: chunked with
-    ``lax.map`` and, with several devices, sharded over them with ``shard_map``."""
+REGION_BUCKET = 16
+"""Regions per compiled call of the grid search (:func:`score_regions`): one program
+serves any number of regions, and a call's padding regions cost nothing (the loop over
+regions stops at the last live one)."""
+
+
+def _map_regions(fn, region, starts, replicated):
+    """``fn(r, starts_r, *replicated)`` for each live region ``r`` of ``region`` (R,)
+    (-1: padding, which comes last and is not run; zeros there), ``starts`` (R, c)
+    its chunks' first rows: a loop as long as the live regions, each mapping ``fn``'s
+    chunk loop over its own row of ``starts``. With several devices the chunks (axis 1,
+    a multiple of the devices) are sharded over them with ``shard_map``."""
     devices = jax.devices()
-    run = lambda b, *r: jax.lax.map(lambda x: fn(x, *r), b, batch_size=batch_size)  # noqa: E731
+
+    def run(starts, region, *r):
+        def body(k, out):
+            return jax.tree_util.tree_map(lambda o, y: o.at[k].set(y), out, fn(region[k], starts[k], *r))
+
+        one = jax.eval_shape(lambda: fn(region[0], starts[0], *r))
+        out = jax.tree_util.tree_map(lambda s: jnp.zeros((len(region), *s.shape), s.dtype), one)
+        return jax.lax.fori_loop(0, jnp.sum(region >= 0), body, out)  # a traced trip count: live regions only
+
     if len(devices) == 1:
-        return run(batched, *replicated)
+        return run(starts, region, *replicated)
     mesh = Mesh(np.asarray(devices), ("hypotheses",))
-    spec_b = jax.tree_util.tree_map(lambda _: P("hypotheses"), batched)
     spec_r = jax.tree_util.tree_map(lambda _: P(), replicated)
-    return jax.shard_map(run, mesh=mesh, in_specs=(spec_b, *spec_r), out_specs=P("hypotheses"), check_vma=False)(
-        batched, *replicated
-    )
+    return jax.shard_map(
+        run,
+        mesh=mesh,
+        in_specs=(P(None, "hypotheses"), P(), *spec_r),
+        out_specs=P(None, "hypotheses"),
+        check_vma=False,
+    )(starts, region, *replicated)
 
 
-@persistent_jit(static_argnames=("camera", "pad", "window", "stride", "batch_size", "newton_steps"))
+@persistent_jit(static_argnames=("camera", "pad", "window", "stride", "batch", "newton_steps"))
 def _score_hypotheses(
-    arrays, orientation_rel, shape, corner, centre, max_size, *, camera, pad, window, stride, batch_size, newton_steps
+    arrays,
+    orientation_rel,
+    shape,
+    region,
+    start,
+    corner,
+    centre,
+    max_size,
+    *,
+    camera,
+    pad,
+    window,
+    stride,
+    batch,
+    newton_steps,
 ):
-    """Γ and depth offset p for every hypothesis at one region (the one parallel operation)."""
+    """Γ and depth offset p of hypotheses at several regions (the one parallel
+    operation), in chunks of ``batch``: region ``region[k]`` (``corner``, ``centre``: (R,
+    2); ``max_size``: (R,)) scores its chunks, the table's rows ``start[k, j]`` to
+    ``start[k, j] + batch`` (``orientation_rel`` (m, 3), ``shape`` (m, 8)); regions of
+    ``region`` -1 are padding, after the live ones, not scored (Γ -inf). Returns (R, c,
+    batch) arrays."""
     depth, fig, sigma, lam = arrays
-    measured, figure, origins, directions, c_o, c_d, surface_t = _region_inputs(
-        depth, fig, camera, pad, corner, centre, window
-    )
     s = slice(stride // 2, None, stride)
-    measured, figure = measured[s, s], figure[s, s]
-    origins, directions = origins[s, s], directions[s, s]
     weight = jnp.float32(stride * stride)
 
-    def one(h, origins, directions, measured, figure, c_o, c_d, surface_t, sigma, lam, max_size):
-        orientation_rel, shp = h
-        part = pose_hypothesis(orientation_rel, shp, max_size, c_o, c_d, surface_t)
-        return _score_one(
-            part,
-            origins,
-            directions,
-            measured,
-            figure,
-            weight,
-            sigma=sigma,
-            lam=lam,
-            num_bins=NUM_BINS,
-            newton_steps=newton_steps,
+    def at_region(r, starts, orientation_rel, shape, corner, centre, sigma, lam, max_size):
+        # The region's window is cut once, outside its loop over chunks: what depends
+        # on the window alone is computed once, not per chunk.
+        measured, figure, origins, directions, c_o, c_d, surface_t = _region_inputs(
+            depth, fig, camera, pad, corner[r], centre[r], window
         )
+        measured, figure, origins, directions = (a[s, s] for a in (measured, figure, origins, directions))
 
-    gam, off = _map_hypotheses(
-        one,
-        (orientation_rel, shape),
-        (origins, directions, measured, figure, c_o, c_d, surface_t, sigma, lam, max_size),
-        batch_size,
-    )
-    return jnp.where(jnp.isfinite(gam), gam, -jnp.inf), off, c_d
+        def one(o, shp):
+            part = pose_hypothesis(o, shp, max_size[r], c_o, c_d, surface_t)
+            return _score_one(
+                part,
+                origins,
+                directions,
+                measured,
+                figure,
+                weight,
+                sigma=sigma,
+                lam=lam,
+                num_bins=NUM_BINS,
+                newton_steps=newton_steps,
+            )
+
+        def chunk(first):
+            rows = (jax.lax.dynamic_slice_in_dim(a, first, batch) for a in (orientation_rel, shape))
+            return jax.vmap(one)(*rows)
+
+        return jax.lax.map(chunk, starts)
+
+    gam, off = _map_regions(at_region, region, start, (orientation_rel, shape, corner, centre, sigma, lam, max_size))
+    live = (region >= 0)[:, None, None]
+    return jnp.where(live & jnp.isfinite(gam), gam, -jnp.inf), off
 
 
 # --- results --------------------------------------------------------------------------
@@ -405,38 +450,84 @@ class RegionFit(eqx.Module):
     corner: tuple = eqx.field(static=True)
 
 
-def score_region(data: RangeData, settings: SearchSettings, centre, *, hypotheses=None, stride: int | None = None):
-    """Γ and offset p of every grid hypothesis at ``centre`` (row, col), at ``stride``."""
+def score_regions(
+    data: RangeData, settings: SearchSettings, centres, *, hypotheses=None, stride: int | None = None, max_sizes=None
+) -> tuple[np.ndarray, np.ndarray]:
+    """Γ and offset p of hypotheses at each region centred at ``centres`` (r, 2) (row,
+    col), at ``stride`` (None: the pruning lattice): every grid hypothesis
+    (``hypotheses`` None), the same set at every region (a dict of (n, 3) relative
+    ``"orientation"`` and (n, 8) ``"shape"``) or one set per region ((r, n, 3) and (r,
+    n, 8)); ``max_sizes`` (r,) replaces ``settings.max_size`` per region. All regions'
+    hypotheses go through one compiled program, in chunks (``settings.batch_size`` at
+    most, about :data:`CHUNK_RAYS` rays a chunk), :data:`REGION_BUCKET` regions a call; a
+    set shared by the regions is passed once. Returns (r, n) host arrays."""
     hyp = hypotheses or _grid_arrays(settings.grid)
-    corner, centre = _corner(settings, centre)
-    n = len(hyp["orientation"])
+    centres = np.asarray(centres, np.int32).reshape(-1, 2)
+    r = len(centres)
+    orientation, shape = (np.asarray(hyp[k], np.float32) for k in ("orientation", "shape"))
+    shared = orientation.ndim == 2
+    n = orientation.shape[-2]
+    sizes = np.full(r, settings.max_size, np.float32) if max_sizes is None else np.asarray(max_sizes, np.float32)
     stride = stride or settings.lattice
     # Chunks of about 2^16 rays keep temporaries in cache (one huge vmap is slower).
     pixels = len(range(stride // 2, settings.side, stride)) ** 2
     devices = len(jax.devices())
     cap = int(max(1, min(settings.batch_size, CHUNK_RAYS // pixels)))
-    batch_size = -(-n // (-(-n // (cap * devices)) * devices))  # as few chunks as the cap allows, least padding
-    unit = batch_size * devices
-    padded = int(math.ceil(n / unit) * unit)
-    o = np.zeros((padded, 3), np.float32)
-    o[:n] = hyp["orientation"]
-    s = np.tile(hyp["shape"][:1], (padded, 1))
-    s[:n] = hyp["shape"]
-    gam, off, c_d = _score_hypotheses(
-        data.arrays,
-        o,
-        s,
-        corner,
-        centre,
-        np.float32(settings.max_size),
-        camera=data.compiled_camera,
-        pad=data.pad,
-        window=settings.window,
-        stride=stride,
-        batch_size=batch_size,
-        newton_steps=settings.newton_steps,
-    )
-    return jax.device_put(np.asarray(gam)[:n]), jax.device_put(np.asarray(off)[:n])
+    batch = -(-n // (-(-n // (cap * devices)) * devices))  # as few chunks as the cap allows, least padding
+    chunks = int(math.ceil(n / (batch * devices)) * devices)  # per region
+    padded = chunks * batch
+
+    def table(a, regions):
+        """Rows padded to ``padded`` per set (with the set's first row, not read)."""
+        a = a.reshape(-1, n, a.shape[-1])[regions]
+        return np.concatenate([a, np.repeat(a[:, :1], padded - n, axis=1)], axis=1).reshape(-1, a.shape[-1])
+
+    corners = centres - np.int32(settings.side // 2)
+    gam, off = np.empty((r, n), np.float32), np.empty((r, n), np.float32)
+    for first in range(0, r, REGION_BUCKET):
+        rows = np.arange(first, min(r, first + REGION_BUCKET))
+        m = len(rows)
+        sets = np.zeros(1, np.int64) if shared else rows
+        # Chunk j of region k: rows j·batch of the shared table, or of region k's own.
+        own = np.arange(REGION_BUCKET)[:, None] * padded * (not shared)
+        start = (own + np.arange(chunks)[None] * batch).astype(np.int32)
+        region = np.where(np.arange(REGION_BUCKET) < m, np.arange(REGION_BUCKET), -1).astype(np.int32)
+
+        def bucket(a, fill: float = 0.0):
+            out = np.full((REGION_BUCKET, *a.shape[1:]), fill, a.dtype)
+            out[:m] = a[rows]
+            return out
+
+        o, sh = table(orientation, sets), table(shape, sets)
+        if not shared:  # every region's own rows, the padding regions' too (not read)
+            o = np.concatenate([o, np.zeros(((REGION_BUCKET - m) * padded, 3), np.float32)])
+            sh = np.concatenate([sh, np.repeat(sh[:1], (REGION_BUCKET - m) * padded, axis=0)])
+        g, p = _score_hypotheses(
+            data.arrays,
+            o,
+            sh,
+            region,
+            start,
+            bucket(corners),
+            bucket(centres),
+            bucket(sizes, 1.0),
+            camera=data.compiled_camera,
+            pad=data.pad,
+            window=settings.side,
+            stride=stride,
+            batch=batch,
+            newton_steps=settings.newton_steps,
+        )
+        gam[rows] = np.asarray(g).reshape(REGION_BUCKET, -1)[:m, :n]
+        off[rows] = np.asarray(p).reshape(REGION_BUCKET, -1)[:m, :n]
+    return gam, off
+
+
+def score_region(data: RangeData, settings: SearchSettings, centre, *, hypotheses=None, stride: int | None = None):
+    """Γ and offset p of every grid hypothesis (or of ``hypotheses``) at ``centre`` (row,
+    col), at ``stride``: :func:`score_regions` of one region."""
+    gam, off = score_regions(data, settings, [centre], hypotheses=hypotheses, stride=stride)
+    return jax.device_put(gam[0]), jax.device_put(off[0])
 
 
 @functools.lru_cache(maxsize=8)
@@ -457,12 +548,6 @@ def _by_window(grid: Grid, window: int, *, multiple: int = 8) -> list[tuple[int,
         side = int(min(window, max(16, math.ceil(length * window / multiple) * multiple)))
         out.append((side, np.flatnonzero(rel == length)))
     return out
-
-
-def _corner(settings, centre):
-    centre = np.asarray(centre, np.int32)  # numpy: passed to compiled programs as is
-    corner = centre - np.int32(settings.window // 2)
-    return corner, centre
 
 
 def _restart_starts(part: Part, levels: int) -> Part:
@@ -560,24 +645,55 @@ def _image_key(data: RangeData) -> bytes:
     return RowMemo.key(np.asarray(data.depth), np.asarray(data.figure), data.pad, data.camera, data.encoding)
 
 
-def _choose(data: RangeData, settings: SearchSettings, centre) -> _Chosen:
-    """Score every hypothesis at one region (on a subsample when ``prune``), rescore the
-    survivors and their orientation neighbours at full resolution and keep the
-    ``max(top_k, polish_candidates)`` best distinct ones (:func:`_distinct`); a region
-    chosen before in this recovery is looked up (:data:`_CHOSEN`)."""
-    key = RowMemo.key(_image_key(data), settings, tuple(int(c) for c in centre))
-    row = _CHOSEN.get(key)
-    if row is None:
-        row = _choose_row(data, settings, centre)
-        _CHOSEN.put(key, row)
-    table = row[:-1].reshape(-1, 12)
-    return _Chosen(
-        table[:, :3].astype(np.float32),
-        table[:, 3:11].astype(np.float32),
-        table[:, 11].astype(np.float32),
-        float(row[-1]),
-        float(settings.max_size),  # pyright: ignore[reportArgumentType]  # resolved settings: a float
+def _choose_all(data: RangeData, settings: SearchSettings, centres, sizes, *, progress=None) -> list[_Chosen]:
+    """Score every hypothesis at each region (centres (r, 2), largest semi-axes ``sizes``
+    (r,); on a subsample when ``prune``), rescore the survivors and their orientation
+    neighbours at full resolution and keep each region's ``max(top_k,
+    polish_candidates)`` best distinct ones (:func:`_choose_rows`): the regions in
+    :func:`~sqparts._compile.balanced_groups` of at most :data:`REGION_BUCKET`, run
+    :func:`~sqparts._compile.concurrently` (``progress`` wraps the regions, each counted
+    when its group is done). A region chosen
+    before in this recovery is looked up (:data:`_CHOSEN`)."""
+    per_region = [dataclasses.replace(settings, max_size=float(m)) for m in sizes]
+    keys = [RowMemo.key(_image_key(data), st, tuple(int(c) for c in centre)) for st, centre in zip(per_region, centres)]
+    known = {i: row for i, k in enumerate(keys) if (row := _CHOSEN.get(k)) is not None}
+    todo = np.array([i for i in range(len(keys)) if i not in known], np.int64)
+    groups = [todo[g] for g in balanced_groups(len(todo), REGION_BUCKET)]
+
+    wrap = progress or (lambda it: it)
+
+    def by_region(calls):
+        """The groups' calls as :func:`concurrently` waits for them, ``progress``
+        ticking once per region of each call done."""
+        ticks = iter(wrap(range(len(todo))))
+        for group, call in zip(groups, calls):
+            yield call
+            for _ in group:
+                next(ticks, None)
+        for _ in ticks:
+            pass
+
+    done = concurrently(
+        lambda g: _choose_rows(data, settings, centres[g], sizes[g]), groups, progress=by_region if progress else None
     )
+    for group, out in zip(groups, done):
+        for i, row in zip(group, out):
+            known[int(i)] = row
+            _CHOSEN.put(keys[i], row)
+    chosen = []
+    for i, size in enumerate(sizes):
+        row = known[i]
+        table = row[:-1].reshape(-1, 12)
+        chosen.append(
+            _Chosen(
+                table[:, :3].astype(np.float32),
+                table[:, 3:11].astype(np.float32),
+                table[:, 11].astype(np.float32),
+                float(row[-1]),
+                float(size),
+            )
+        )
+    return chosen
 
 
 def _orientation_neighbours(orientation: np.ndarray, step: float) -> np.ndarray:
@@ -595,54 +711,77 @@ def _orientation_neighbours(orientation: np.ndarray, step: float) -> np.ndarray:
     return (Rotation.from_rotvec(base) * Rotation.from_rotvec(turns)).as_rotvec()
 
 
-def _choose_row(data: RangeData, settings: SearchSettings, centre) -> np.ndarray:
-    """:func:`_choose`'s result as one row (float64): per chosen hypothesis its
-    orientation (3), shape (8) and offset (1), then the ratio."""
+def _choose_rows(data: RangeData, settings: SearchSettings, centres, sizes) -> list[np.ndarray]:
+    """:func:`_choose_all`'s work for some regions, each region's result as one row
+    (float64): per chosen hypothesis its orientation (3), shape (8) and offset (1), then
+    the ratio. Every stage scores all the regions together (:func:`score_regions`)."""
     hyp = _grid_arrays(settings.grid)
     n = len(hyp["orientation"])
+    r = len(centres)
     grid: Grid = settings.grid  # pyright: ignore[reportAssignmentType]  # resolved in __post_init__
     step = min(grid.axis_step, grid.roll_step) / 2
+    more = 6 * settings.refine_orientations  # most orientation neighbours a region gets
 
     def with_neighbours(pool: dict, order: np.ndarray) -> dict:
         """The pool and, after it, its ``refine_orientations`` best distinct members
         (``order``: best first) turned by half the grid's step."""
         best = order[_distinct(pool["orientation"][order], pool["shape"][order], settings.refine_orientations)]
-        more = {
+        turned = {
             "orientation": _orientation_neighbours(pool["orientation"][best], math.radians(step)).astype(np.float32),
             "shape": np.repeat(pool["shape"][best], 6, axis=0),
         }
-        return {k: np.concatenate([pool[k], more[k]]) for k in pool}
+        return {k: np.concatenate([pool[k], turned[k]]) for k in pool}
 
-    grid_hypotheses = n  # the pool's first rows: the ratio is the grid's own
+    def stacked(pools: list[dict], size: int) -> dict:
+        """The regions' pools as (r, size, ...) arrays, each padded with its first row:
+        every call has the same shapes (one program), and the padding is not read."""
+        return {
+            k: np.stack([np.concatenate([p[k], np.repeat(p[k][:1], size - len(p[k]), 0)]) for p in pools]) for k in hyp
+        }
+
+    grid_hypotheses = n  # the pools' first rows: the ratio is the grid's own
     if settings.prune and settings.lattice > 1 and settings.survivors < n:
-        gam = np.empty(n, np.float32)
+        gam = np.empty((r, n), np.float32)
         for side, sel in _by_window(settings.grid, settings.window):
-            g, _ = score_region(
-                data, dataclasses.replace(settings, window=side), centre, hypotheses={k: v[sel] for k, v in hyp.items()}
+            sub = dataclasses.replace(settings, window=side)
+            gam[:, sel], _ = score_regions(
+                data, sub, centres, hypotheses={k: v[sel] for k, v in hyp.items()}, max_sizes=sizes
             )
-            gam[sel] = np.asarray(g)
-        keep = np.argsort(-gam, kind="stable")[: settings.survivors]
-        pool = {k: v[keep] for k, v in hyp.items()}
-        grid_hypotheses = len(keep)
+        keep = np.argsort(-gam, axis=1, kind="stable")[:, : settings.survivors]
+        pools = [{k: v[kept] for k, v in hyp.items()} for kept in keep]
+        grid_hypotheses = keep.shape[1]
         if settings.refine_orientations:  # scored in the same full-resolution call
-            pool = with_neighbours(pool, np.arange(len(keep)))
-        gam_full, off_full = (np.asarray(a) for a in score_region(data, settings, centre, hypotheses=pool, stride=1))
+            pools = [with_neighbours(p, np.arange(grid_hypotheses)) for p in pools]
+        gam_full, off_full = score_regions(
+            data, settings, centres, hypotheses=stacked(pools, grid_hypotheses + more), stride=1, max_sizes=sizes
+        )
     else:
-        pool = hyp
-        gam_full, off_full = (np.asarray(a) for a in score_region(data, settings, centre, stride=1))
+        gam_full, off_full = score_regions(data, settings, centres, stride=1, max_sizes=sizes)
+        pools = [hyp] * r
         if settings.refine_orientations:
-            pool = with_neighbours(pool, np.argsort(-gam_full, kind="stable"))
-            g, o = score_region(data, settings, centre, hypotheses={k: v[n:] for k, v in pool.items()}, stride=1)
-            gam_full, off_full = np.concatenate([gam_full, np.asarray(g)]), np.concatenate([off_full, np.asarray(o)])
-    k = min(settings.top_k, len(gam_full))
-    ranked = np.argsort(-gam_full, kind="stable")
-    # Best Γ over the runner-up among the grid's hypotheses (a refined neighbour of the
-    # best is not a rival to it).
-    g_sorted = np.sort(gam_full[:grid_hypotheses])[::-1]
-    ratio = float(g_sorted[0] / g_sorted[1]) if k > 1 and g_sorted[1] > 0 else float("inf")
-    best = ranked[_distinct(pool["orientation"][ranked], pool["shape"][ranked], max(k, settings.polish_candidates))]
-    table = np.concatenate([pool["orientation"][best], pool["shape"][best], off_full[best, None]], axis=1)
-    return np.concatenate([table.reshape(-1), [ratio]]).astype(np.float64)
+            pools = [with_neighbours(hyp, np.argsort(-g, kind="stable")) for g in gam_full]
+            g, o = score_regions(
+                data,
+                settings,
+                centres,
+                hypotheses=stacked([{k: v[n:] for k, v in p.items()} for p in pools], more),
+                stride=1,
+                max_sizes=sizes,
+            )
+            gam_full, off_full = np.concatenate([gam_full, g], axis=1), np.concatenate([off_full, o], axis=1)
+    rows = []
+    for pool, gam_all, off_all in zip(pools, gam_full, off_full):
+        gam_r, off_r = gam_all[: len(pool["orientation"])], off_all[: len(pool["orientation"])]
+        k = min(settings.top_k, len(gam_r))
+        ranked = np.argsort(-gam_r, kind="stable")
+        # Best Γ over the runner-up among the grid's hypotheses (a refined neighbour of
+        # the best is not a rival to it).
+        g_sorted = np.sort(gam_r[:grid_hypotheses])[::-1]
+        ratio = float(g_sorted[0] / g_sorted[1]) if k > 1 and g_sorted[1] > 0 else float("inf")
+        best = ranked[_distinct(pool["orientation"][ranked], pool["shape"][ranked], max(k, settings.polish_candidates))]
+        table = np.concatenate([pool["orientation"][best], pool["shape"][best], off_r[best, None]], axis=1)
+        rows.append(np.concatenate([table.reshape(-1), [ratio]]).astype(np.float64))
+    return rows
 
 
 class _Scored(eqx.Module):
@@ -727,7 +866,8 @@ def fit_regions(
     """The best ``top_k`` parts at each region (``centres`` (n, 2) row, col), every
     region's candidates batched together after the grid search.
 
-    At each region the grid is scored (:func:`_choose`); then all regions' chosen
+    At each region the grid is scored (:func:`_choose_all`, all regions together);
+    then all regions' chosen
     hypotheses are posed and scored at full resolution together, polished together by
     region growing (:func:`~sqparts._polish.grow_parts`, ``polish_rounds`` ×
     ``polish_steps``), and each polished part is kept where it stays at its region and its
@@ -737,15 +877,15 @@ def fit_regions(
     wraps the regions' grid searches (e.g. ``tqdm.tqdm``)."""
     centres = np.asarray(centres, np.int32).reshape(-1, 2)
     if max_sizes is None:
-        per_region = [settings] * len(centres)
+        sizes = [settings.max_size] * len(centres)
     else:
-        per_region = [dataclasses.replace(settings, max_size=check_max_size(float(s))) for s in max_sizes]
-    if len(per_region) != len(centres):
-        raise ValueError(f"max_sizes: got {len(per_region)} sizes, expected {len(centres)} (one per centre)")
+        sizes = [check_max_size(float(s)) for s in max_sizes]
+    if len(sizes) != len(centres):
+        raise ValueError(f"max_sizes: got {len(sizes)} sizes, expected {len(centres)} (one per centre)")
     if not len(centres):
         return []
     corners = centres - np.int32(settings.side // 2)
-    chosen = concurrently(lambda job: _choose(data, job[1], job[0]), list(zip(centres, per_region)), progress=progress)
+    chosen = _choose_all(data, settings, centres, np.asarray(sizes, np.float64), progress=progress)
     region = np.concatenate([np.full(len(c.offset), i) for i, c in enumerate(chosen)]).astype(np.int64)
     shape = (data.camera.height, data.camera.width)
     scored = _score(data, settings, corners, centres, region, chosen=chosen)

@@ -517,6 +517,10 @@ def test_balanced_groups_cover_the_items_evenly_over_the_threads(monkeypatch):
         groups = _compile.balanced_groups(n, 8)
         assert [len(g) for g in groups] == sizes
         assert np.array_equal(np.concatenate(groups) if groups else np.zeros(0), np.arange(n))
+    # On an accelerator the threads do not multiply the device: as few calls as there can be.
+    monkeypatch.setattr(jax, "default_backend", lambda: "gpu")
+    assert [len(g) for g in _compile.balanced_groups(17, 8)] == [6, 6, 5]
+    assert [len(g) for g in _compile.balanced_groups(2, 8)] == [2]
 
 
 def test_row_memo_looks_up_what_it_computed_and_forgets_the_oldest():

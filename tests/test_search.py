@@ -95,6 +95,37 @@ def test_chunked_equals_unchunked(data):
         np.testing.assert_allclose(np.asarray(off), ref[1], rtol=1e-6)
 
 
+def test_regions_scored_together_equal_each_region_alone(data, monkeypatch):
+    # score_regions scores every region's hypotheses in one compiled program,
+    # REGION_BUCKET regions a call (set to 2 here: three regions take two calls, the
+    # second padded with a skipped region). Each region's Γ and offsets are what it gets
+    # alone, bit for bit: with the grid shared, with a set of hypotheses and a largest
+    # semi-axis of its own, and at the pruning stride.
+    import sqparts._search as search
+
+    monkeypatch.setattr(search, "REGION_BUCKET", 2)
+    st = sqparts.make_settings(data, grid=SMALL, max_size=0.25, batch_size=8)
+    rows, cols = np.nonzero(data.figure_mask)
+    centres = np.array(
+        [_centre(data), (rows.min() + 2, cols[np.argmin(rows)]), (rows.max() - 2, cols[np.argmax(rows)])]
+    )
+    hyp = _grid_arrays(SMALL)
+    rng = np.random.default_rng(0)
+    own = [rng.choice(SMALL.size, 20, replace=False) for _ in centres]
+    sizes = [0.25, 0.15, 0.3]
+    per_region = {k: np.stack([v[i] for i in own]) for k, v in hyp.items()}
+    for hypotheses, max_sizes, stride in ((None, None, 1), (per_region, sizes, 1), (per_region, sizes, 4)):
+        gam, off = sqparts.score_regions(data, st, centres, hypotheses=hypotheses, stride=stride, max_sizes=max_sizes)
+        assert gam.shape == off.shape == (3, SMALL.size if hypotheses is None else 20)
+        for r, centre in enumerate(centres):
+            alone = dataclasses.replace(st, max_size=st.max_size if max_sizes is None else max_sizes[r])
+            mine = None if hypotheses is None else {k: v[r] for k, v in hypotheses.items()}
+            g, o = sqparts.score_region(data, alone, centre, hypotheses=mine, stride=stride)
+            np.testing.assert_array_equal(gam[r], np.asarray(g))
+            np.testing.assert_array_equal(off[r], np.asarray(o))
+    assert np.isfinite(gam).all() and (gam > 0).any()  # padding never leaks into a region's scores
+
+
 def test_pruned_search_finds_what_brute_force_finds(data):
     grid = sqparts.Grid(
         lengths=(0.5, 1.0),
@@ -146,8 +177,16 @@ def test_fit_regions_batched_equals_one_region_at_a_time(data):
     centres = np.array(
         [_centre(data), (rows.min() + 2, cols[np.argmin(rows)]), (rows.max() - 2, cols[np.argmax(rows)])]
     )
-    batched = sqparts.fit_regions(data, st, centres)
+    seen = []
+
+    def progress(it):  # e.g. tqdm: counts the regions as their grid searches finish
+        for x in it:
+            seen.append(x)
+            yield x
+
+    batched = sqparts.fit_regions(data, st, centres, progress=progress)
     assert [f.centre for f in batched] == [tuple(c) for c in centres]
+    assert seen == [0, 1, 2]
     for fit, centre in zip(batched, centres):
         alone = sqparts.fit_region(data, st, centre)
         np.testing.assert_allclose(np.asarray(fit.parts.to_vector()), np.asarray(alone.parts.to_vector()), atol=1e-5)
@@ -196,7 +235,11 @@ depth = np.asarray(sqparts.render_range_image(TRUTH, CAM))
 data = sqparts.prepare(depth, CAM)
 st = sqparts.make_settings(data, grid=SMALL, max_size=0.25, batch_size=4)
 g, off = sqparts.score_region(data, st, np.argwhere(data.figure_mask).mean(0).round().astype(int), stride=1)
-print(json.dumps({{"devices": len(jax.devices()), "gamma": np.asarray(g).tolist(), "offset": np.asarray(off).tolist()}}))
+# Three regions in one call: their chunks dealt round the devices.
+centres = np.argwhere(data.figure_mask)[[0, 40, -1]]
+gs, offs = sqparts.score_regions(data, st, centres, stride=2)
+print(json.dumps({{"devices": len(jax.devices()), "gamma": np.asarray(g).tolist(), "offset": np.asarray(off).tolist(),
+    "gammas": gs.tolist(), "offsets": offs.tolist()}}))
 """
 
 
@@ -217,6 +260,9 @@ def test_sharded_equals_unsharded():
     assert out[4]["devices"] == 4 and out[1]["devices"] == 1
     np.testing.assert_array_equal(out[1]["gamma"], out[4]["gamma"])
     np.testing.assert_allclose(out[1]["offset"], out[4]["offset"], atol=1e-5)
+    np.testing.assert_array_equal(out[1]["gammas"], out[4]["gammas"])
+    np.testing.assert_allclose(out[1]["offsets"], out[4]["offsets"], atol=1e-5)
+    assert np.isfinite(out[1]["gammas"]).any(axis=1).all()  # every region scored, none left as padding
 
 
 def test_convex_width_closed_form():
