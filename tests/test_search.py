@@ -237,7 +237,7 @@ st = sqparts.make_settings(data, grid=SMALL, max_size=0.25, batch_size=4)
 g, off = sqparts.score_region(data, st, np.argwhere(data.figure_mask).mean(0).round().astype(int), stride=1)
 # Three regions in one call: their chunks dealt round the devices.
 centres = np.argwhere(data.figure_mask)[[0, 40, -1]]
-gs, offs = sqparts.score_regions(data, st, centres, stride=2)
+gs, offs = sqparts.score_regions(data, st, centres, stride=1)  # the program just compiled
 print(json.dumps({{"devices": len(jax.devices()), "gamma": np.asarray(g).tolist(), "offset": np.asarray(off).tolist(),
     "gammas": gs.tolist(), "offsets": offs.tolist()}}))
 """
