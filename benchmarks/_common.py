@@ -88,6 +88,30 @@ def run_in_checkout(checkout: Path, child: str, *args: str) -> dict:
     return json.loads(next(line[7:] for line in p.stdout.splitlines() if line.startswith("RESULT ")))
 
 
+def interleaved(checkouts: dict, rounds: int, run) -> dict:
+    """``run(name, checkout)`` for every checkout (name -> path), ``rounds`` times, the
+    checkouts' processes interleaved so that the host's drift loads them alike; returns
+    name -> the list of results."""
+    got = {v: [] for v in checkouts}
+    for _ in range(rounds):
+        for v, checkout in checkouts.items():
+            got[v].append(run(v, checkout))
+    return got
+
+
+def warm_fields(got: dict) -> dict:
+    """Row fields of :func:`interleaved` results that record ``warm_s`` and ``cold_s``:
+    every run's times, the warm medians and the base's over the new's (``speedup``)."""
+    warm_s = {v: [t for r in runs for t in r["warm_s"]] for v, runs in got.items()}
+    median = {v: statistics.median(t) for v, t in warm_s.items()}
+    return {
+        "warm_median_s": median,
+        "warm_s": warm_s,
+        "cold_s": {v: [r["cold_s"] for r in runs] for v, runs in got.items()},
+        "speedup": median["base"] / median["new"],
+    }
+
+
 def result_path(name: str, ext: str = "json") -> Path:
     """``results/<name><$SQPARTS_BENCH_SUFFIX>.<ext>``: a partial or off-machine run given a
     suffix leaves the committed results (JSON and figures alike) untouched."""

@@ -23,7 +23,7 @@ from pathlib import Path
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 
-from _common import CHILD_PREAMBLE, run_in_checkout, save
+from _common import CHILD_PREAMBLE, interleaved, run_in_checkout, save, warm_fields
 from bench_cli import CAMERA, SCENE
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -69,16 +69,18 @@ def main():
     checkouts = {"base": args.base.resolve(), "new": ROOT}
     rows = []
     for scene in args.scenes:
-        got = {v: [] for v in checkouts}
-        for _ in range(args.rounds):
-            for v, checkout in checkouts.items():
-                got[v].append(run(checkout, scene, args.runs))
-                print(
-                    f"{scene} {v}: {got[v][-1]['parts']} parts, E {got[v][-1]['E']:.3f}, "
-                    f"warm median {statistics.median(got[v][-1]['warm_s']):.2f} s",
-                    flush=True,
-                )
-        warm = {v: statistics.median([t for r in got[v] for t in r["warm_s"]]) for v in checkouts}
+
+        def one(v, checkout):
+            r = run(checkout, scene, args.runs)
+            print(
+                f"{scene} {v}: {r['parts']} parts, E {r['E']:.3f}, warm median {statistics.median(r['warm_s']):.2f} s",
+                flush=True,
+            )
+            return r
+
+        got = interleaved(checkouts, args.rounds, one)
+        timing = warm_fields(got)
+        warm = timing["warm_median_s"]
         base, new = got["base"][-1], got["new"][-1]
         row = {
             "scene": scene,
@@ -86,13 +88,10 @@ def main():
             "E": {v: got[v][-1]["E"] for v in checkouts},
             "explained": {v: got[v][-1]["explained"] for v in checkouts},
             "identical_parts": base["vectors"] == new["vectors"],
-            "warm_median_s": warm,
-            "warm_s": {v: [t for r in got[v] for t in r["warm_s"]] for v in checkouts},
-            "cold_s": {v: [r["cold_s"] for r in got[v]] for v in checkouts},
+            **timing,
             "programs_first_recovery": {v: got[v][-1]["programs"] for v in checkouts},
             "programs_warm_runs": {v: got[v][-1]["warm_programs"] for v in checkouts},
             "stages_last_run": {v: got[v][-1]["stages"][-1] for v in checkouts},
-            "speedup": warm["base"] / warm["new"],
         }
         rows.append(row)
         print(

@@ -14,13 +14,12 @@ Writes ``benchmarks/results/search_image.json``.
 from __future__ import annotations
 
 import argparse
-import statistics
 import sys
 from pathlib import Path
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 
-from _common import CHILD_PREAMBLE, run_in_checkout, save
+from _common import CHILD_PREAMBLE, interleaved, run_in_checkout, save, warm_fields
 
 ROOT = Path(__file__).resolve().parents[1]
 
@@ -63,26 +62,22 @@ def main():
     rows = []
     for scene in args.scenes:
         for grid in args.grids:
-            got = {v: [] for v in checkouts}
-            for _ in range(args.rounds):
-                for v, checkout in checkouts.items():
-                    got[v].append(run(checkout, scene, grid, args.runs))
-            warm = {v: statistics.median([t for r in got[v] for t in r["warm_s"]]) for v in checkouts}
+            got = interleaved(checkouts, args.rounds, lambda v, checkout: run(checkout, scene, grid, args.runs))
+            timing = warm_fields(got)
+            warm = timing["warm_median_s"]
             base, new = got["base"][-1], got["new"][-1]
             row = {
                 "scene": scene,
                 "grid": grid,
                 "regions": new["regions"],
                 "identical": base["vectors"] == new["vectors"] and base["gamma"] == new["gamma"],
-                "warm_median_s": warm,
-                "warm_s": {v: [t for r in got[v] for t in r["warm_s"]] for v in checkouts},
-                "cold_s": {v: [r["cold_s"] for r in got[v]] for v in checkouts},
+                **timing,
                 "programs_first_search": {v: got[v][-1]["programs"] for v in checkouts},
-                "speedup": warm["base"] / warm["new"],
             }
             rows.append(row)
             print(
-                f"{scene} ({grid}, {row['regions']} regions): base {warm['base']:.2f} s, new {warm['new']:.2f} s "
+                f"{scene} ({grid}, {row['regions']} regions): base {warm['base']:.2f} s, "
+                f"new {warm['new']:.2f} s "
                 f"(x{row['speedup']:.2f}); identical: {row['identical']}",
                 flush=True,
             )

@@ -7,8 +7,8 @@ and scored with Γ (Eq. 4): one jit-compiled computation for all regions' hypoth
 together (:func:`score_regions`), vmapped over the pixels and the hypotheses of a chunk,
 a loop over a call's regions (up to :data:`REGION_BUCKET`, the loop as long as the live
 ones), each a loop over its chunks of hypotheses, sharded over ``jax.devices()`` with
-``jax.shard_map``. It is compiled once per (grid size, window,
-camera), never per region, number of regions or image.
+``jax.shard_map``. It is compiled once per (grid size, window, camera), never per
+region, number of regions or image.
 
 **Pruning** (section 3.6): every hypothesis is first scored on a pixel subsample
 (``stride``: every stride-th row and column, each pixel standing for stride² pixels);

@@ -235,7 +235,7 @@ depth = np.asarray(sqparts.render_range_image(TRUTH, CAM))
 data = sqparts.prepare(depth, CAM)
 st = sqparts.make_settings(data, grid=SMALL, max_size=0.25, batch_size=4)
 g, off = sqparts.score_region(data, st, np.argwhere(data.figure_mask).mean(0).round().astype(int), stride=1)
-# Three regions in one call: their chunks dealt round the devices.
+# Three regions in one call: each region's chunks sharded over the devices.
 centres = np.argwhere(data.figure_mask)[[0, 40, -1]]
 gs, offs = sqparts.score_regions(data, st, centres, stride=1)  # the program just compiled
 print(json.dumps({{"devices": len(jax.devices()), "gamma": np.asarray(g).tolist(), "offset": np.asarray(off).tolist(),
