@@ -89,7 +89,11 @@ def main() -> None:
     if args.baseline is not None:
         base = load_baseline(args.baseline.resolve())
         base_parts = base.Part.from_vector(np.asarray(parts.to_vector()))
-        codes["baseline"] = (base._render, base_parts, git_revision(args.baseline))
+        codes["baseline"] = (
+            importlib.import_module("sqparts_baseline._render"),
+            base_parts,
+            git_revision(args.baseline),
+        )
     # cast_batch (render_each's kernel), and the search's pattern: lax.map over chunks of
     # hypotheses of cast_part (sqparts._search._map_hypotheses), which gets no ray tiles.
     configs = [

@@ -324,7 +324,8 @@ def _region_inputs(depth, figure, camera, pad, corner, centre, window: int):
 
 
 def _score_one(part, origins, directions, measured, figure, weight, *, sigma, lam, num_bins, newton_steps):
-    t, hit = cast_part(part, origins, directions, newton_steps)
+    # The grid search's kernel, run for every hypothesis: its Newton loop unrolled.
+    t, hit = cast_part(part, origins, directions, newton_steps, unroll=True)
     mu, eps, offset, _ = gamma_terms(t, hit, measured, figure, sigma=sigma, num_bins=num_bins, weight=weight)
     return mu - lam * eps, offset
 

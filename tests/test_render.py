@@ -135,6 +135,27 @@ def test_jit_equals_no_jit_and_chunked_equals_unchunked(rng):
         np.testing.assert_allclose(t, full_t, rtol=1e-6)
 
 
+def test_unrolled_newton_loop_gives_the_same_rays(rng):
+    # The grid search unrolls the Newton loop (fused steps), everything else rolls it
+    # (less to compile): the same hits and depths either way, and the same gradients.
+    cam = sqparts.PinholeCamera(24, 24, 30.0, 30.0, 11.5, 11.5)
+    o, d = cam.rays()
+    parts = sqparts.stack_parts([sqparts.Part(**random_part_kwargs(rng)) for _ in range(6)])
+    for unroll_steps in (6, 8):
+        rolled = jax.jit(jax.vmap(lambda p: cast_part(p, o, d, unroll_steps)))(parts)
+        unrolled = jax.jit(jax.vmap(lambda p: cast_part(p, o, d, unroll_steps, unroll=True)))(parts)
+        assert np.asarray(rolled[1]).sum() > 100  # the parts are in view
+        np.testing.assert_array_equal(unrolled[1], rolled[1])
+        np.testing.assert_allclose(unrolled[0], rolled[0], rtol=1e-6)
+
+    def depth_sum(p, unroll):
+        t, hit = cast_part(p, o, d, unroll=unroll)
+        return jnp.sum(jnp.where(hit, t, 0.0))
+
+    grads = [jax.grad(depth_sum)(parts[0], u) for u in (False, True)]
+    np.testing.assert_allclose(grads[1].to_vector(), grads[0].to_vector(), rtol=1e-5, atol=1e-6)
+
+
 def test_ray_tiles_equal_one_pass(rng):
     # cast_part in tiles of rays (the last one short) and cast_batch's CPU tiles give the
     # same rays as one vectorised pass, with the same gradients.
