@@ -161,7 +161,7 @@ def cast_ray(
     return _cast_local_ray(part, o, d, newton_steps, unroll)
 
 
-def _cast_local_ray(part: Part, o, d, newton_steps, unroll: bool = False):
+def _cast_local_ray(part: Part, o, d, newton_steps, unroll: bool):
     """:func:`cast_ray` for a ray already in the part's local frame."""
     half = bounding_half_extent(part)
     d_safe = jnp.where(jnp.abs(d) < 1e-12, 1e-12, d)
