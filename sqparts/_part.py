@@ -382,10 +382,11 @@ def surface_distance(part: Part, point: Float[ArrayLike, "3"]) -> Float[Array, "
 
     Its derivatives (a custom JVP, the same in every mode): the gradient of the distance
     in the part's frame with respect to the local point and the part's shape, taken once
-    per point in reverse mode, then applied to the tangents of the local point (the pose,
-    and the point itself). Forward mode through the formula carries every tangent through
-    every step of it; polishing's Jacobians (14 tangents per point) cost about 4x less
-    this way.
+    per point in reverse mode, then applied to the tangents of the pose, the shape and the
+    point. Forward mode through the formula carries every tangent through every step of
+    it; polishing's Jacobians (14 tangents per point) cost about 4x less this way. The
+    tangent is one dot product of a vector per point with a vector per tangent
+    (:func:`distance_terms`, :func:`part_tangent`).
     """
     return _local_distance(part, to_local(part, point))
 
@@ -405,11 +406,38 @@ def _local_distance(part: Part, local: Float[Array, "3"]) -> Float[Array, ""]:
 def _surface_distance_jvp(primals, tangents):
     part, point = primals
     dpart, dpoint = tangents
-    local, dlocal = jax.jvp(to_local, (part, jnp.asarray(point)), (dpart, jnp.asarray(dpoint)))
-    value, (g_part, g_local) = jax.value_and_grad(_local_distance, argnums=(0, 1))(part, local)
-    # Position and orientation enter through the local point only (their gradients here are 0).
-    shape = sum(jnp.sum(g * d) for g, d in zip(jax.tree.leaves(g_part), jax.tree.leaves(dpart)))
-    return value, shape + jnp.sum(g_local * dlocal)
+    value, per_point, turned = distance_terms(part, point)
+    return value, matmul(per_point, part_tangent(part, dpart)) + matmul(turned, jnp.asarray(dpoint))
+
+
+def distance_terms(part: Part, point: Float[ArrayLike, "3"]):
+    """:func:`surface_distance` at a camera-frame point with what its derivatives need:
+    (value, a (20,) vector whose dot product with :func:`part_tangent` is the
+    derivative along a change of the part, R g: the gradient in the camera frame
+    (the derivative along a move of the point is its dot product with the move)).
+
+    With the local point l = R^T (x - t) and g the distance's gradient there,
+    g.dl = Σ_ij g_i (x - t)_j dR_ji + (R g).(dx - dt), and position and orientation enter
+    through l alone. So a Jacobian over many points and tangents (vmapped) is one
+    matrix product, not 3-vector products of shape (tangents, points, 3), which
+    XLA:CPU runs about 4x slower (polishing's Jacobian: 3.5x faster in all)."""
+    rotation = rotation_matrix(part.orientation)
+    offset = jnp.asarray(point) - part.position
+    value, (g_part, g) = jax.value_and_grad(_local_distance, argnums=(0, 1))(part, matmul(rotation.T, offset))
+    turned = matmul(rotation, g)
+    per_point = jnp.concatenate(
+        [g_part.size, g_part.squareness, g_part.bend, g_part.taper[None], jnp.outer(offset, g).reshape(9), turned]
+    )
+    return value, per_point, turned
+
+
+def part_tangent(part: Part, dpart: Part) -> Float[Array, "20"]:
+    """A change ``dpart`` of a single part as :func:`distance_terms`' (20,) vector:
+    shape, the rotation matrix's change, minus the position's."""
+    d_rotation = jax.jvp(rotation_matrix, (part.orientation,), (dpart.orientation,))[1]
+    return jnp.concatenate(
+        [dpart.size, dpart.squareness, dpart.bend, dpart.taper[None], d_rotation.reshape(9), -dpart.position]
+    )
 
 
 def surface_point(part: Part, eta: ArrayLike, omega: ArrayLike) -> Float[Array, "3"]:

@@ -22,7 +22,16 @@ from ._camera import camera_points, camera_rays
 from ._compile import RowMemo, balanced_groups, concurrently, persistent_jit
 from ._data import RangeData
 from ._encoding import PART_BUCKET, host_parts, pad_parts, pad_rows, pad_vectors, part_vectors
-from ._part import Part, from_unconstrained, matmul, rotation_matrix, surface_distance, to_local, to_unconstrained
+from ._part import (
+    Part,
+    distance_terms,
+    from_unconstrained,
+    matmul,
+    part_tangent,
+    rotation_matrix,
+    surface_distance,
+    to_unconstrained,
+)
 from ._typing import ArrayLike, Float
 
 
@@ -31,11 +40,57 @@ def ray_penetration(part: Part, origin, direction, far: Float[ArrayLike, ""] = j
     deepest inside the part's ellipsoid of semi-axes ``size``, among the points
     ``origin + t direction`` with t <= ``far`` (the free segment in front of a return):
     negative when the ray enters the part there (exact for ellipsoids, a smooth proxy
-    for the rest)."""
-    o = to_local(part, origin) / part.size
-    d = matmul(rotation_matrix(part.orientation).T, direction) / part.size
-    t = jnp.minimum(-matmul(o, d) / matmul(d, d), far)
+    for the rest). Its derivatives are a custom JVP like
+    :func:`~sqparts.surface_distance`'s (:func:`_ray_penetration_jvp`)."""
+    direction = jnp.asarray(direction)
+    return _ray_penetration(part, jnp.asarray(origin), direction, jnp.asarray(far, direction.dtype))
+
+
+def _deepest(part: Part, origin, direction, far):
+    """The ray's parameter t of its point deepest inside the part's ellipsoid, before
+    ``far``, and that unclipped (t = -(o.d)/(d.d), o and d in the ellipsoid's unit frame)."""
+    rotation = rotation_matrix(part.orientation)
+    o = matmul(rotation.T, origin - part.position) / part.size
+    d = matmul(rotation.T, direction) / part.size
+    free = -matmul(o, d) / matmul(d, d)
+    return jnp.minimum(free, far), free
+
+
+@jax.custom_jvp
+def _ray_penetration(part: Part, origin, direction, far):
+    t, _ = _deepest(part, origin, direction, far)
     return surface_distance(part, origin + t * direction)
+
+
+@_ray_penetration.defjvp
+def _ray_penetration_jvp(primals, tangents):
+    """The distance's terms at the deepest point x = o + t d (:func:`distance_terms`)
+    and the move of t. With M = R S^-2 R^T (S the semi-axes), t = -a/b for a =
+    (o - c)^T M d and b = d^T M d, so b dt = -(x - c)^T dM d + (M d).(dc - do) - (M (x -
+    c + t d)).dd (c the position); clipped at ``far``, dt = dfar. As for the distance,
+    the part's share is one dot product of a vector of this ray with one of the tangent."""
+    part, origin, direction, far = primals
+    dpart, dorigin, ddirection, dfar = tangents
+    t, free = _deepest(part, origin, direction, far)
+    x = origin + t * direction
+    value, per_point, turned = distance_terms(part, x)
+
+    def metric(orientation, size):
+        r = rotation_matrix(orientation) / size
+        return matmul(r, r.T)
+
+    m, dm = jax.jvp(metric, (part.orientation, part.size), (dpart.orientation, dpart.size))
+    m_dir = matmul(m, direction)
+    along = matmul(turned, direction)  # the distance's derivative along the ray
+    inside = free <= far
+    w = jnp.where(inside, along / matmul(direction, m_dir), 0.0)
+    rel = x - part.position
+    per_ray = jnp.concatenate([per_point, -w * jnp.outer(rel, direction).reshape(9), w * m_dir])
+    per_tangent = jnp.concatenate([part_tangent(part, dpart), dm.reshape(9), dpart.position])
+    ray = matmul(turned, dorigin + t * ddirection) - w * (
+        matmul(m_dir, dorigin) + matmul(matmul(m, rel + t * direction), ddirection)
+    )
+    return value, matmul(per_ray, per_tangent) + ray + jnp.where(inside, 0.0, along * dfar)
 
 
 @functools.cache

@@ -9,6 +9,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
+from conftest import random_part_kwargs
 from scipy.ndimage import distance_transform_edt
 
 import sqparts
@@ -308,6 +309,60 @@ def test_ray_penetration_sphere():
         o, d, c = np.array([b, 0, 0.0]), np.array([0.0, 0.6, 0.8]), np.array([0, 0, 2.0])
         t = (c - o) @ d / (d @ d)
         assert got == pytest.approx(np.linalg.norm(o + t * d - c) - 0.2, abs=1e-5)
+
+
+def test_ray_penetration_derivatives_equal_autodiff_through_the_formula():
+    """ray_penetration's custom JVP (the distance's terms at the deepest point and the
+    move of that point along the ray) against plain forward mode through the formula
+    (surface_distance's own formula, no custom rule), forward and reverse, in every
+    argument: the part's 14 numbers, the ray's origin and direction, and ``far`` (rays
+    clipped by it and not); and a sphere's closed form."""
+    from sqparts._part import _local_distance, matmul, rotation_matrix, to_local
+    from sqparts._polish import ray_penetration
+
+    def custom(v, o, d, far):
+        return ray_penetration(sqparts.Part.from_vector(v), o, d, far)
+
+    def plain(v, o, d, far):
+        part = sqparts.Part.from_vector(v)
+        u = to_local(part, o) / part.size
+        w = matmul(rotation_matrix(part.orientation).T, d) / part.size
+        t = jnp.minimum(-matmul(u, w) / matmul(w, w), far)
+        return _local_distance(part, to_local(part, o + t * d))
+
+    rng = np.random.default_rng(5)
+    clipped = 0
+    for i in range(12):
+        v = sqparts.Part(**random_part_kwargs(rng, deform=i % 2 == 1)).to_vector()
+        o = jnp.asarray(rng.normal(0.0, 0.05, (16, 3)), jnp.float32)
+        d = jnp.asarray(
+            np.c_[np.asarray(v[:2]) / float(v[2]) + rng.normal(0.0, 0.05, (16, 2)), np.ones(16)], jnp.float32
+        )
+        # Half the rays stop in front of the part's middle: their deepest point is `far`.
+        far = jnp.asarray(np.where(np.arange(16) % 2, np.inf, 0.9 * float(v[2])), jnp.float32)
+        clipped += int(np.isfinite(np.asarray(far)).sum())
+        args = (0, 1, 2, 3)
+        want = jax.vmap(jax.jacfwd(plain, argnums=args), (None, 0, 0, 0))(v, o, d, far)
+        np.testing.assert_array_equal(
+            jax.vmap(custom, (None, 0, 0, 0))(v, o, d, far), jax.vmap(plain, (None, 0, 0, 0))(v, o, d, far)
+        )
+        for mode in (jax.jacfwd, jax.jacrev):
+            got = jax.vmap(mode(custom, argnums=args), (None, 0, 0, 0))(v, o, d, far)
+            for g, w in zip(got, want):
+                g, w = np.asarray(g).reshape(16, -1), np.asarray(w).reshape(16, -1)
+                assert np.isfinite(w).all() and np.abs(w).max() > 0
+                scale = np.abs(w).max(axis=-1, keepdims=True) + 1e-3
+                np.testing.assert_allclose(g / scale, w / scale, atol=2e-5)
+    assert clipped == 12 * 8
+    # A sphere of radius r whose centre is b = 0.1 off the ray: the penetration is b - r,
+    # moving the centre away from the ray adds to it, and a semi-axis a_i takes off u_i²
+    # (u the unit vector from the centre to the deepest point, here -x).
+    sphere = sqparts.Part(size=[0.2, 0.2, 0.2], position=[0.1, 0.0, 2.0]).to_vector()
+    o, d = jnp.zeros(3), jnp.asarray([0.0, 0.0, 1.0])
+    assert float(custom(sphere, o, d, jnp.inf)) == pytest.approx(0.1 - 0.2, abs=1e-6)
+    grad = np.asarray(jax.grad(custom)(sphere, o, d, jnp.inf))
+    np.testing.assert_allclose(grad[:3], [1.0, 0.0, 0.0], atol=1e-5)
+    np.testing.assert_allclose(grad[6:9], [-1.0, 0.0, 0.0], atol=1e-5)
 
 
 def test_grow_parts_ignores_an_occluder():
