@@ -631,28 +631,47 @@ def edit_costs(cost: EncodingCost, edits, data: RangeData, costs: Costs) -> list
     return out
 
 
+COUNT_PIXELS = 1 << 22
+"""Most pixels :func:`edit_totals` counts in one numpy call (edits times their rectangle)."""
+
+
 def edit_totals(cost: EncodingCost, edits, data: RangeData, costs: Costs) -> np.ndarray:
     """(len(edits),) E of each of ``edits`` as :func:`edit_costs` counts it, without
     keeping each edit's rendering and masks: what an accept rule ranks many edits by.
-    E depends only on the nearest hit, so an edit that puts one part in place of others
-    is counted on the others' nearest depth, taken once for all edits that remove the
-    same parts (many steps of one part: 28 edits, one composition)."""
+    E depends only on the nearest hit, so the edits that put one part in place of the
+    same others (many steps of one part: 28 edits) are counted together on the others'
+    nearest depth, taken once; and since each pixel's count depends on that pixel alone,
+    only in the rectangle that their new parts cover (:func:`layer_counts`)."""
     layers = layers_of(cost)
     n = len(layers)
-    rests: dict[tuple[int, ...], np.ndarray] = {}
+    edits = render_edits(edits, data.camera)
     out = np.empty(len(edits))
-    for k, e in enumerate(render_edits(edits, data.camera)):
-        new = e.layers
-        assert new is not None  # rendered above
-        if len(new) != 1:
-            out[k] = layers_cost(e.apply(layers, new), data, costs).total
+    groups: dict[tuple[int, ...], list[tuple[int, np.ndarray]]] = {}
+    for k, e in enumerate(edits):
+        assert e.layers is not None  # rendered above
+        if len(e.layers) == 1:
+            gone = tuple(sorted({int(i) % n for i in e.remove})) if n else ()
+            groups.setdefault(gone, []).append((k, e.layers[0]))
+        else:
+            out[k] = layers_cost(e.apply(layers, e.layers), data, costs).total
+    for gone, group in groups.items():
+        ks, new = [k for k, _ in group], [layer for _, layer in group]
+        rest = np.delete(layers, list(gone), 0)
+        depth = rest.min(0) if len(rest) else np.full(layers.shape[1:], np.inf, np.float32)
+        counts = np.array([m.sum() for m in layer_errors(depth, data)])
+        hit = [np.isfinite(layer) for layer in new]
+        rows = np.flatnonzero(np.any([h.any(1) for h in hit], axis=0))
+        cols = np.flatnonzero(np.any([h.any(0) for h in hit], axis=0))
+        if len(rows) == 0:  # no new part shows: the others' counts
+            out[ks] = costs.total(n - len(gone) + 1, *counts)
             continue
-        gone = tuple(sorted({int(i) % n for i in e.remove})) if n else ()
-        if gone not in rests:
-            rest = np.delete(layers, list(gone), 0)
-            rests[gone] = rest.min(0) if len(rest) else np.full(new.shape[1:], np.inf, np.float32)
-        counts = layer_counts(np.minimum(rests[gone], new[0]), data)
-        out[k] = costs.total(n - len(gone) + 1, *counts)
+        box = np.s_[rows[0] : rows[-1] + 1, cols[0] : cols[-1] + 1]
+        outside = counts - np.array([m.sum() for m in layer_errors(depth[box], data, box)])
+        step = max(1, COUNT_PIXELS // depth[box].size)
+        for a in range(0, len(ks), step):
+            stack = np.stack([layer[box] for layer in new[a : a + step]])
+            inside = np.stack(layer_counts(np.minimum(depth[box], stack), data, box), 1)
+            out[ks[a : a + step]] = costs.total(n - len(gone) + 1, *(outside + inside).T)
     return out
 
 
@@ -697,16 +716,18 @@ def _count(n: int, rendered, labels, data: RangeData, costs: Costs, layers=None)
     )
 
 
-def layer_errors(depth: np.ndarray, data: RangeData) -> tuple[np.ndarray, np.ndarray]:
+def layer_errors(depth: np.ndarray, data: RangeData, box=np.s_[:, :]) -> tuple[np.ndarray, np.ndarray]:
     """Explained and commission masks (:func:`pixel_errors`) of rendered depth
-    (..., H, W) (inf = miss): one part's layer, a stack of them, or a scene's."""
+    (..., H, W) (inf = miss): one part's layer, a stack of them, or a scene's; or of the
+    rectangle ``box`` (a pair of slices) of the image, ``depth`` its pixels."""
     with np.errstate(invalid="ignore"):
-        return pixel_errors(np.isfinite(depth), depth, data.image, data.figure_region, data.encoding.sigma)
+        return pixel_errors(np.isfinite(depth), depth, data.image[box], data.figure_region[box], data.encoding.sigma)
 
 
-def layer_counts(depth: np.ndarray, data: RangeData) -> tuple[np.ndarray, np.ndarray]:
-    """Explained and commission pixel counts of rendered depth (..., H, W) (inf = miss)."""
-    e, c = layer_errors(depth, data)
+def layer_counts(depth: np.ndarray, data: RangeData, box=np.s_[:, :]) -> tuple[np.ndarray, np.ndarray]:
+    """Explained and commission pixel counts of rendered depth (..., H, W) (inf = miss),
+    or of the rectangle ``box`` of the image (:func:`layer_errors`)."""
+    e, c = layer_errors(depth, data, box)
     return e.sum((-2, -1)), c.sum((-2, -1))
 
 

@@ -117,7 +117,7 @@ def test_refinement_splits_a_part_that_spans_two():
     assert split_cost.total < kept_cost.total and split_cost.commission <= 0.02 * data.figure_mask.sum()
 
 
-def test_edit_costs_match_rendering_the_edited_scene(depth):
+def test_edit_costs_match_rendering_the_edited_scene(depth, monkeypatch):
     # Every shape of edit (add one, add two, remove, replace in place, replace two by
     # one), all evaluated together, against rendering the edited scene from scratch.
     data = sqparts.prepare(depth, CAM)
@@ -146,6 +146,16 @@ def test_edit_costs_match_rendering_the_edited_scene(depth):
         # nearest depth), the same E as the full evaluation, bit for bit.
         totals = sqparts.edit_totals(start, batch, data, costs)
         assert totals.tolist() == [c.total for c in sqparts.edit_costs(start, batch, data, costs)]
+    # Counted only where the new parts show, a few edits per numpy call: a part out of
+    # view among others that replace the same part, and a group none of whose parts shows.
+    from sqparts import _encoding
+
+    away = vec[1] + np.r_[50.0, np.zeros(13)].astype(np.float32)
+    batch = both + [sqparts.Edit((1,), away[None]), sqparts.Edit((0, 1), away[None]), sqparts.Edit((), away[None])]
+    want = [c.total for c in sqparts.edit_costs(two, batch, data, costs)]
+    for pixels in (1, 2 * depth.size, _encoding.COUNT_PIXELS):
+        monkeypatch.setattr(_encoding, "COUNT_PIXELS", pixels)
+        assert sqparts.edit_totals(two, batch, data, costs).tolist() == want
     # Indices as a list or a numpy array are the same edit as their tuple (several parts
     # removed included: the removed set keys the composition shared by edits).
     for remove in ([0, 1], np.array([0, 1]), (np.int64(0), np.int64(1))):
