@@ -30,6 +30,16 @@ def test_area_matrix_by_pixel_count():
     m[2, 9] = True
     a = sqparts.area_matrix(m)
     np.testing.assert_array_equal(a, [[4, -1, 0], [-1, 5, 0], [0, 0, 1]])
+    # Image-shaped masks against counting each pair's shared pixels; empty masks too.
+    rng = np.random.default_rng(1)
+    masks = rng.random((7, 40, 30)) < 0.3
+    masks[3] = False
+    want = np.array([[-0.5 * (a & b).sum() for b in masks] for a in masks])
+    np.fill_diagonal(want, masks.sum((1, 2)))
+    got = sqparts.area_matrix(masks)
+    assert got.dtype == np.float64
+    np.testing.assert_array_equal(got, want)
+    np.testing.assert_array_equal(sqparts.area_matrix(np.zeros((2, 5, 5), bool)), np.zeros((2, 2)))
 
 
 def test_energy_equals_direct_pixel_count_without_triple_overlaps():
