@@ -30,6 +30,7 @@ from ._part import (
     part_tangent,
     rotation_matrix,
     surface_distance,
+    to_local,
     to_unconstrained,
 )
 from ._typing import ArrayLike, Float
@@ -49,9 +50,8 @@ def ray_penetration(part: Part, origin, direction, far: Float[ArrayLike, ""] = j
 def _deepest(part: Part, origin, direction, far):
     """The ray's parameter t of its point deepest inside the part's ellipsoid, before
     ``far``, and that unclipped (t = -(o.d)/(d.d), o and d in the ellipsoid's unit frame)."""
-    rotation = rotation_matrix(part.orientation)
-    o = matmul(rotation.T, origin - part.position) / part.size
-    d = matmul(rotation.T, direction) / part.size
+    o = to_local(part, origin) / part.size
+    d = matmul(rotation_matrix(part.orientation).T, direction) / part.size
     free = -matmul(o, d) / matmul(d, d)
     return jnp.minimum(free, far), free
 
