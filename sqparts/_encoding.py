@@ -663,7 +663,8 @@ def edit_totals(cost: EncodingCost, edits, data: RangeData, costs: Costs) -> np.
         ks, new = [k for k, _ in group], [layer for _, layer in group]
         rest = np.delete(layers, list(gone), 0)
         depth = rest.min(0) if len(rest) else np.full(layers.shape[1:], np.inf, np.float32)
-        counts = np.array([m.sum() for m in layer_errors(depth, data)])
+        masks = layer_errors(depth, data)
+        counts = np.array([m.sum() for m in masks])
         hit = [np.isfinite(layer) for layer in new]
         rows = np.flatnonzero(np.any([h.any(1) for h in hit], axis=0))
         cols = np.flatnonzero(np.any([h.any(0) for h in hit], axis=0))
@@ -671,7 +672,7 @@ def edit_totals(cost: EncodingCost, edits, data: RangeData, costs: Costs) -> np.
             out[ks] = costs.total(n - len(gone) + 1, *counts)
             continue
         box = np.s_[rows[0] : rows[-1] + 1, cols[0] : cols[-1] + 1]
-        outside = counts - np.array([m.sum() for m in layer_errors(depth[box], data, box)])
+        outside = counts - np.array([m[box].sum() for m in masks])
         step = max(1, COUNT_PIXELS // depth[box].size)
         for a in range(0, len(ks), step):
             stack = np.stack([layer[box] for layer in new[a : a + step]])
