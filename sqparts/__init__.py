@@ -104,6 +104,7 @@ _EXPORTS = {
         "select_exact",
         "select_parts",
         "select_rendered",
+        "select_tabu",
     ),
     "_refine": (
         "DropParts",

@@ -18,7 +18,8 @@ For n candidate parts with explained-pixel masks e_i and commission masks c_i:
 
 Selection minimises E over binary X: :func:`select_best_first` (the paper's iterative
 best-first search, in JAX: add the part that lowers E most, drop any part whose removal
-lowers E, until neither helps) and :func:`select_exact` (the integer-programming route:
+lowers E, until neither helps), :func:`select_tabu` (from there, tabu search over flips
+and swaps: recovery's default) and :func:`select_exact` (the integer-programming route:
 the quadratic is linearised with y_ij = x_i x_j and solved to optimality by HiGHS, group
 by group of interacting candidates). The choice is then corrected on E counted in the
 candidates' joint rendering (:func:`select_rendered`). The costs and E themselves are
@@ -156,6 +157,73 @@ def select_best_first(problem: SelectionProblem, *, max_iter: int | None = None)
     pairwise[:n, :n] = problem.pairwise
     x = _best_first(linear, pairwise, np.int32(max_iter or 4 * n + 10))
     return np.asarray(x)[:n] > 0.5
+
+
+TABU_MOVES = 10
+"""Moves of :func:`select_tabu` per candidate of a group."""
+
+TABU_TENURE = 7
+"""Moves for which :func:`select_tabu` leaves a flipped candidate alone (at most a third
+of the group's candidates)."""
+
+
+def select_tabu(problem: SelectionProblem) -> np.ndarray:
+    """E(X) minimised by tabu search over single flips and swaps, group by group of
+    interacting candidates (:meth:`SelectionProblem.groups`), each from its best-first
+    selection (:func:`select_best_first`): every move is the flip (add or drop one
+    candidate) or the swap (drop one, add another) that lowers E most or raises it
+    least, except that a candidate flipped in the last :data:`TABU_TENURE` moves is left
+    alone unless moving it gives the lowest E yet; :data:`TABU_MOVES` moves per
+    candidate, and the lowest E met is returned (bool (n,)), never higher than
+    best-first's.
+
+    Best-first stops where no single flip helps. Where several candidates explain the
+    same pixels, the better one is reached from a worse one only through a swap, or
+    through a dearer selection on the way (dropping it first, or adding the other on
+    top): the swaps and the tabu memory take those steps. It finds what the integer
+    program proves optimal in a few milliseconds, where the proof can take seconds (the
+    pairwise linearisation bounds the overlaps weakly), but proves nothing; a lone
+    candidate is chosen when it lowers E by itself."""
+    x = np.zeros(problem.size, bool)
+    for group in problem.groups():
+        if len(group) == 1:
+            x[group] = problem.linear[group] < 0.0
+            continue
+        sub = problem.subproblem(group)
+        x[group] = _tabu_group(sub.linear, 2.0 * sub.pairwise, select_best_first(sub))
+    return x
+
+
+def _tabu_group(linear: np.ndarray, pair: np.ndarray, start: np.ndarray) -> np.ndarray:
+    """:func:`select_tabu` on one group: E(x) = linear·x + Σ_{i<j} pair_ij x_i x_j
+    (``pair`` symmetric, zero diagonal), from the bool selection ``start``."""
+    n = len(linear)
+    tenure = min(TABU_TENURE, n // 3)
+    x = start.astype(np.float64)
+    field = linear + pair @ x  # E's change on adding each candidate (while it is out)
+    e = float(linear @ x + 0.5 * x @ pair @ x)
+    best_e, best = e, x.copy()
+    last = np.full(n, -(tenure + 1))  # the move at which each candidate last flipped
+    for move in range(TABU_MOVES * n):
+        on = x > 0
+        free = move - last > tenure
+        flip = np.where(on, -field, field)
+        swap = np.where(on[:, None] & ~on[None, :], field[None, :] - field[:, None] - pair, np.inf)  # i out, j in
+        flip = np.where(free | (e + flip < best_e - 1e-9), flip, np.inf)
+        swap = np.where((free[:, None] & free[None, :]) | (e + swap < best_e - 1e-9), swap, np.inf)
+        i, k = int(np.argmin(flip)), int(np.argmin(swap))
+        if not np.isfinite(min(flip[i], swap.flat[k])):
+            break
+        moved, change = ([i], flip[i]) if flip[i] <= swap.flat[k] else (list(divmod(k, n)), swap.flat[k])
+        for m in moved:
+            sign = 1.0 - 2.0 * x[m]
+            x[m] += sign
+            field += sign * pair[:, m]
+            last[m] = move
+        e += float(change)
+        if e < best_e - 1e-9:
+            best_e, best = e, x.copy()
+    return best > 0.5
 
 
 @contextlib.contextmanager
@@ -308,6 +376,10 @@ def select_brute_force(problem: SelectionProblem) -> np.ndarray:
     return best_x
 
 
+METHODS = ("auto", "tabu", "exact", "best-first")
+"""The ways :func:`select_parts` minimises E(X)."""
+
+
 def select_parts(
     problem: SelectionProblem,
     *,
@@ -316,16 +388,19 @@ def select_parts(
     time_limit: float = 15.0,
     node_limit: int | None = NODE_LIMIT,
 ) -> tuple[np.ndarray, str]:
-    """Choose parts: ``"exact"``, ``"best-first"`` or ``"auto"`` (exact when the
-    candidate count is at most ``exact_limit``; HiGHS starts from the best-first
-    selection and stops after ``node_limit`` branch-and-bound nodes per group, or
-    ``time_limit`` seconds in all, with the best selection it has found, reported as
-    ``"exact (node limit)"`` or ``"exact (time limit)"``, never worse than best-first).
-    Returns (selection, method used)."""
-    if method not in ("auto", "exact", "best-first"):
-        raise ValueError(f"method: got {method!r}, expected 'auto', 'exact' or 'best-first'")
+    """Choose parts: ``"tabu"`` (:func:`select_tabu`), ``"exact"``, ``"best-first"`` or
+    ``"auto"`` (tabu search when the candidate count is at most ``exact_limit``, its
+    work growing as the cube of a group's size; best-first beyond). ``"exact"``: HiGHS
+    starts from the best-first selection and stops after ``node_limit``
+    branch-and-bound nodes per group, or ``time_limit`` seconds in all, with the best
+    selection it has found, reported as ``"exact (node limit)"`` or ``"exact (time
+    limit)"``, never worse than best-first. Returns (selection, method used)."""
+    if method not in METHODS:
+        raise ValueError(f"method: got {method!r}, expected one of {', '.join(map(repr, METHODS))}")
     if method == "best-first" or (method == "auto" and problem.size > exact_limit):
         return select_best_first(problem), "best-first"
+    if method in ("auto", "tabu"):
+        return select_tabu(problem), "tabu"
     x, status = _select_exact(problem, time_limit, node_limit)
     if status == "exact":
         return x, status
@@ -336,11 +411,13 @@ def select_parts(
 @dataclasses.dataclass(frozen=True)
 class SelectSettings:
     """How :func:`~sqparts.recover` chooses among the candidates (Eq. 7): ``method``
-    ``"auto"``, ``"exact"`` or ``"best-first"``, with ``exact_limit``, ``node_limit`` and
-    ``time_limit`` as for :func:`select_parts`: the node limit (None: none) bounds the
-    integer program's work the same on every machine, so that a recovery's result does not
-    depend on the machine's speed; the time limit only caps the wall time. The choice is
-    then corrected on E counted in the candidates' joint rendering
+    ``"auto"``, ``"tabu"``, ``"exact"`` or ``"best-first"``, with ``exact_limit`` (the
+    most candidates ``"auto"`` searches by tabu search; the name is kept from when it
+    chose the integer program), ``node_limit`` and ``time_limit`` as for
+    :func:`select_parts`: the node limit (None: none) bounds the integer program's work
+    the same on every machine, so that a recovery's result does not depend on the
+    machine's speed; the time limit only caps the wall time. The choice is then
+    corrected on E counted in the candidates' joint rendering
     (:func:`~sqparts.select_rendered`)."""
 
     method: str = "auto"
@@ -349,8 +426,8 @@ class SelectSettings:
     node_limit: int | None = NODE_LIMIT
 
     def __post_init__(self):
-        if self.method not in ("auto", "exact", "best-first"):
-            raise ValueError(f"method: got {self.method!r}, expected 'auto', 'exact' or 'best-first'")
+        if self.method not in METHODS:
+            raise ValueError(f"method: got {self.method!r}, expected one of {', '.join(map(repr, METHODS))}")
         if not (isinstance(self.exact_limit, int) and not isinstance(self.exact_limit, bool) and self.exact_limit >= 0):
             raise ValueError(f"exact_limit: got {self.exact_limit!r}, expected an integer >= 0")
         if isinstance(self.time_limit, bool) or not (

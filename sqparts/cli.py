@@ -602,7 +602,7 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--grid", default="coarse", choices=["coarse", "default", "fine"], help="hypothesis grid")
     p.add_argument("--max-size", type=_POSITIVE, default=None, help="largest semi-axis searched (scene units)")
     p.add_argument("--sigma", type=_POSITIVE, default=None, help="match tolerance σ (scene units)")
-    p.add_argument("--selection", default="auto", choices=["auto", "exact", "best-first"])
+    p.add_argument("--selection", default="auto", choices=["auto", "tabu", "exact", "best-first"])
     p.add_argument(
         "--refine-rounds",
         type=_number(f"an integer in [0, {MAX_REFINE_ROUNDS}]", low=0, high=MAX_REFINE_ROUNDS, integer=True),

@@ -70,6 +70,41 @@ def test_exact_and_best_first_against_brute_force():
     assert best_first_optimal >= 8  # the greedy search is usually, not always, optimal
 
 
+def test_tabu_selection_against_brute_force():
+    """Tabu search reaches the brute-force minimum of E on random problems (several
+    groups, pixels in three or more masks too), never above best-first's E, and beyond
+    it where best-first stops short; the integer program proves the same minimum."""
+    rng = np.random.default_rng(11)
+    beyond = 0
+    for _ in range(12):
+        e, c = _random_masks(rng, 12)
+        p = SelectionProblem.from_masks(e, c, COSTS)
+        brute = p.energy(sqparts.select_brute_force(p))
+        x = sqparts.select_tabu(p)
+        assert x.dtype == bool and x.shape == (12,)
+        assert p.energy(x) == pytest.approx(brute)
+        greedy = p.energy(sqparts.select_best_first(p))
+        assert greedy >= p.energy(x) - 1e-9
+        beyond += greedy > brute + 1e-6
+        assert sqparts.select_parts(p)[1] == "tabu"
+    assert beyond >= 1  # a case that needs more than best-first is among them
+
+
+def test_tabu_selection_swaps_where_best_first_stops():
+    """A candidate A overlapping two others B and C that together explain more: best-first
+    takes A (the largest gain alone) and stops, since neither B nor C pays beside A; the
+    shortest description is B and C, reached through a swap."""
+    explained = np.zeros((3, 120), bool)
+    explained[0, 20:90] = True  # A: 70 pixels
+    explained[1, 0:50] = True  # B
+    explained[2, 50:100] = True  # C
+    p = SelectionProblem.from_masks(explained, np.zeros_like(explained), COSTS)
+    np.testing.assert_array_equal(sqparts.select_best_first(p), [True, False, False])
+    np.testing.assert_array_equal(sqparts.select_brute_force(p), [False, True, True])
+    np.testing.assert_array_equal(sqparts.select_tabu(p), [False, True, True])
+    assert p.energy([False, True, True]) < p.energy([True, False, False])
+
+
 def test_exact_selection_solves_groups_that_do_not_interact_apart():
     """Candidates in three separate strips of the image (no shared pixel between strips)
     form three groups; solved group by group, E is the brute-force minimum."""
@@ -89,7 +124,9 @@ def test_exact_selection_solves_groups_that_do_not_interact_apart():
         assert sorted(np.concatenate(groups).tolist()) == list(range(12))
         assert all(len(g) <= 6 for g in groups) and len(groups) >= 3
         x, optimal = sqparts.select_exact(p)
-        assert optimal and p.energy(x) == pytest.approx(p.energy(sqparts.select_brute_force(p)))
+        brute = p.energy(sqparts.select_brute_force(p))
+        assert optimal and p.energy(x) == pytest.approx(brute)
+        assert p.energy(sqparts.select_tabu(p)) == pytest.approx(brute)
 
 
 def test_exact_selection_prints_nothing(capfd):
@@ -107,7 +144,7 @@ def test_select_parts_errors_and_empty():
     p = SelectionProblem.from_masks(np.zeros((0, 4), bool), np.zeros((0, 4), bool), COSTS)
     assert sqparts.select_best_first(p).shape == (0,)
     e, c = _random_masks(np.random.default_rng(2), 3)
-    with pytest.raises(ValueError, match=r"method: got .*, expected 'auto', 'exact' or 'best-first'"):
+    with pytest.raises(ValueError, match=r"method: got .*, expected one of 'auto', 'tabu', 'exact', 'best-first'"):
         sqparts.select_parts(SelectionProblem.from_masks(e, c, COSTS), method="annealing")
 
 
@@ -118,7 +155,7 @@ def test_select_parts_time_limit_keeps_the_best_selection_found():
     e, c = _random_masks(rng, 60)
     p = SelectionProblem.from_masks(e, c, COSTS)
     greedy = p.energy(sqparts.select_best_first(p))
-    x, method = sqparts.select_parts(p, time_limit=1e-3)
+    x, method = sqparts.select_parts(p, method="exact", time_limit=1e-3)
     assert method in ("exact", "exact (time limit)", "best-first") and p.energy(x) <= greedy + 1e-9
     x_full, optimal = sqparts.select_exact(p)
     assert optimal and p.energy(x_full) <= p.energy(x) + 1e-9
@@ -132,7 +169,7 @@ def test_select_parts_node_limit_is_a_machine_independent_bound():
     e, c = _random_masks(rng, 60)
     p = SelectionProblem.from_masks(e, c, COSTS)
     greedy = p.energy(sqparts.select_best_first(p))
-    runs = [sqparts.select_parts(p, node_limit=2, time_limit=60.0) for _ in range(2)]
+    runs = [sqparts.select_parts(p, method="exact", node_limit=2, time_limit=60.0) for _ in range(2)]
     (x, method), (x2, method2) = runs
     assert method == method2 and method in ("exact (node limit)", "best-first")
     assert np.array_equal(x, x2) and p.energy(x) <= greedy + 1e-9
