@@ -180,8 +180,8 @@ def select_tabu(problem: SelectionProblem) -> np.ndarray:
     Best-first stops where no single flip helps. Where several candidates explain the
     same pixels, the better one is reached from a worse one only through a swap, or
     through a dearer selection on the way (dropping it first, or adding the other on
-    top): the swaps and the tabu memory take those steps. On the
-    problems recoveries meet it mostly ends where the integer program proves the optimum
+    top): the swaps and the tabu memory take those steps. On the problems recoveries
+    meet it mostly ends where the integer program proves the optimum
     (``benchmarks/bench_select.py``), in milliseconds where the proof can take seconds
     (the pairwise linearisation bounds the overlaps weakly), but it proves nothing. A
     lone candidate is chosen when it lowers E by itself."""
