@@ -185,13 +185,17 @@ def select_tabu(problem: SelectionProblem) -> np.ndarray:
     (``benchmarks/bench_select.py``), in milliseconds where the proof can take seconds
     (the pairwise linearisation bounds the overlaps weakly), but it proves nothing. A
     lone candidate is chosen when it lowers E by itself."""
+    return _by_groups(problem, lambda sub: _tabu_group(sub.linear, 2.0 * sub.pairwise, select_best_first(sub)))
+
+
+def _by_groups(problem: SelectionProblem, solve) -> np.ndarray:
+    """The bool selection of each group of interacting candidates
+    (:meth:`SelectionProblem.groups`) by ``solve(subproblem)``: E is the constant plus a
+    sum over the groups. A lone candidate is chosen when it lowers E by itself."""
     x = np.zeros(problem.size, bool)
+    linear = problem.linear
     for group in problem.groups():
-        if len(group) == 1:
-            x[group] = problem.linear[group] < 0.0
-            continue
-        sub = problem.subproblem(group)
-        x[group] = _tabu_group(sub.linear, 2.0 * sub.pairwise, select_best_first(sub))
+        x[group] = linear[group] < 0.0 if len(group) == 1 else solve(problem.subproblem(group))
     return x
 
 
@@ -281,20 +285,16 @@ def select_exact(
 def _select_exact(problem: SelectionProblem, time_limit: float, node_limit: int | None) -> tuple[np.ndarray, str]:
     """:func:`select_exact`, with how it ended: ``"exact"`` (proven optimal), ``"exact
     (node limit)"`` or ``"exact (time limit)"`` (the first limit any group reached)."""
-    x = np.zeros(problem.size, bool)
-    status = "exact"
+    endings = []
     deadline = time.monotonic() + float(time_limit)
-    for group in problem.groups():
-        if len(group) == 1:
-            x[group] = problem.linear[group] < 0.0
-            continue
-        chosen, ended = _select_exact_group(
-            problem.subproblem(group), max(deadline - time.monotonic(), 0.05), node_limit
-        )
-        x[group] = chosen
-        if status == "exact":
-            status = ended
-    return x, status
+
+    def solve(sub):
+        chosen, ended = _select_exact_group(sub, max(deadline - time.monotonic(), 0.05), node_limit)
+        endings.append(ended)
+        return chosen
+
+    x = _by_groups(problem, solve)
+    return x, next((e for e in endings if e != "exact"), "exact")
 
 
 def _select_exact_group(
