@@ -20,7 +20,6 @@ return.
 from __future__ import annotations
 
 import dataclasses
-import functools
 import math
 from typing import TYPE_CHECKING
 
@@ -93,22 +92,24 @@ class _Camera:
         cy: float
 
     def _rays(self, uu, vv) -> tuple[Float[Array, "h w 3"], Float[Array, "h w 3"]]:
-        """Origins and directions of the rays through pixel centres ``uu``, ``vv``."""
+        """Origins and directions of the rays through pixel centres ``uu``, ``vv``: host
+        (numpy) arrays for host input, JAX arrays for JAX input (as :func:`_array`)."""
         raise NotImplementedError
 
     def _scaled_fields(self, f: int) -> dict:
         """The model-specific fields of :meth:`downsampled` (``cx``, ``cy`` excluded)."""
         raise NotImplementedError
 
-    def _pixel_grid(self, window):
-        """Pixel centres (u, v) of the window (row0, col0, rows, cols) or the full image."""
+    def _pixel_grid(self, window, xp=jnp):
+        """Pixel centres (u, v) of the window (row0, col0, rows, cols) or the full image,
+        float32 arrays of ``xp`` (jax.numpy or numpy)."""
         if window is None:
             row0, col0, rows, cols = 0, 0, self.height, self.width
         else:
             row0, col0, rows, cols = window
-        v = row0 + jnp.arange(rows, dtype=jnp.float32)
-        u = col0 + jnp.arange(cols, dtype=jnp.float32)
-        return jnp.meshgrid(u, v, indexing="xy")
+        v = row0 + xp.arange(rows, dtype=xp.float32)
+        u = col0 + xp.arange(cols, dtype=xp.float32)
+        return xp.meshgrid(u, v, indexing="xy")
 
     def rays(self, window=None) -> tuple[Float[Array, "h w 3"], Float[Array, "h w 3"]]:
         """Ray origins and directions for every pixel, or for ``window``.
@@ -166,8 +167,9 @@ class _Camera:
         return int(f)
 
     def points(self, range_image) -> np.ndarray:
-        """Back-project a range image to camera-frame points, shape (h, w, 3), NaN = none."""
-        o, d = (np.asarray(a, np.float64) for a in self.rays())
+        """Back-project a range image to camera-frame points, shape (h, w, 3), NaN = none
+        (float64, computed on the host)."""
+        o, d = (np.asarray(a, np.float64) for a in camera_rays(self))
         r = np.asarray(range_image, np.float64)[..., None]
         return o + r * d
 
@@ -209,8 +211,11 @@ class PinholeCamera(_Camera):
                 )
 
     def _rays(self, uu, vv):
-        d = jnp.stack([(uu - self.cx) / self.fx, (vv - self.cy) / self.fy, jnp.ones_like(uu)], -1)
-        return jnp.zeros_like(d), d
+        uu, xp = _array(uu)
+        # Times the reciprocal, as XLA computes a division by a constant: the host's rays
+        # are bit for bit those of the compiled programs.
+        d = xp.stack([(uu - self.cx) * (1.0 / self.fx), (vv - self.cy) * (1.0 / self.fy), xp.ones_like(uu)], -1)
+        return xp.zeros_like(d), d
 
     def pixel_size_at(self, depth):
         return depth / (0.5 * (self.fx + self.fy))
@@ -248,9 +253,10 @@ class OrthographicCamera(_Camera):
             object.__setattr__(self, name, _check_finite(name, getattr(self, name)))
 
     def _rays(self, uu, vv):
+        uu, xp = _array(uu)
         s = self.pixel_size
-        o = jnp.stack([(uu - self.cx) * s, (vv - self.cy) * s, jnp.zeros_like(uu)], -1)
-        d = jnp.broadcast_to(jnp.array([0.0, 0.0, 1.0], jnp.float32), o.shape)
+        o = xp.stack([(uu - self.cx) * s, (vv - self.cy) * s, xp.zeros_like(uu)], -1)
+        d = xp.broadcast_to(xp.asarray([0.0, 0.0, 1.0], xp.float32), o.shape)
         return o, d
 
     def pixel_size_at(self, depth):
@@ -311,10 +317,11 @@ class ScannerCamera(_Camera):
             )
 
     def _rays(self, uu, vv):
+        uu, xp = _array(uu)
         az = (uu - self.cx) * self.azimuth_step
         el = (vv - self.cy) * self.elevation_step
-        d = jnp.stack([jnp.sin(az) * jnp.cos(el), jnp.sin(el), jnp.cos(az) * jnp.cos(el)], -1)
-        return jnp.zeros_like(d), d
+        d = xp.stack([xp.sin(az) * xp.cos(el), xp.sin(el), xp.cos(az) * xp.cos(el)], -1)
+        return xp.zeros_like(d), d
 
     def pixel_size_at(self, depth):
         return depth * 0.5 * (self.azimuth_step + self.elevation_step)
@@ -460,21 +467,7 @@ def bucket_camera(camera: Camera) -> Camera:
     return dataclasses.replace(camera, width=image_bucket(camera.width), height=image_bucket(camera.height))
 
 
-@functools.partial(jax.jit, static_argnames=("camera",))
-def _rays(camera: Camera):
-    return camera.rays()
-
-
 def camera_rays(camera: Camera) -> tuple[np.ndarray, np.ndarray]:
-    """``camera.rays()`` (host copies, (h, w, 3) each) from one compiled program per
-    bucketed camera, where the eager computation dispatches about ten."""
-    o, d = _rays(camera=bucket_camera(camera))
-    h, w = camera.height, camera.width
-    return np.asarray(o)[:h, :w], np.asarray(d)[:h, :w]
-
-
-def camera_points(camera: Camera, range_image) -> np.ndarray:
-    """``camera.points(range_image)`` (float64, (h, w, 3), NaN = none) from one compiled
-    program per camera, where the eager ray computation dispatches about ten."""
-    o, d = (np.asarray(a, np.float64) for a in camera_rays(camera))
-    return o + np.asarray(range_image, np.float64)[..., None] * d
+    """``camera.rays()`` as host (numpy, float32) arrays, (h, w, 3) each, computed on the
+    host: the same float32 arithmetic, and no XLA program built for it."""
+    return camera._rays(*camera._pixel_grid(None, np))

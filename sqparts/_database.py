@@ -40,7 +40,7 @@ from scipy.spatial.transform import Rotation
 if TYPE_CHECKING:
     from ._recover import Recovery, SceneRecovery
 
-from ._camera import json_numbers
+from ._camera import camera_rays, json_numbers
 from ._compile import concurrently
 from ._describe import Description, describe, merged_alternatives, part_volume, surface_cloud
 from ._io import _load_json, atomic_write, scene_from_dict, scene_to_dict
@@ -491,7 +491,7 @@ class ModelDatabase:
         if observation is not None and tolerance is not None:
             mask = observation.figures.any(0) if figure is None else figure
             points = observed_points(observation, mask)
-            directions = np.asarray(observation.camera.rays()[1])[np.asarray(mask, bool)]
+            directions = camera_rays(observation.camera)[1][np.asarray(mask, bool)]
             sight = directions.mean(0) if len(directions) else None  # no figure: no points, no proposals
 
             def fitted(row):

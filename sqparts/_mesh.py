@@ -15,7 +15,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from ._camera import Camera
+from ._camera import Camera, camera_rays
 from ._compile import persistent_jit
 from ._io import atomic_write
 from ._part import Part, surface_point
@@ -209,7 +209,7 @@ def render_mesh(mesh: trimesh.Trimesh, camera: Camera) -> np.ndarray:
     Uses the same rays as the part renderer, so the value is z-depth (range along the ray
     for a scanner).
     """
-    origins, directions = (np.asarray(a, np.float64).reshape(-1, 3) for a in camera.rays())
+    origins, directions = (np.asarray(a, np.float64).reshape(-1, 3) for a in camera_rays(camera))
     locations, index_ray, _ = mesh.ray.intersects_location(origins, directions, multiple_hits=True)
     t = np.einsum("ij,ij->i", locations - origins[index_ray], directions[index_ray])
     t /= np.einsum("ij,ij->i", directions[index_ray], directions[index_ray])

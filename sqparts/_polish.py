@@ -18,7 +18,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from ._camera import camera_points, camera_rays
+from ._camera import camera_rays
 from ._compile import RowMemo, balanced_groups, concurrently, persistent_jit
 from ._data import RangeData
 from ._encoding import PART_BUCKET, host_parts, pad_parts, pad_rows, pad_vectors, part_vectors
@@ -244,16 +244,21 @@ def once_per_image(fn):
     return wrapper
 
 
+POINT_CHUNK = 1024
+"""Points per compiled call of :func:`surface_distances` (:func:`figure_points` pads to
+a multiple of it): one program for every image's point count."""
+
+
 @once_per_image
 def figure_points(data: RangeData):
     """Figure pixels' 3-D points and their flat indices (a fixed random 20 000 of them
-    when there are more), padded to a multiple of 1024 (index -1)."""
+    when there are more), padded to a multiple of :data:`POINT_CHUNK` (index -1)."""
     max_points, seed = 20000, 0
     idx = np.flatnonzero(data.figure_mask)
     if len(idx) > max_points:
         idx = np.sort(np.random.default_rng(seed).choice(idx, max_points, replace=False))
-    pts = camera_points(data.camera, data.image).reshape(-1, 3)[idx]
-    m = int(math.ceil(len(idx) / 1024) * 1024)
+    pts = data.camera.points(data.image).reshape(-1, 3)[idx]
+    m = int(math.ceil(len(idx) / POINT_CHUNK) * POINT_CHUNK)
     return pad_rows(pts.astype(np.float32), m), np.concatenate([idx, np.full(m - len(idx), -1)])
 
 
@@ -290,15 +295,19 @@ def _surface_distance(parts, points):
 
 def surface_distances(parts: Part, points) -> np.ndarray:
     """(n, m) radial distance (:func:`~sqparts.surface_distance`) of every point to every
-    part, ``PART_BUCKET`` parts per compiled call."""
+    part, ``PART_BUCKET`` parts and :data:`POINT_CHUNK` points per compiled call."""
     padded, n = pad_parts(parts)
-    pts = np.asarray(points)
-    return np.concatenate(
+    pts = np.asarray(points, np.float32)
+    m = len(pts)
+    pts = pad_rows(pts, max(1, -(-m // POINT_CHUNK)) * POINT_CHUNK)
+    buckets, chunks = range(0, len(padded), PART_BUCKET), range(0, len(pts), POINT_CHUNK)
+    out = iter(
         concurrently(
-            lambda k: np.asarray(_surface_distance(padded[k : k + PART_BUCKET], pts)),
-            range(0, len(padded), PART_BUCKET),
+            lambda c: np.asarray(_surface_distance(padded[c[0] : c[0] + PART_BUCKET], pts[c[1] : c[1] + POINT_CHUNK])),
+            [(k, j) for k in buckets for j in chunks],
         )
-    )[:n]
+    )
+    return np.block([[next(out) for _ in chunks] for _ in buckets])[:n, :m]
 
 
 def polish_scale(parts: Part, sigma: float) -> np.ndarray:

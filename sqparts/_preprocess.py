@@ -31,7 +31,7 @@ from scipy import ndimage
 from scipy.sparse import coo_matrix
 from scipy.sparse.csgraph import connected_components
 
-from ._camera import Camera, camera_points
+from ._camera import Camera
 from ._camera import check_range_image as _check_depth
 from ._typing import freeze_fields
 
@@ -547,7 +547,7 @@ def figure_ground(
     check_positive("min_pixels", min_pixels, integer=True)
     if not (isinstance(max_border_fraction, (int, float, np.integer, np.floating)) and 0 <= max_border_fraction <= 1):
         raise ValueError(f"max_border_fraction: got {max_border_fraction!r}, expected a number in [0, 1]")
-    pts = camera_points(camera, d)
+    pts = camera.points(d)
     frame = _outer_frame(valid)
     background = np.zeros(d.shape, bool)
     found = []

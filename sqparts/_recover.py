@@ -23,7 +23,7 @@ from typing import TYPE_CHECKING
 import jax
 import numpy as np
 
-from ._camera import Camera, camera_points, fits_float32
+from ._camera import Camera, fits_float32
 from ._compile import memo_scope
 from ._data import RangeData
 from ._encoding import (
@@ -797,7 +797,7 @@ def recover_multiscale(
     data0 = prepare(d0, camera, figure=figure)
     max_size = search.max_size
     if max_size is None:
-        pts = camera_points(camera, data0.image)[data0.figure_mask]
+        pts = camera.points(data0.image)[data0.figure_mask]
         max_size = float(np.max(np.ptp(pts, axis=0))) / 2.0
     fig0 = data0.figure_region
     out_levels, factors, cameras, sizes, parents = [], [], [], [], []

@@ -47,7 +47,6 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from ._camera import camera_points
 from ._compile import persistent_jit
 from ._data import RangeData
 from ._encoding import (
@@ -218,8 +217,7 @@ class SplitParts(Move):
 
     def propose(self, vectors, cost, data, costs, step):
         from scipy.ndimage import binary_dilation
-
-        from ._part import rotation_matrix
+        from scipy.spatial.transform import Rotation
 
         omitted = data.figure_mask & ~cost.explained_mask
         grown = [np.asarray(binary_dilation(cost.labels == i, iterations=2), bool) for i in range(len(vectors))]
@@ -227,7 +225,7 @@ class SplitParts(Move):
         trials = []
         for i in [int(i) for i in np.argsort(-beside)[: self.tries] if beside[i] >= least_pixels(costs)]:
             v = vectors[i].astype(np.float64)
-            axis = np.asarray(rotation_matrix(v[3:6]))[:, 2] * v[8] / 2
+            axis = Rotation.from_rotvec(v[3:6]).as_matrix()[:, 2] * v[8] / 2
             halves = np.stack([v, v])
             halves[:, 0:3] = [v[0:3] - axis, v[0:3] + axis]
             halves[:, 8] = v[8] / 2
@@ -376,7 +374,7 @@ class FillGaps(Move):
         # Members too thin for a blob start from their pixels' moments: a window search
         # along a fixed grid of directions meets a two-pixel bar at a slant only where it
         # crosses the window.
-        points = camera_points(data.camera, data.image)
+        points = data.camera.points(data.image)
         pixel = float(data.camera.pixel_size_at(float(np.nanmedian(data.image[data.figure_mask]))))
         thin = [
             m

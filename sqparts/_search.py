@@ -36,7 +36,7 @@ import numpy as np
 from jax.sharding import Mesh
 from jax.sharding import PartitionSpec as P
 
-from ._camera import Camera, camera_points
+from ._camera import Camera, camera_rays
 from ._compile import RowMemo, balanced_groups, concurrently, persistent_jit
 from ._data import RangeData, prepare
 from ._encoding import (
@@ -212,7 +212,7 @@ def search_preset(name_or_settings) -> SearchSettings:
 
 def default_max_size(data: RangeData) -> float:
     """Largest semi-axis searched: a quarter of the figure's largest metric extent."""
-    pts = camera_points(data.camera, data.image)[data.figure_mask]
+    pts = data.camera.points(data.image)[data.figure_mask]
     extent = float(np.max(np.ptp(pts, axis=0)))
     return max(extent / 4.0, 1e-6)
 
@@ -1053,7 +1053,7 @@ def _gamma_of_vectors(vecs, origins, directions, measured, figure, sigma, lam, *
 def gamma_profile(data: RangeData, part: Part, parameter: int, offsets, *, num_bins: int | None = None) -> np.ndarray:
     """Γ over the whole image as parameter ``parameter`` (index into the 14-vector) of
     ``part`` moves by each of ``offsets`` (Figure 6c). Invalid parts get -inf."""
-    o, d = data.camera.rays()
+    o, d = camera_rays(data.camera)
     p = data.pad
     h, w = data.camera.height, data.camera.width
     measured, figure = data.depth[p : p + h, p : p + w], data.figure[p : p + h, p : p + w]

@@ -17,7 +17,7 @@ For n candidate parts with explained-pixel masks e_i and commission masks c_i:
   - N = number of figure pixels.
 
 Selection minimises E over binary X: :func:`select_best_first` (the paper's iterative
-best-first search, in JAX: add the part that lowers E most, drop any part whose removal
+best-first search: add the part that lowers E most, drop any part whose removal
 lowers E, until neither helps), :func:`select_tabu` (from there, tabu search over flips
 and swaps: recovery's default) and :func:`select_exact` (the integer-programming route:
 the quadratic is linearised with y_ij = x_i x_j and solved to optimality by HiGHS, group
@@ -35,11 +35,8 @@ import os
 import sys
 import time
 
-import jax
-import jax.numpy as jnp
 import numpy as np
 
-from ._compile import persistent_jit
 from ._data import RangeData
 from ._encoding import Costs, area_matrix, layer_counts
 
@@ -110,53 +107,26 @@ class SelectionProblem:
         )
 
 
-_BUCKET = 64
-"""Best-first selection is compiled for this many candidates, or the next power of two
-above: one program for every problem up to 64 candidates (selection by groups solves
-problems of several sizes in one recovery)."""
-
-
-@persistent_jit
-def _best_first(linear, pairwise, max_iter):
-    n = linear.shape[0]
-
-    def delta(x):
-        # Change of E when bit i flips: adding costs linear_i + 2 Q_i·x, removing the negative.
-        field = linear + 2.0 * pairwise @ x
-        return jnp.where(x > 0, -field, field)
-
-    def cond(state):
-        x, it, improved = state
-        return improved & (it < max_iter)
-
-    def body(state):
-        x, it, _ = state
-        d = delta(x)
-        i = jnp.argmin(d)
-        improved = d[i] < -1e-9
-        x = jnp.where(improved, x.at[i].set(1.0 - x[i]), x)
-        return x, it + 1, improved
-
-    x, _, _ = jax.lax.while_loop(cond, body, (jnp.zeros(n, linear.dtype), 0, True))
-    return x
-
-
 def select_best_first(problem: SelectionProblem, *, max_iter: int | None = None) -> np.ndarray:
-    """The paper's iterative best-first search (JAX): starting from no parts, flip the
-    single part (add or drop) that lowers E(X) most, until no flip lowers it. Returns a
-    bool array."""
+    """The paper's iterative best-first search: starting from no parts, flip the single
+    part (add or drop) that lowers E(X) most, until no flip lowers it (or after
+    ``max_iter`` flips, default 4n + 10). Returns a bool array. On the host: each step
+    is one pass over n numbers (n at most a few hundred), where a compiled program would
+    cost more to build than all its calls in a recovery."""
     n = problem.size
-    if n == 0:
-        return np.zeros(0, bool)
-    # Padded to _BUCKET or the next power of two with parts that never pay (the largest
-    # cost, no overlaps): one compiled program serves every candidate count up to it.
-    m = max(_BUCKET, 1 << (n - 1).bit_length())
-    linear = np.full(m, np.finfo(np.float32).max, np.float32)
-    linear[:n] = problem.linear
-    pairwise = np.zeros((m, m), np.float32)
-    pairwise[:n, :n] = problem.pairwise
-    x = _best_first(linear, pairwise, np.int32(max_iter or 4 * n + 10))
-    return np.asarray(x)[:n] > 0.5
+    x = np.zeros(n, bool)
+    pair = 2.0 * problem.pairwise
+    field = problem.linear.astype(np.float64)  # E's change on adding each part (while it is out)
+    for _ in range(4 * n + 10 if max_iter is None else max_iter):
+        if n == 0:
+            break
+        change = np.where(x, -field, field)
+        i = int(np.argmin(change))
+        if not change[i] < -1e-9:
+            break
+        x[i] = not x[i]
+        field += pair[:, i] if x[i] else -pair[:, i]
+    return x
 
 
 TABU_MOVES = 10

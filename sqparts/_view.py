@@ -36,14 +36,6 @@ def pixel_status(recovery) -> np.ndarray:
     return status
 
 
-def points_of(depth, camera) -> np.ndarray:
-    """(h, w, 3) camera-frame points of a range image (NaN where there is no return): the
-    ray's origin plus depth times its direction (z-depth for a pinhole, whose direction
-    has z = 1; range along the unit ray for the scanner)."""
-    origins, directions = (np.asarray(a, np.float64) for a in camera.rays())
-    return origins + np.asarray(depth, np.float64)[..., None] * directions
-
-
 def _depth_colors(depth: np.ndarray) -> np.ndarray:
     from ._plot import range_image_rgb
 
@@ -87,7 +79,7 @@ def view_layers(data: dict, *, resolution: int = 10) -> dict:
     depth, camera = data.get("depth"), data.get("camera")
     if depth is None or camera is None:
         return layers
-    xyz = points_of(depth, camera)
+    xyz = camera.points(depth)
     ok = np.isfinite(depth)
     rgb = _depth_colors(depth)
     layers["points"]["measured"] = (xyz[ok].astype(np.float32), rgb[ok])
@@ -95,7 +87,7 @@ def view_layers(data: dict, *, resolution: int = 10) -> dict:
         layers["point_size"] = float(np.median(np.asarray(camera.pixel_size_at(depth[ok])))) * 0.6
     status, model = data.get("status"), data.get("model")
     if status is not None:
-        model_xyz = points_of(model, camera) if model is not None else xyz
+        model_xyz = camera.points(model) if model is not None else xyz
         for name, code in STATUS.items():
             where = (status == code) & np.isfinite(model_xyz if name == "commission" else xyz).all(-1)
             source = model_xyz if name == "commission" else xyz

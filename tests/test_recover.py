@@ -700,7 +700,6 @@ def test_moments_give_a_plate_bent_through_itself(size, bend):
     # shorter side (the last size) is found along that side.
     from scipy.spatial.transform import Rotation
 
-    from sqparts._camera import camera_points
     from sqparts._refine import _moment_candidates
 
     cam = sqparts.PinholeCamera(96, 96, 240.0, 240.0, 47.5, 47.5)
@@ -716,7 +715,7 @@ def test_moments_give_a_plate_bent_through_itself(size, bend):
         bend=[bend, 0.0],
     )
     depth = np.asarray(sqparts.render_range_image(part, cam))
-    points = camera_points(cam, depth).reshape(-1, 3)[np.isfinite(depth).reshape(-1)]
+    points = cam.points(depth).reshape(-1, 3)[np.isfinite(depth).reshape(-1)]
     start = _moment_candidates(points, 0.005)[-1]
     r = Rotation.from_rotvec(start[3:6]).as_matrix()
     assert np.degrees(np.arccos(min(1.0, abs(r[:, 2] @ m[:, 2])))) < 5.0
