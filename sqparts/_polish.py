@@ -244,21 +244,16 @@ def once_per_image(fn):
     return wrapper
 
 
-POINT_CHUNK = 1024
-"""Points per compiled call of :func:`surface_distances` (:func:`figure_points` pads to
-a multiple of it): one program for every image's point count."""
-
-
 @once_per_image
 def figure_points(data: RangeData):
     """Figure pixels' 3-D points and their flat indices (a fixed random 20 000 of them
-    when there are more), padded to a multiple of :data:`POINT_CHUNK` (index -1)."""
+    when there are more), padded to a multiple of 1024 (index -1)."""
     max_points, seed = 20000, 0
     idx = np.flatnonzero(data.figure_mask)
     if len(idx) > max_points:
         idx = np.sort(np.random.default_rng(seed).choice(idx, max_points, replace=False))
     pts = data.camera.points(data.image).reshape(-1, 3)[idx]
-    m = int(math.ceil(len(idx) / POINT_CHUNK) * POINT_CHUNK)
+    m = int(math.ceil(len(idx) / 1024) * 1024)
     return pad_rows(pts.astype(np.float32), m), np.concatenate([idx, np.full(m - len(idx), -1)])
 
 
@@ -291,6 +286,11 @@ def rays_near(mask: np.ndarray, ray_index: np.ndarray, margin: int) -> np.ndarra
 @persistent_jit
 def _surface_distance(parts, points):
     return jax.vmap(lambda p: jax.vmap(lambda x: surface_distance(p, x))(points))(parts)
+
+
+POINT_CHUNK = 2048
+"""Points per compiled call of :func:`surface_distances`: one program for every image's
+point count (fewer points a call pay more calls' overhead; more, more padding)."""
 
 
 def surface_distances(parts: Part, points) -> np.ndarray:
