@@ -13,7 +13,8 @@ region, number of regions or image.
 **Pruning** (section 3.6): every hypothesis is first scored on a pixel subsample
 (``stride``: every stride-th row and column, each pixel standing for stride² pixels);
 only the best ``survivors`` are scored again at full resolution. ``stride=1`` is the
-brute force.
+brute force. The subsample scores each length of hypothesis on the window that covers
+it, every window in the same compiled call (:func:`_by_window`, :func:`_score_passes`).
 
 **Candidates** (:func:`fit_regions`): every region's best distinct hypotheses are posed,
 scored at full resolution, polished and scored again together, ``PART_BUCKET`` per
@@ -338,17 +339,20 @@ regions stops at the last live one)."""
 
 def _map_regions(fn, region, starts, replicated):
     """``fn(r, starts_r, *replicated)`` for each live region ``r`` of ``region`` (R,)
-    (-1: padding, which comes last and is not run; zeros there), ``starts`` (R, c)
-    its chunks' first rows: a loop as long as the live regions, each mapping ``fn``'s
-    chunk loop over its own row of ``starts``. With several devices the chunks (axis 1,
-    a multiple of the devices) are sharded over them with ``shard_map``."""
+    (-1: padding, which comes last and is not run; zeros there), ``starts`` a tree of (R,
+    c) arrays, its chunks' first rows: a loop as long as the live regions, each mapping
+    ``fn``'s chunk loops over its own rows of ``starts``. With several devices the chunks
+    (axis 1, a multiple of the devices) are sharded over them with ``shard_map``."""
     devices = jax.devices()
 
     def run(starts, region, *r):
-        def body(k, out):
-            return jax.tree_util.tree_map(lambda o, y: o.at[k].set(y), out, fn(region[k], starts[k], *r))
+        def row(k):
+            return jax.tree_util.tree_map(lambda s: s[k], starts)
 
-        one = jax.eval_shape(lambda: fn(region[0], starts[0], *r))
+        def body(k, out):
+            return jax.tree_util.tree_map(lambda o, y: o.at[k].set(y), out, fn(region[k], row(k), *r))
+
+        one = jax.eval_shape(lambda: fn(region[0], row(0), *r))
         out = jax.tree_util.tree_map(lambda s: jnp.zeros((len(region), *s.shape), s.dtype), one)
         return jax.lax.fori_loop(0, jnp.sum(region >= 0), body, out)  # a traced trip count: live regions only
 
@@ -359,72 +363,77 @@ def _map_regions(fn, region, starts, replicated):
     return jax.shard_map(
         run,
         mesh=mesh,
-        in_specs=(P(None, "hypotheses"), P(), *spec_r),
+        in_specs=(jax.tree_util.tree_map(lambda _: P(None, "hypotheses"), starts), P(), *spec_r),
         out_specs=P(None, "hypotheses"),
         check_vma=False,
     )(starts, region, *replicated)
 
 
-@persistent_jit(static_argnames=("camera", "pad", "window", "stride", "batch", "newton_steps"))
+@persistent_jit(static_argnames=("camera", "pad", "windows", "stride", "batches", "newton_steps"))
 def _score_hypotheses(
     arrays,
-    orientation_rel,
-    shape,
+    tables,
     region,
-    start,
-    corner,
+    starts,
+    corners,
     centre,
     max_size,
     *,
     camera,
     pad,
-    window,
+    windows,
     stride,
-    batch,
+    batches,
     newton_steps,
 ):
     """Γ and depth offset p of hypotheses at several regions (the one parallel
-    operation), in chunks of ``batch``: region ``region[k]`` (``corner``, ``centre``: (R,
-    2); ``max_size``: (R,)) scores its chunks, the table's rows ``start[k, j]`` to
-    ``start[k, j] + batch`` (``orientation_rel`` (m, 3), ``shape`` (m, 8)); regions of
-    ``region`` -1 are padding, after the live ones, not scored (Γ -inf). Returns (R, c,
-    batch) arrays."""
+    operation), in one or more passes: pass q scores the hypotheses of ``tables[q]`` =
+    (``orientation_rel`` (m, 3), ``shape`` (m, 8)) on a ``windows[q]`` window, in chunks
+    of ``batches[q]``: region ``region[k]`` (``centre``: (R, 2); ``corners[q]``: (R, 2);
+    ``max_size``: (R,)) scores the table's rows ``starts[q][k, j]`` to ``starts[q][k, j]
+    + batches[q]``; regions of ``region`` -1 are padding, after the live ones, not scored
+    (Γ -inf). Returns one (Γ, p) pair of (R, c, batch) arrays per pass."""
     depth, fig, sigma, lam = arrays
     s = slice(stride // 2, None, stride)
     weight = jnp.float32(stride * stride)
 
-    def at_region(r, starts, orientation_rel, shape, corner, centre, sigma, lam, max_size):
-        # The region's window is cut once, outside its loop over chunks: what depends
-        # on the window alone is computed once, not per chunk.
-        measured, figure, origins, directions, c_o, c_d, surface_t = _region_inputs(
-            depth, fig, camera, pad, corner[r], centre[r], window
-        )
-        measured, figure, origins, directions = (a[s, s] for a in (measured, figure, origins, directions))
-
-        def one(o, shp):
-            part = pose_hypothesis(o, shp, max_size[r], c_o, c_d, surface_t)
-            return _score_one(
-                part,
-                origins,
-                directions,
-                measured,
-                figure,
-                weight,
-                sigma=sigma,
-                lam=lam,
-                num_bins=NUM_BINS,
-                newton_steps=newton_steps,
+    def at_region(r, starts, tables, corners, centre, sigma, lam, max_size):
+        out = []
+        for (orientation_rel, shape), first_rows, corner, window, batch in zip(
+            tables, starts, corners, windows, batches
+        ):
+            # The region's window is cut once, outside its loop over chunks: what depends
+            # on the window alone is computed once, not per chunk.
+            measured, figure, origins, directions, c_o, c_d, surface_t = _region_inputs(
+                depth, fig, camera, pad, corner[r], centre[r], window
             )
+            measured, figure, origins, directions = (a[s, s] for a in (measured, figure, origins, directions))
 
-        def chunk(first):
-            rows = (jax.lax.dynamic_slice_in_dim(a, first, batch) for a in (orientation_rel, shape))
-            return jax.vmap(one)(*rows)
+            def one(o, shp):
+                part = pose_hypothesis(o, shp, max_size[r], c_o, c_d, surface_t)
+                return _score_one(
+                    part,
+                    origins,
+                    directions,
+                    measured,
+                    figure,
+                    weight,
+                    sigma=sigma,
+                    lam=lam,
+                    num_bins=NUM_BINS,
+                    newton_steps=newton_steps,
+                )
 
-        return jax.lax.map(chunk, starts)
+            def chunk(first, orientation_rel=orientation_rel, shape=shape, batch=batch, one=one):
+                rows = (jax.lax.dynamic_slice_in_dim(a, first, batch) for a in (orientation_rel, shape))
+                return jax.vmap(one)(*rows)
 
-    gam, off = _map_regions(at_region, region, start, (orientation_rel, shape, corner, centre, sigma, lam, max_size))
+            out.append(jax.lax.map(chunk, first_rows))
+        return tuple(out)
+
+    out = _map_regions(at_region, region, starts, (tables, corners, centre, sigma, lam, max_size))
     live = (region >= 0)[:, None, None]
-    return jnp.where(live & jnp.isfinite(gam), gam, -jnp.inf), off
+    return tuple((jnp.where(live & jnp.isfinite(gam), gam, -jnp.inf), off) for gam, off in out)
 
 
 # --- results --------------------------------------------------------------------------
@@ -463,35 +472,40 @@ def score_regions(
     most, about :data:`CHUNK_RAYS` rays a chunk), :data:`REGION_BUCKET` regions a call; a
     set shared by the regions is passed once. Returns (r, n) host arrays."""
     hyp = hypotheses or _grid_arrays(settings.grid)
+    return _score_passes(data, settings, centres, [(settings.side, hyp)], stride=stride, max_sizes=max_sizes)[0]
+
+
+def _score_passes(
+    data: RangeData, settings: SearchSettings, centres, passes, *, stride: int | None = None, max_sizes=None
+) -> list[tuple[np.ndarray, np.ndarray]]:
+    """:func:`score_regions` of several sets of hypotheses, each on its own window:
+    ``passes`` = [(window side, hypotheses)], all in the same compiled calls. Returns
+    one (Γ, p) pair of (r, n) host arrays per pass."""
     centres = np.asarray(centres, np.int32).reshape(-1, 2)
     r = len(centres)
-    orientation, shape = (np.asarray(hyp[k], np.float32) for k in ("orientation", "shape"))
-    shared = orientation.ndim == 2
-    n = orientation.shape[-2]
     sizes = np.full(r, settings.max_size, np.float32) if max_sizes is None else np.asarray(max_sizes, np.float32)
     stride = stride or settings.lattice
-    # Chunks of about 2^16 rays keep temporaries in cache (one huge vmap is slower).
-    pixels = len(range(stride // 2, settings.side, stride)) ** 2
     devices = len(jax.devices())
-    cap = int(max(1, min(settings.batch_size, CHUNK_RAYS // pixels)))
-    batch = -(-n // (-(-n // (cap * devices)) * devices))  # as few chunks as the cap allows, least padding
-    chunks = int(math.ceil(n / (batch * devices)) * devices)  # per region
-    padded = chunks * batch
+    layouts = []
+    for side, hyp in passes:
+        orientation, shape = (np.asarray(hyp[k], np.float32) for k in ("orientation", "shape"))
+        n = orientation.shape[-2]
+        # Chunks of about 2^16 rays keep temporaries in cache (one huge vmap is slower).
+        pixels = len(range(stride // 2, side, stride)) ** 2
+        cap = int(max(1, min(settings.batch_size, CHUNK_RAYS // pixels)))
+        batch = -(-n // (-(-n // (cap * devices)) * devices))  # as few chunks as the cap allows, least padding
+        chunks = int(math.ceil(n / (batch * devices)) * devices)  # per region
+        layouts.append((side, orientation, shape, orientation.ndim == 2, n, batch, chunks, chunks * batch))
 
-    def table(a, regions):
+    def table(a, regions, n, padded):
         """Rows padded to ``padded`` per set (with the set's first row, not read)."""
         a = a.reshape(-1, n, a.shape[-1])[regions]
         return np.concatenate([a, np.repeat(a[:, :1], padded - n, axis=1)], axis=1).reshape(-1, a.shape[-1])
 
-    corners = centres - np.int32(settings.side // 2)
-    gam, off = np.empty((r, n), np.float32), np.empty((r, n), np.float32)
+    out = [(np.empty((r, n), np.float32), np.empty((r, n), np.float32)) for _, _, _, _, n, *_ in layouts]
     for first in range(0, r, REGION_BUCKET):
         rows = np.arange(first, min(r, first + REGION_BUCKET))
         m = len(rows)
-        sets = np.zeros(1, np.int64) if shared else rows
-        # Chunk j of region k: rows j·batch of the shared table, or of region k's own.
-        own = np.arange(REGION_BUCKET)[:, None] * padded * (not shared)
-        start = (own + np.arange(chunks)[None] * batch).astype(np.int32)
         region = np.where(np.arange(REGION_BUCKET) < m, np.arange(REGION_BUCKET), -1).astype(np.int32)
 
         def bucket(a, fill: float = 0.0):
@@ -499,29 +513,38 @@ def score_regions(
             out[:m] = a[rows]
             return out
 
-        o, sh = table(orientation, sets), table(shape, sets)
-        if not shared:  # every region's own rows, the padding regions' too (not read)
-            o = np.concatenate([o, np.zeros(((REGION_BUCKET - m) * padded, 3), np.float32)])
-            sh = np.concatenate([sh, np.repeat(sh[:1], (REGION_BUCKET - m) * padded, axis=0)])
-        g, p = _score_hypotheses(
+        tables, starts, corners = [], [], []
+        for side, orientation, shape, shared, n, batch, chunks, padded in layouts:
+            sets = np.zeros(1, np.int64) if shared else rows
+            # Chunk j of region k: rows j·batch of the shared table, or of region k's own.
+            own = np.arange(REGION_BUCKET)[:, None] * padded * (not shared)
+            starts.append((own + np.arange(chunks)[None] * batch).astype(np.int32))
+            o, sh = table(orientation, sets, n, padded), table(shape, sets, n, padded)
+            if not shared:  # every region's own rows, the padding regions' too (not read)
+                o = np.concatenate([o, np.zeros(((REGION_BUCKET - m) * padded, 3), np.float32)])
+                sh = np.concatenate([sh, np.repeat(sh[:1], (REGION_BUCKET - m) * padded, axis=0)])
+            tables.append((o, sh))
+            corners.append(bucket(centres - np.int32(side // 2)))
+        scored = _score_hypotheses(
             data.arrays,
-            o,
-            sh,
+            tuple(tables),
             region,
-            start,
-            bucket(corners),
+            tuple(starts),
+            tuple(corners),
             bucket(centres),
             bucket(sizes, 1.0),
             camera=data.compiled_camera,
             pad=data.pad,
-            window=settings.side,
+            windows=tuple(side for side, *_ in layouts),
             stride=stride,
-            batch=batch,
+            batches=tuple(batch for *_, batch, _, _ in layouts),
             newton_steps=settings.newton_steps,
         )
-        gam[rows] = np.asarray(g).reshape(REGION_BUCKET, -1)[:m, :n]
-        off[rows] = np.asarray(p).reshape(REGION_BUCKET, -1)[:m, :n]
-    return gam, off
+        for (gam, off), (g, p), layout in zip(out, scored, layouts):
+            n = layout[4]
+            gam[rows] = np.asarray(g).reshape(REGION_BUCKET, -1)[:m, :n]
+            off[rows] = np.asarray(p).reshape(REGION_BUCKET, -1)[:m, :n]
+    return out
 
 
 def score_region(data: RangeData, settings: SearchSettings, centre, *, hypotheses=None, stride: int | None = None):
@@ -542,7 +565,8 @@ def _by_window(grid: Grid, window: int, *, multiple: int = 8) -> list[tuple[int,
     with the window side that covers it: ``length`` × ``window``, rounded up to a multiple
     of 8 (at least 16, at most ``window``). A part posed at a region projects around the
     region's centre, so the pruning pass scores a short hypothesis on a smaller window
-    with the same Γ (human, coarse grid: 24, 40 and 64 pixels; half the rays)."""
+    with the same Γ (human, coarse grid: 24, 40 and 64 pixels; half the rays), all the
+    windows in one compiled call (:func:`_score_passes`)."""
     rel = _grid_arrays(grid)["shape"][:, 2]
     out = []
     for length in np.unique(rel):
@@ -743,11 +767,10 @@ def _choose_rows(data: RangeData, settings: SearchSettings, centres, sizes) -> l
     grid_hypotheses = n  # the pools' first rows: the ratio is the grid's own
     if settings.prune and settings.lattice > 1 and settings.survivors < n:
         gam = np.empty((r, n), np.float32)
-        for side, sel in _by_window(settings.grid, settings.window):
-            sub = dataclasses.replace(settings, window=side)
-            gam[:, sel], _ = score_regions(
-                data, sub, centres, hypotheses={k: v[sel] for k, v in hyp.items()}, max_sizes=sizes
-            )
+        windows = _by_window(settings.grid, settings.window)
+        passes = [(side, {k: v[sel] for k, v in hyp.items()}) for side, sel in windows]
+        for (_, sel), (g, _) in zip(windows, _score_passes(data, settings, centres, passes, max_sizes=sizes)):
+            gam[:, sel] = g
         keep = np.argsort(-gam, axis=1, kind="stable")[:, : settings.survivors]
         pools = [{k: v[kept] for k, v in hyp.items()} for kept in keep]
         grid_hypotheses = keep.shape[1]

@@ -127,6 +127,30 @@ def test_regions_scored_together_equal_each_region_alone(data, monkeypatch):
     assert np.isfinite(gam).all() and (gam > 0).any()  # padding never leaks into a region's scores
 
 
+def test_passes_on_several_windows_in_one_call_equal_each_alone(data):
+    # The pruning pass scores each length of hypothesis on its own window, all windows in
+    # one compiled call: each pass's Γ and offsets are what its window gets alone, bit
+    # for bit.
+    from sqparts._search import _score_passes
+
+    st = sqparts.make_settings(data, grid=SMALL, max_size=0.25, batch_size=8)
+    rows, cols = np.nonzero(data.figure_mask)
+    centres = np.array([_centre(data), (rows.min() + 2, cols[np.argmin(rows)])])
+    hyp = _grid_arrays(SMALL)
+    half = SMALL.size // 2
+    passes = [
+        (st.side, {k: v[:half] for k, v in hyp.items()}),
+        (max(16, st.side // 2), {k: v[half:] for k, v in hyp.items()}),
+    ]
+    assert passes[0][0] != passes[1][0]
+    together = _score_passes(data, st, centres, passes, stride=4)
+    for (side, mine), (gam, off) in zip(passes, together):
+        alone = sqparts.score_regions(data, dataclasses.replace(st, window=side), centres, hypotheses=mine, stride=4)
+        np.testing.assert_array_equal(gam, alone[0])
+        np.testing.assert_array_equal(off, alone[1])
+        assert np.isfinite(gam).any()
+
+
 def test_pruned_search_finds_what_brute_force_finds(data):
     grid = sqparts.Grid(
         lengths=(0.5, 1.0),
@@ -239,8 +263,13 @@ g, off = sqparts.score_region(data, st, np.argwhere(data.figure_mask).mean(0).ro
 # Three regions in one call: each region's chunks sharded over the devices.
 centres = np.argwhere(data.figure_mask)[[0, 40, -1]]
 gs, offs = sqparts.score_regions(data, st, centres, stride=1)  # the program just compiled
+# Two windows' passes in one call, each sharded.
+from sqparts._search import _grid_arrays, _score_passes
+hyp = _grid_arrays(SMALL)
+passes = [(st.window, {{k: v[:20] for k, v in hyp.items()}}), (16, {{k: v[20:] for k, v in hyp.items()}})]
+two = [g.tolist() for g, _ in _score_passes(data, st, centres, passes, stride=2)]
 print(json.dumps({{"devices": len(jax.devices()), "gamma": np.asarray(g).tolist(), "offset": np.asarray(off).tolist(),
-    "gammas": gs.tolist(), "offsets": offs.tolist()}}))
+    "gammas": gs.tolist(), "offsets": offs.tolist(), "passes": two}}))
 """
 
 
@@ -264,6 +293,9 @@ def test_sharded_equals_unsharded():
     np.testing.assert_array_equal(out[1]["gammas"], out[4]["gammas"])
     np.testing.assert_allclose(out[1]["offsets"], out[4]["offsets"], atol=1e-5)
     assert np.isfinite(out[1]["gammas"]).any(axis=1).all()  # every region scored, none left as padding
+    for one, four in zip(out[1]["passes"], out[4]["passes"]):
+        np.testing.assert_array_equal(one, four)
+        assert np.isfinite(one).any()
 
 
 def test_convex_width_closed_form():
