@@ -561,18 +561,16 @@ def _grid_arrays(grid: Grid) -> dict:
 
 @functools.lru_cache(maxsize=8)
 def _by_window(grid: Grid, window: int, *, multiple: int = 8) -> list[tuple[int, np.ndarray]]:
-    """The grid's hypotheses grouped by length (a3 as a fraction of ``max_size``), each
-    with the window side that covers it: ``length`` × ``window``, rounded up to a multiple
-    of 8 (at least 16, at most ``window``). A part posed at a region projects around the
-    region's centre, so the pruning pass scores a short hypothesis on a smaller window
-    with the same Γ (human, coarse grid: 24, 40 and 64 pixels; half the rays), all the
-    windows in one compiled call (:func:`_score_passes`)."""
+    """The grid's hypotheses grouped by the window side that covers them: length (a3 as a
+    fraction of ``max_size``) × ``window``, rounded up to a multiple of 8 (at least 16,
+    at most ``window``); lengths whose sides agree form one group. A part posed at a
+    region projects around the region's centre, so the pruning pass scores a short
+    hypothesis on a smaller window with the same Γ (human, coarse grid: 24, 40 and 64
+    pixels; half the rays), all the windows in one compiled call (:func:`_score_passes`),
+    a pass per side."""
     rel = _grid_arrays(grid)["shape"][:, 2]
-    out = []
-    for length in np.unique(rel):
-        side = int(min(window, max(16, math.ceil(length * window / multiple) * multiple)))
-        out.append((side, np.flatnonzero(rel == length)))
-    return out
+    sides = np.array([int(min(window, max(16, math.ceil(x * window / multiple) * multiple))) for x in rel])
+    return [(int(side), np.flatnonzero(sides == side)) for side in np.unique(sides)]
 
 
 def _restart_starts(part: Part, levels: int) -> Part:

@@ -548,6 +548,9 @@ def test_pruning_scores_short_hypotheses_on_smaller_windows(data):
     )
     assert np.asarray(small).max() > 0.1 * data.figure_mask.sum()  # they do explain pixels
     np.testing.assert_allclose(np.asarray(small), np.asarray(full)[short], rtol=1e-5, atol=1e-3)
+    # Lengths whose windows agree are one pass: on a 16-pixel window every length's is.
+    ((only, every),) = _by_window(grid, 16)
+    assert only == 16 and np.array_equal(every, np.arange(grid.size))
 
 
 def test_every_matrix_product_runs_at_full_precision():
