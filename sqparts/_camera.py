@@ -467,7 +467,8 @@ def bucket_camera(camera: Camera) -> Camera:
     return dataclasses.replace(camera, width=image_bucket(camera.width), height=image_bucket(camera.height))
 
 
-def camera_rays(camera: Camera) -> tuple[np.ndarray, np.ndarray]:
+def camera_rays(camera: _Camera) -> tuple[np.ndarray, np.ndarray]:
     """``camera.rays()`` as host (numpy, float32) arrays, (h, w, 3) each, computed on the
     host: the same float32 arithmetic, and no XLA program built for it."""
-    return camera._rays(*camera._pixel_grid(None, np))
+    origins, directions = camera._rays(*camera._pixel_grid(None, np))
+    return np.asarray(origins), np.asarray(directions)

@@ -486,23 +486,8 @@ def _score_passes(
     sizes = np.full(r, settings.max_size, np.float32) if max_sizes is None else np.asarray(max_sizes, np.float32)
     stride = stride or settings.lattice
     devices = len(jax.devices())
-    layouts = []
-    for side, hyp in passes:
-        orientation, shape = (np.asarray(hyp[k], np.float32) for k in ("orientation", "shape"))
-        n = orientation.shape[-2]
-        # Chunks of about 2^16 rays keep temporaries in cache (one huge vmap is slower).
-        pixels = len(range(stride // 2, side, stride)) ** 2
-        cap = int(max(1, min(settings.batch_size, CHUNK_RAYS // pixels)))
-        batch = -(-n // (-(-n // (cap * devices)) * devices))  # as few chunks as the cap allows, least padding
-        chunks = int(math.ceil(n / (batch * devices)) * devices)  # per region
-        layouts.append((side, orientation, shape, orientation.ndim == 2, n, batch, chunks, chunks * batch))
-
-    def table(a, regions, n, padded):
-        """Rows padded to ``padded`` per set (with the set's first row, not read)."""
-        a = a.reshape(-1, n, a.shape[-1])[regions]
-        return np.concatenate([a, np.repeat(a[:, :1], padded - n, axis=1)], axis=1).reshape(-1, a.shape[-1])
-
-    out = [(np.empty((r, n), np.float32), np.empty((r, n), np.float32)) for _, _, _, _, n, *_ in layouts]
+    layouts = [_Layout.of(side, hyp, stride, settings.batch_size, devices) for side, hyp in passes]
+    out = [(np.empty((r, lay.n), np.float32), np.empty((r, lay.n), np.float32)) for lay in layouts]
     for first in range(0, r, REGION_BUCKET):
         rows = np.arange(first, min(r, first + REGION_BUCKET))
         m = len(rows)
@@ -513,38 +498,79 @@ def _score_passes(
             out[:m] = a[rows]
             return out
 
-        tables, starts, corners = [], [], []
-        for side, orientation, shape, shared, n, batch, chunks, padded in layouts:
-            sets = np.zeros(1, np.int64) if shared else rows
-            # Chunk j of region k: rows j·batch of the shared table, or of region k's own.
-            own = np.arange(REGION_BUCKET)[:, None] * padded * (not shared)
-            starts.append((own + np.arange(chunks)[None] * batch).astype(np.int32))
-            o, sh = table(orientation, sets, n, padded), table(shape, sets, n, padded)
-            if not shared:  # every region's own rows, the padding regions' too (not read)
-                o = np.concatenate([o, np.zeros(((REGION_BUCKET - m) * padded, 3), np.float32)])
-                sh = np.concatenate([sh, np.repeat(sh[:1], (REGION_BUCKET - m) * padded, axis=0)])
-            tables.append((o, sh))
-            corners.append(bucket(centres - np.int32(side // 2)))
         scored = _score_hypotheses(
             data.arrays,
-            tuple(tables),
+            tuple(lay.tables(rows) for lay in layouts),
             region,
-            tuple(starts),
-            tuple(corners),
+            tuple(lay.starts() for lay in layouts),
+            tuple(bucket(centres - np.int32(lay.side // 2)) for lay in layouts),
             bucket(centres),
             bucket(sizes, 1.0),
             camera=data.compiled_camera,
             pad=data.pad,
-            windows=tuple(side for side, *_ in layouts),
+            windows=tuple(lay.side for lay in layouts),
             stride=stride,
-            batches=tuple(batch for *_, batch, _, _ in layouts),
+            batches=tuple(lay.batch for lay in layouts),
             newton_steps=settings.newton_steps,
         )
-        for (gam, off), (g, p), layout in zip(out, scored, layouts):
-            n = layout[4]
-            gam[rows] = np.asarray(g).reshape(REGION_BUCKET, -1)[:m, :n]
-            off[rows] = np.asarray(p).reshape(REGION_BUCKET, -1)[:m, :n]
+        for (gam, off), (g, p), lay in zip(out, scored, layouts):
+            gam[rows] = np.asarray(g).reshape(REGION_BUCKET, -1)[:m, : lay.n]
+            off[rows] = np.asarray(p).reshape(REGION_BUCKET, -1)[:m, : lay.n]
     return out
+
+
+@dataclasses.dataclass(frozen=True)
+class _Layout:
+    """One pass of :func:`_score_passes` laid out for the compiled call: its window
+    ``side``, its ``n`` hypotheses (``orientation`` (n, 3) and ``shape`` (n, 8) shared by
+    the regions, or (r, n, ...) one set per region) in ``chunks`` of ``batch`` per region,
+    ``padded`` = chunks · batch rows per set."""
+
+    side: int
+    orientation: np.ndarray
+    shape: np.ndarray
+    n: int
+    batch: int
+    chunks: int
+
+    @classmethod
+    def of(cls, side: int, hyp: dict, stride: int, batch_size: int, devices: int) -> _Layout:
+        orientation, shape = (np.asarray(hyp[k], np.float32) for k in ("orientation", "shape"))
+        n = orientation.shape[-2]
+        # Chunks of about 2^16 rays keep temporaries in cache (one huge vmap is slower).
+        pixels = len(range(stride // 2, side, stride)) ** 2
+        cap = int(max(1, min(batch_size, CHUNK_RAYS // pixels)))
+        batch = -(-n // (-(-n // (cap * devices)) * devices))  # as few chunks as the cap allows, least padding
+        chunks = int(math.ceil(n / (batch * devices)) * devices)  # per region
+        return cls(side, orientation, shape, n, batch, chunks)
+
+    @property
+    def shared(self) -> bool:
+        return self.orientation.ndim == 2
+
+    @property
+    def padded(self) -> int:
+        return self.chunks * self.batch
+
+    def starts(self) -> np.ndarray:
+        """(REGION_BUCKET, chunks) first rows: chunk j of region k starts at row j·batch of
+        the shared table, or of region k's own."""
+        own = np.arange(REGION_BUCKET)[:, None] * self.padded * (not self.shared)
+        return (own + np.arange(self.chunks)[None] * self.batch).astype(np.int32)
+
+    def tables(self, rows: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """The (orientation, shape) tables of regions ``rows`` (one set if shared), each
+        set's rows padded to ``padded`` with its first row (not read); per-region sets
+        padded to REGION_BUCKET regions (the padding regions' are not read either)."""
+        sets = np.zeros(1, np.int64) if self.shared else rows
+        out = []
+        for a in (self.orientation, self.shape):
+            a = a.reshape(-1, self.n, a.shape[-1])[sets]
+            a = np.concatenate([a, np.repeat(a[:, :1], self.padded - self.n, axis=1)], axis=1).reshape(-1, a.shape[-1])
+            if not self.shared:
+                a = np.concatenate([a, np.repeat(a[:1], (REGION_BUCKET - len(rows)) * self.padded, axis=0)])
+            out.append(a)
+        return out[0], out[1]
 
 
 def score_region(data: RangeData, settings: SearchSettings, centre, *, hypotheses=None, stride: int | None = None):
