@@ -424,7 +424,7 @@ def _score_hypotheses(
                     newton_steps=newton_steps,
                 )
 
-            def chunk(first, orientation_rel=orientation_rel, shape=shape, batch=batch, one=one):
+            def chunk(first):
                 rows = (jax.lax.dynamic_slice_in_dim(a, first, batch) for a in (orientation_rel, shape))
                 return jax.vmap(one)(*rows)
 

@@ -115,9 +115,11 @@ def select_best_first(problem: SelectionProblem, *, max_iter: int | None = None)
     cost more to build than all its calls in a recovery."""
     n = problem.size
     x = np.zeros(n, bool)
+    if n == 0:
+        return x
     pair = 2.0 * problem.pairwise
     field = problem.linear.astype(np.float64)  # E's change on adding each part (while it is out)
-    for _ in range(0 if n == 0 else 4 * n + 10 if max_iter is None else max_iter):
+    for _ in range(4 * n + 10 if max_iter is None else max_iter):
         change = np.where(x, -field, field)
         i = int(np.argmin(change))
         if not change[i] < -1e-9:
