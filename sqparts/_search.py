@@ -325,8 +325,8 @@ def _region_inputs(depth, figure, camera, pad, corner, centre, window: int):
 
 
 def _score_one(part, origins, directions, measured, figure, weight, *, sigma, lam, num_bins, newton_steps):
-    # The grid search's kernel, run for every hypothesis: its Newton loop unrolled.
-    t, hit = cast_part(part, origins, directions, newton_steps, unroll=True)
+    # The grid search's kernel, run for every hypothesis.
+    t, hit = cast_part(part, origins, directions, newton_steps)
     mu, eps, offset, _ = gamma_terms(t, hit, measured, figure, sigma=sigma, num_bins=num_bins, weight=weight)
     return mu - lam * eps, offset
 
@@ -337,22 +337,30 @@ serves any number of regions, and a call's padding regions cost nothing (the loo
 regions stops at the last live one)."""
 
 
-def _map_regions(fn, region, starts, replicated):
+def _map_regions(fn, region, starts, replicated, out_shape):
     """``fn(r, starts_r, *replicated)`` for each live region ``r`` of ``region`` (R,)
     (-1: padding, which comes last and is not run; zeros there), ``starts`` a tree of (R,
     c) arrays, its chunks' first rows: a loop as long as the live regions, each mapping
-    ``fn``'s chunk loops over its own rows of ``starts``. With several devices the chunks
-    (axis 1, a multiple of the devices) are sharded over them with ``shard_map``."""
+    ``fn``'s chunk loops over its own rows of ``starts``. ``out_shape(starts_r)``: the
+    tree of ``jax.ShapeDtypeStruct`` that ``fn`` returns (given, not found by tracing
+    ``fn`` a second time: that doubled the search programs' tracing). With several
+    devices the chunks (axis 1, a multiple of the devices) are sharded over them with
+    ``shard_map``."""
     devices = jax.devices()
 
     def run(starts, region, *r):
         def row(k):
             return jax.tree_util.tree_map(lambda s: s[k], starts)
 
-        def body(k, out):
-            return jax.tree_util.tree_map(lambda o, y: o.at[k].set(y), out, fn(region[k], row(k), *r))
+        one = out_shape(row(0))
 
-        one = jax.eval_shape(lambda: fn(region[0], row(0), *r))
+        def body(k, out):
+            y = fn(region[k], row(k), *r)
+            got, want = (jax.tree_util.tree_map(lambda a: (a.shape, a.dtype), t) for t in (y, one))
+            if got != want:
+                raise TypeError(f"_map_regions: fn returned {got}, expected {want}")
+            return jax.tree_util.tree_map(lambda o, y: o.at[k].set(y), out, y)
+
         out = jax.tree_util.tree_map(lambda s: jnp.zeros((len(region), *s.shape), s.dtype), one)
         return jax.lax.fori_loop(0, jnp.sum(region >= 0), body, out)  # a traced trip count: live regions only
 
@@ -431,7 +439,10 @@ def _score_hypotheses(
             out.append(jax.lax.map(chunk, first_rows))
         return tuple(out)
 
-    out = _map_regions(at_region, region, starts, (tables, corners, centre, sigma, lam, max_size))
+    def out_shape(starts):  # per pass: Γ and p of each chunk's hypotheses
+        return tuple((jax.ShapeDtypeStruct((len(f), b), depth.dtype),) * 2 for f, b in zip(starts, batches))
+
+    out = _map_regions(at_region, region, starts, (tables, corners, centre, sigma, lam, max_size), out_shape)
     live = (region >= 0)[:, None, None]
     return tuple((jnp.where(live & jnp.isfinite(gam), gam, -jnp.inf), off) for gam, off in out)
 
