@@ -151,6 +151,26 @@ def test_passes_on_several_windows_in_one_call_equal_each_alone(data):
         assert np.isfinite(gam).any()
 
 
+def test_each_pass_is_traced_once(data, monkeypatch):
+    # Tracing the search's program is seconds of a first recovery: each pass's kernel is
+    # traced once (the loop over regions is told its output's shapes, it does not trace
+    # its body a second time to find them).
+    from sqparts import _search
+
+    traced = []
+    kernel = _search._score_one
+    monkeypatch.setattr(_search, "_score_one", lambda *a, **k: traced.append(1) or kernel(*a, **k))
+    st = sqparts.make_settings(data, grid=SMALL, max_size=0.25, batch_size=8)
+    hyp = _grid_arrays(SMALL)
+    half = SMALL.size // 2
+    passes = [
+        (st.side, {k: v[:half] for k, v in hyp.items()}),
+        (max(16, st.side // 2), {k: v[half:] for k, v in hyp.items()}),
+    ]
+    _search._score_passes(data, st, [_centre(data)], passes, stride=3)  # a stride no other test compiles
+    assert len(traced) == len(passes)
+
+
 def test_pruned_search_finds_what_brute_force_finds(data):
     grid = sqparts.Grid(
         lengths=(0.5, 1.0),
