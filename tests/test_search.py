@@ -157,6 +157,7 @@ def test_each_pass_is_traced_once(data, monkeypatch):
     # its body a second time to find them).
     from sqparts import _search
 
+    monkeypatch.setenv("SQPARTS_EXPORT", "0")  # a plain jit: an exported program would be loaded, not traced
     traced = []
     kernel = _search._score_one
     monkeypatch.setattr(_search, "_score_one", lambda *a, **k: traced.append(1) or kernel(*a, **k))
