@@ -12,7 +12,6 @@ candidates at once); the refinement's moves build their own supports on the same
 from __future__ import annotations
 
 import functools
-import math
 
 import jax
 import jax.numpy as jnp
@@ -246,15 +245,13 @@ def once_per_image(fn):
 
 @once_per_image
 def figure_points(data: RangeData):
-    """Figure pixels' 3-D points and their flat indices (a fixed random 20 000 of them
-    when there are more), padded to a multiple of 1024 (index -1)."""
+    """Figure pixels' 3-D points (float32) and their flat indices (a fixed random 20 000
+    of them when there are more)."""
     max_points, seed = 20000, 0
     idx = np.flatnonzero(data.figure_mask)
     if len(idx) > max_points:
         idx = np.sort(np.random.default_rng(seed).choice(idx, max_points, replace=False))
-    pts = data.camera.points(data.image).reshape(-1, 3)[idx]
-    m = int(math.ceil(len(idx) / 1024) * 1024)
-    return pad_rows(pts.astype(np.float32), m), np.concatenate([idx, np.full(m - len(idx), -1)])
+    return data.camera.points(data.image).reshape(-1, 3)[idx].astype(np.float32), idx
 
 
 @once_per_image
@@ -340,21 +337,19 @@ def grow_parts(parts: Part, data: RangeData, seeds, *, rounds: int, steps: int, 
         return parts
     pts, idx = figure_points(data)
     rays, ray_index = background_rays(data)
-    valid = idx >= 0
-    at = np.maximum(idx, 0)
     scale = polish_scale(parts, data.encoding.sigma)[:, None]
     box = np.ones((1, 2 * grow + 1, 2 * grow + 1), bool)
-    support = seeds.reshape(n, -1)[:, at] & valid
+    support = seeds.reshape(n, -1)[:, idx]
     vec = part_vectors(parts)
     for r in range(rounds):
         dist = np.abs(surface_distances(host_parts(vec), pts))
         image = np.zeros(seeds.shape, bool)
-        image.reshape(n, -1)[:, at[valid]] = support[:, valid]
+        image.reshape(n, -1)[:, idx] = support
         if r > 0:
-            near = np.asarray(binary_dilation(image, box), bool).reshape(n, -1)[:, at]
-            support = near & valid & (dist < 3 * scale)
+            near = np.asarray(binary_dilation(image, box), bool).reshape(n, -1)[:, idx]
+            support = near & (dist < 3 * scale)
             image[:] = False
-            image.reshape(n, -1)[:, at[valid]] = support[:, valid]
+            image.reshape(n, -1)[:, idx] = support
         weights = np.where(support, 1.0 / np.sqrt(1.0 + (dist / scale) ** 2), 0.0)
         ray_weights = rays_near(image, ray_index, grow + 3)
         vec = part_vectors(polish_parts(host_parts(vec), pts, weights, steps, rays, ray_weights))

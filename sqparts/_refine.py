@@ -92,12 +92,10 @@ def _grow_inputs(parts: Part, data: RangeData, cost: EncodingCost, which, *, tol
 
     which = np.asarray(which, np.int64)
     pts, idx = figure_points(data)
-    valid = idx >= 0
-    at = np.maximum(idx, 0)
-    flat_labels = cost.labels.reshape(-1)[at]
+    flat_labels = cost.labels.reshape(-1)[idx]
     with np.errstate(invalid="ignore"):
-        close = np.abs(cost.rendered - data.image).reshape(-1)[at] <= tolerance * data.encoding.sigma
-    free = ~cost.explained_mask.reshape(-1)[at] & valid
+        close = np.abs(cost.rendered - data.image).reshape(-1)[idx] <= tolerance * data.encoding.sigma
+    free = ~cost.explained_mask.reshape(-1)[idx]
     vec = part_vectors(parts)[which]
     chosen = host_parts(vec)
     dist = np.abs(surface_distances(chosen, pts))
@@ -106,8 +104,8 @@ def _grow_inputs(parts: Part, data: RangeData, cost: EncodingCost, which, *, tol
     weights, ray_weights = [], []
     for k, i in enumerate(which):
         mine = cost.labels == i
-        near = binary_dilation(mine, iterations=grow).reshape(-1)[at]
-        support = ((flat_labels == i) & close & valid) | (free & near & (dist[k] < 3 * scale[k]))  # pyright: ignore[reportOperatorIssue]  # scipy is untyped: binary_dilation's inferred return includes float arrays
+        near = binary_dilation(mine, iterations=grow).reshape(-1)[idx]
+        support = ((flat_labels == i) & close) | (free & near & (dist[k] < 3 * scale[k]))  # pyright: ignore[reportOperatorIssue]  # scipy is untyped: binary_dilation's inferred return includes float arrays
         weights.append(np.where(support, 1.0 / np.sqrt(1.0 + (dist[k] / scale[k]) ** 2), 0.0))
         ray_weights.append(rays_near(mine, ray_index, grow + 3))
     return vec, np.stack(weights), np.stack(ray_weights)
@@ -827,7 +825,6 @@ class MergeParts(Move):
             return [[]]
         pts, idx = figure_points(data)
         rays, ray_index = background_rays(data)
-        at = np.maximum(idx, 0)
         grown = [binary_dilation(cost.labels == i, iterations=2) for i in range(n)]
         adjacent = np.array([[i != j and (grown[i] & (cost.labels == j)).any() for j in range(n)] for i in range(n)])
         adjacent |= adjacent.T
@@ -845,7 +842,7 @@ class MergeParts(Move):
             union = np.isin(cost.labels, group) & cost.explained_mask
             if whole:
                 union = union | np.isin(owner, group)
-            w = np.where(idx >= 0, union.reshape(-1)[at], False).astype(np.float32)
+            w = union.reshape(-1)[idx].astype(np.float32)
             if w.sum() < 8:
                 return
             wr = rays_near(np.isin(cost.labels, group), ray_index, 5)
