@@ -55,7 +55,12 @@ class RangeData:
         return self.figure_region & np.isfinite(self.image)
 
 
-def prepare(depth, camera: Camera, *, figure=None, encoding: Encoding | None = None, pad: int = 64) -> RangeData:
+PAD = 64
+"""Pixels of padding around a prepared image: a window (or frame) cut at any pixel stays
+inside the array."""
+
+
+def prepare(depth, camera: Camera, *, figure=None, encoding: Encoding | None = None, pad: int = PAD) -> RangeData:
     """Check a range image and pad it for windowed search.
 
     ``figure`` (bool, same shape) marks the figure of interest; default: every pixel with

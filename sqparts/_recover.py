@@ -25,7 +25,7 @@ import numpy as np
 
 from ._camera import Camera, fits_float32
 from ._compile import memo_scope
-from ._data import RangeData
+from ._data import PAD, RangeData
 from ._encoding import (
     Costs,
     Encoding,
@@ -558,6 +558,19 @@ def _snap_window(window: int) -> int:
     return next((w for w in WINDOW_SIZES if w >= window), int(window))
 
 
+def _shared_frame(search: SearchSettings, searches) -> SearchSettings:
+    """``search`` with the frame of the widest window among ``searches`` (one image's
+    figures), where that frame fits its window's padding (:meth:`SearchSettings.resolve`):
+    the figures' full-resolution passes and candidates then share their compiled
+    programs, each scored as on its own window."""
+    if search.window is None:
+        return search
+    frame = max(int(s.window) for s in searches if s.window is not None)
+    if frame <= search.window or frame > search.window // 2 + PAD:
+        return search
+    return dataclasses.replace(search, frame=frame)
+
+
 def recover_scene(
     depth,
     camera: Camera,
@@ -577,7 +590,8 @@ def recover_scene(
     and half a pixel footprint, its pruning stride is the widest lattice (at most 4) that
     still sees every member able to pay for a part (2 for the built-in gate's two-pixel
     bars, 1 for a one-pixel one), and its window is snapped to a few sizes so that figures
-    share compiled programs.
+    share compiled programs; the figures' full-resolution scoring runs in one frame, the
+    widest window's (``SearchSettings.frame``), so that they share those programs too.
     """
     from ._data import figure_footprint, prepare
     from ._encoding import encoding_for
@@ -648,6 +662,7 @@ def recover_scene(
     t1 = time.perf_counter()
     recoveries, reports = [], []
     noise = estimate_noise(d)
+    figures = []
     for mask in masks:
         enc = encoding
         if enc is None:  # σ covers the sensor's noise (±σ/2 is ±2 sd) and half a pixel footprint
@@ -662,6 +677,10 @@ def recover_scene(
             data = prepare(d, camera, figure=mask, encoding=enc)
             size = search.max_size or default_max_size(data)
             figure_search = dataclasses.replace(figure_search, window=_snap_window(window_for(data, size)))
+        figures.append((mask, enc, figure_search))
+    if search.frame is None:  # the figures' full-resolution scoring in one frame: one program
+        figures = [(mask, enc, _shared_frame(s, [f[2] for f in figures])) for mask, enc, s in figures]
+    for mask, enc, figure_search in figures:
         try:
             rec = recover(
                 d,

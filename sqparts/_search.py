@@ -100,7 +100,12 @@ class SearchSettings:
     3 · ``restarts``² starts (axis labellings × squareness values; 0: none) and polished
     again. Regions are centred on the figure's skeleton (``region_method``, see
     :func:`region_centers`) no two closer than ``spacing`` pixels (None: a seventh of the
-    window). The resolved settings are part of the compiled computation's key.
+    window). ``frame`` (None: the window) is the side of the array in which the
+    full-resolution pass and the candidates' scoring compute a window, its pixels beyond
+    the window masked (the same Γ as the window alone): searches whose windows differ
+    but whose frames agree share those compiled programs (:func:`~sqparts.recover_scene`
+    gives an image's figures one frame). The resolved settings are part of the compiled
+    computation's key.
     """
 
     grid: Grid | str = "coarse"
@@ -119,6 +124,7 @@ class SearchSettings:
     region_method: str = "skeleton"
     spacing: float | None = None
     prune: bool = True
+    frame: int | None = None
 
     def __post_init__(self):
         object.__setattr__(self, "grid", grid_preset(self.grid))
@@ -135,10 +141,10 @@ class SearchSettings:
                 raise ValueError(f"{name}: got {v!r}, expected an integer >= 0")
         if self.max_size is not None:
             object.__setattr__(self, "max_size", check_max_size(self.max_size))
-        if self.window is not None and (
-            not isinstance(self.window, (int, np.integer)) or isinstance(self.window, bool) or self.window <= 0
-        ):
-            raise ValueError(f"window: got {self.window!r}, expected a positive integer or None")
+        for name in ("window", "frame"):
+            v = getattr(self, name)
+            if v is not None and (not isinstance(v, (int, np.integer)) or isinstance(v, bool) or v <= 0):
+                raise ValueError(f"{name}: got {v!r}, expected a positive integer or None")
         if not isinstance(self.prune, (bool, np.bool_)):
             raise ValueError(f"prune: got {self.prune!r}, expected True or False")
         if self.region_method not in ("skeleton", "grid", "both"):
@@ -158,6 +164,13 @@ class SearchSettings:
         stride = DEFAULT_STRIDE if self.stride is None else self.stride
         if stride // 2 >= window:  # the lattice would hold no pixel of the window
             raise ValueError(f"stride: got {stride}, expected at most {2 * window - 1} (the window is {window} pixels)")
+        # A frame is cut from the corner of a window centred anywhere on the image: it
+        # must stay within the padding beyond the image's last row and column.
+        if self.frame is not None and not window <= self.frame <= window // 2 + data.pad:
+            raise ValueError(
+                f"frame: got {self.frame}, expected {window} to {window // 2 + data.pad} pixels "
+                f"(the window, {window}, to half of it plus the padding, {data.pad})"
+            )
         return dataclasses.replace(self, max_size=max_size, window=window, stride=stride)
 
     @property
@@ -166,6 +179,11 @@ class SearchSettings:
         if self.window is None:
             raise ValueError("window: got None, expected settings resolved on the data (SearchSettings.resolve)")
         return int(self.window)
+
+    @property
+    def frame_side(self) -> int:
+        """The side of the array the full-resolution scoring computes a window in."""
+        return self.side if self.frame is None else int(self.frame)
 
     @property
     def lattice(self) -> int:
@@ -311,22 +329,31 @@ def pose_hypothesis(orientation_rel, shape, max_size, ray_origin, ray_direction,
     )
 
 
-def _region_inputs(depth, figure, camera, pad, corner, centre, window: int):
+def _region_inputs(depth, figure, camera, pad, corner, centre, frame: int, side):
+    """A region's window: its ``side`` × ``side`` pixels from ``corner`` in a ``frame`` ×
+    ``frame`` array (``frame`` >= ``side``; ``side`` may be traced). The frame's pixels
+    beyond the window are ``valid`` False and off the figure: windows of several sides
+    share one compiled program, each scoring as if cut to its own side."""
     p = pad
-    measured = jax.lax.dynamic_slice(depth, (corner[0] + p, corner[1] + p), (window, window))
-    fig = jax.lax.dynamic_slice(figure, (corner[0] + p, corner[1] + p), (window, window))
-    origins, directions = camera.rays((corner[0].astype(jnp.float32), corner[1].astype(jnp.float32), window, window))
+    measured = jax.lax.dynamic_slice(depth, (corner[0] + p, corner[1] + p), (frame, frame))
+    fig = jax.lax.dynamic_slice(figure, (corner[0] + p, corner[1] + p), (frame, frame))
+    inside = jnp.arange(frame) < side
+    valid = inside[:, None] & inside[None, :]
+    fig = fig & valid
+    origins, directions = camera.rays((corner[0].astype(jnp.float32), corner[1].astype(jnp.float32), frame, frame))
     c_o, c_d = camera.rays((centre[0].astype(jnp.float32), centre[1].astype(jnp.float32), 1, 1))
     # Depth at the centre: the nearest figure pixel in a 5x5 neighbourhood.
     nb = jax.lax.dynamic_slice(depth, (centre[0] + p - 2, centre[1] + p - 2), (5, 5))
     nbf = jax.lax.dynamic_slice(figure, (centre[0] + p - 2, centre[1] + p - 2), (5, 5))
     surface_t = jnp.nanmin(jnp.where(nbf, nb, jnp.nan))
-    return measured, fig, origins, directions, c_o[0, 0], c_d[0, 0], surface_t
+    return measured, fig, valid, origins, directions, c_o[0, 0], c_d[0, 0], surface_t
 
 
-def _score_one(part, origins, directions, measured, figure, weight, *, sigma, lam, num_bins, newton_steps):
-    # The grid search's kernel, run for every hypothesis.
+def _score_one(part, origins, directions, measured, figure, weight, *, sigma, lam, num_bins, newton_steps, valid=None):
+    # The grid search's kernel, run for every hypothesis (``valid``: the rays that count).
     t, hit = cast_part(part, origins, directions, newton_steps)
+    if valid is not None:
+        hit = hit & valid
     mu, eps, offset, _ = gamma_terms(t, hit, measured, figure, sigma=sigma, num_bins=num_bins, weight=weight)
     return mu - lam * eps, offset
 
@@ -384,6 +411,7 @@ def _score_hypotheses(
     region,
     starts,
     corners,
+    sides,
     centre,
     max_size,
     *,
@@ -396,8 +424,8 @@ def _score_hypotheses(
 ):
     """Γ and depth offset p of hypotheses at several regions (the one parallel
     operation), in one or more passes: pass q scores the hypotheses of ``tables[q]`` =
-    (``orientation_rel`` (m, 3), ``shape`` (m, 8)) on a ``windows[q]`` window, in chunks
-    of ``batches[q]``: region ``region[k]`` (``centre``: (R, 2); ``corners[q]``: (R, 2);
+    (``orientation_rel`` (m, 3), ``shape`` (m, 8)) on a ``sides[q]`` window computed in a
+    ``windows[q]`` frame (:func:`_region_inputs`), in chunks of ``batches[q]``: region ``region[k]`` (``centre``: (R, 2); ``corners[q]``: (R, 2);
     ``max_size``: (R,)) scores the table's rows ``starts[q][k, j]`` to ``starts[q][k, j]
     + batches[q]``; regions of ``region`` -1 are padding, after the live ones, not scored
     (Γ -inf). Returns one (Γ, p) pair of (R, c, batch) arrays per pass."""
@@ -405,17 +433,19 @@ def _score_hypotheses(
     s = slice(stride // 2, None, stride)
     weight = jnp.float32(stride * stride)
 
-    def at_region(r, starts, tables, corners, centre, sigma, lam, max_size):
+    def at_region(r, starts, tables, corners, sides, centre, sigma, lam, max_size):
         out = []
-        for (orientation_rel, shape), first_rows, corner, window, batch in zip(
-            tables, starts, corners, windows, batches
+        for (orientation_rel, shape), first_rows, corner, side, window, batch in zip(
+            tables, starts, corners, sides, windows, batches
         ):
             # The region's window is cut once, outside its loop over chunks: what depends
             # on the window alone is computed once, not per chunk.
-            measured, figure, origins, directions, c_o, c_d, surface_t = _region_inputs(
-                depth, fig, camera, pad, corner[r], centre[r], window
+            measured, figure, valid, origins, directions, c_o, c_d, surface_t = _region_inputs(
+                depth, fig, camera, pad, corner[r], centre[r], window, side
             )
-            measured, figure, origins, directions = (a[s, s] for a in (measured, figure, origins, directions))
+            measured, figure, valid, origins, directions = (
+                a[s, s] for a in (measured, figure, valid, origins, directions)
+            )
 
             def one(o, shp):
                 part = pose_hypothesis(o, shp, max_size[r], c_o, c_d, surface_t)
@@ -430,6 +460,7 @@ def _score_hypotheses(
                     lam=lam,
                     num_bins=NUM_BINS,
                     newton_steps=newton_steps,
+                    valid=valid,
                 )
 
             def chunk(first):
@@ -442,7 +473,7 @@ def _score_hypotheses(
     def out_shape(starts):  # per pass: Γ and p of each chunk's hypotheses
         return tuple((jax.ShapeDtypeStruct((len(f), b), depth.dtype),) * 2 for f, b in zip(starts, batches))
 
-    out = _map_regions(at_region, region, starts, (tables, corners, centre, sigma, lam, max_size), out_shape)
+    out = _map_regions(at_region, region, starts, (tables, corners, sides, centre, sigma, lam, max_size), out_shape)
     live = (region >= 0)[:, None, None]
     return tuple((jnp.where(live & jnp.isfinite(gam), gam, -jnp.inf), off) for gam, off in out)
 
@@ -483,21 +514,31 @@ def score_regions(
     most, about :data:`CHUNK_RAYS` rays a chunk), :data:`REGION_BUCKET` regions a call; a
     set shared by the regions is passed once. Returns (r, n) host arrays."""
     hyp = hypotheses or _grid_arrays(settings.grid)
-    return _score_passes(data, settings, centres, [(settings.side, hyp)], stride=stride, max_sizes=max_sizes)[0]
+    return _score_passes(
+        data, settings, centres, [(settings.side, hyp)], stride=stride, max_sizes=max_sizes, frame=settings.frame_side
+    )[0]
 
 
 def _score_passes(
-    data: RangeData, settings: SearchSettings, centres, passes, *, stride: int | None = None, max_sizes=None
+    data: RangeData,
+    settings: SearchSettings,
+    centres,
+    passes,
+    *,
+    stride: int | None = None,
+    max_sizes=None,
+    frame: int | None = None,
 ) -> list[tuple[np.ndarray, np.ndarray]]:
     """:func:`score_regions` of several sets of hypotheses, each on its own window:
-    ``passes`` = [(window side, hypotheses)], all in the same compiled calls. Returns
-    one (Γ, p) pair of (r, n) host arrays per pass."""
+    ``passes`` = [(window side, hypotheses)], all in the same compiled calls, each
+    window computed in a ``frame`` × ``frame`` array (None: its own side). Returns one
+    (Γ, p) pair of (r, n) host arrays per pass."""
     centres = np.asarray(centres, np.int32).reshape(-1, 2)
     r = len(centres)
     sizes = np.full(r, settings.max_size, np.float32) if max_sizes is None else np.asarray(max_sizes, np.float32)
     stride = stride or settings.lattice
     devices = len(jax.devices())
-    layouts = [_Layout.of(side, hyp, stride, settings.batch_size, devices) for side, hyp in passes]
+    layouts = [_Layout.of(side, frame or side, hyp, stride, settings.batch_size, devices) for side, hyp in passes]
     out = [(np.empty((r, lay.n), np.float32), np.empty((r, lay.n), np.float32)) for lay in layouts]
     for first in range(0, r, REGION_BUCKET):
         rows = np.arange(first, min(r, first + REGION_BUCKET))
@@ -515,11 +556,12 @@ def _score_passes(
             region,
             tuple(lay.starts() for lay in layouts),
             tuple(bucket(centres - np.int32(lay.side // 2)) for lay in layouts),
+            tuple(np.int32(lay.side) for lay in layouts),
             bucket(centres),
             bucket(sizes, 1.0),
             camera=data.compiled_camera,
             pad=data.pad,
-            windows=tuple(lay.side for lay in layouts),
+            windows=tuple(lay.frame for lay in layouts),
             stride=stride,
             batches=tuple(lay.batch for lay in layouts),
             newton_steps=settings.newton_steps,
@@ -533,11 +575,13 @@ def _score_passes(
 @dataclasses.dataclass(frozen=True)
 class _Layout:
     """One pass of :func:`_score_passes` laid out for the compiled call: its window
-    ``side``, its ``n`` hypotheses (``orientation`` (n, 3) and ``shape`` (n, 8) shared by
-    the regions, or (r, n, ...) one set per region) in ``chunks`` of ``batch`` per region,
-    ``padded`` = chunks · batch rows per set."""
+    ``side`` computed in a ``frame`` × ``frame`` array, its ``n`` hypotheses
+    (``orientation`` (n, 3) and ``shape`` (n, 8) shared by the regions, or (r, n, ...) one
+    set per region) in ``chunks`` of ``batch`` per region, ``padded`` = chunks · batch
+    rows per set."""
 
     side: int
+    frame: int
     orientation: np.ndarray
     shape: np.ndarray
     n: int
@@ -545,15 +589,15 @@ class _Layout:
     chunks: int
 
     @classmethod
-    def of(cls, side: int, hyp: dict, stride: int, batch_size: int, devices: int) -> _Layout:
+    def of(cls, side: int, frame: int, hyp: dict, stride: int, batch_size: int, devices: int) -> _Layout:
         orientation, shape = (np.asarray(hyp[k], np.float32) for k in ("orientation", "shape"))
         n = orientation.shape[-2]
         # Chunks of about 2^16 rays keep temporaries in cache (one huge vmap is slower).
-        pixels = len(range(stride // 2, side, stride)) ** 2
+        pixels = len(range(stride // 2, frame, stride)) ** 2
         cap = int(max(1, min(batch_size, CHUNK_RAYS // pixels)))
         batch = -(-n // (-(-n // (cap * devices)) * devices))  # as few chunks as the cap allows, least padding
         chunks = int(math.ceil(n / (batch * devices)) * devices)  # per region
-        return cls(side, orientation, shape, n, batch, chunks)
+        return cls(side, frame, orientation, shape, n, batch, chunks)
 
     @property
     def shared(self) -> bool:
@@ -635,7 +679,7 @@ def _restart_starts(part: Part, levels: int) -> Part:
     return host_parts(np.concatenate(starts))
 
 
-@persistent_jit(static_argnames=("camera", "pad", "window", "newton_steps"))
+@persistent_jit(static_argnames=("camera", "pad", "frame", "newton_steps"))
 def _score_candidates(
     arrays,
     vectors,
@@ -646,14 +690,16 @@ def _score_candidates(
     corner,
     centre,
     max_size,
+    side,
     *,
     camera,
     pad,
-    window,
+    frame,
     newton_steps,
 ):
-    """Score a batch of candidates at full resolution, each over its own region's window
-    (``corner``, ``centre``: (n, 2)). Where ``posed``, candidate i is the hypothesis
+    """Score a batch of candidates at full resolution, each over its own region's
+    ``side`` × ``side`` window (``corner``, ``centre``: (n, 2)), computed in a ``frame`` ×
+    ``frame`` array (:func:`_region_inputs`; the masks returned are the frame's). Where ``posed``, candidate i is the hypothesis
     (``orientation_rel``, ``shape``) posed at its region and moved by -``offsets`` in
     depth along the region's centre ray (the peak of its Γ histogram); elsewhere it is
     the part ``vectors[i]``.
@@ -665,19 +711,20 @@ def _score_candidates(
     unanchored candidates rank last.
     """
     depth, fig, sigma, lam = arrays
-    c = window // 2
+    c = side // 2
 
     def one(vector, o, s, p, posed, corner, centre, max_size):
-        measured, figure, origins, directions, c_o, c_d, surface_t = _region_inputs(
-            depth, fig, camera, pad, corner, centre, window
+        measured, figure, valid, origins, directions, c_o, c_d, surface_t = _region_inputs(
+            depth, fig, camera, pad, corner, centre, frame, side
         )
         hypothesis = pose_hypothesis(o, s, max_size, c_o, c_d, surface_t).to_vector().at[:3].add(-p * c_d)
         part = Part.from_vector(jnp.where(posed, hypothesis, vector))
         t, hit = cast_part(part, origins, directions, newton_steps)
+        hit = hit & valid
         mu, eps, off, explained = gamma_terms(t, hit, measured, figure, sigma=sigma, num_bins=NUM_BINS)
         explained = explained.reshape(hit.shape)
         commission = commission_mask(hit, t, measured, figure, off + sigma / 2)
-        anchored = jnp.any(explained[c - 1 : c + 2, c - 1 : c + 2])
+        anchored = jnp.any(jax.lax.dynamic_slice(explained, (c - 1, c - 1), (3, 3)))
         return part.to_vector(), mu - lam * eps, explained, hit, commission, anchored
 
     return jax.vmap(one)(vectors, orientation_rel, shape, offsets, posed, corner, centre, max_size)
@@ -906,16 +953,19 @@ def _score(
             corner[b],
             centre[b],
             max_size[b],
+            np.int32(settings.side),
             camera=data.compiled_camera,
             pad=data.pad,
-            window=settings.window,
+            frame=settings.frame_side,
             newton_steps=SEARCH_NEWTON_STEPS + 2,
         )
         return [np.asarray(a) for a in out]
 
+    w = settings.side
     vectors, gam, explained, rendered, commission, anchored = (
         np.concatenate(a)[:n] for a in zip(*concurrently(bucket, range(0, m, PART_BUCKET)))
     )
+    explained, rendered, commission = (np.ascontiguousarray(a[:, :w, :w]) for a in (explained, rendered, commission))
     return _Scored(vectors, gam, explained, rendered, commission, anchored, np.asarray(region, np.int64))
 
 

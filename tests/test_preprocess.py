@@ -287,3 +287,30 @@ def test_quantised_data():
 
     assert abs(estimate_quantum(d) - 0.004) < 1e-9
     assert estimate_quantum(d + 1e-4 * np.random.default_rng(0).random(d.shape)) is None
+
+
+def test_recover_scene_gives_its_figures_one_frame(monkeypatch):
+    # Figures of different sizes get different windows; their full-resolution scoring is
+    # computed in one frame, the widest window's, so they share its compiled programs
+    # (each scored as on its own window: tests/test_search.py). A frame beyond a window's
+    # padding is not shared.
+    from sqparts import _recover
+    from sqparts._data import PAD
+
+    parts = sqparts.stack_parts([on_table((-0.25, 0.05), 0.25, 0.08), on_table((0.2, -0.05), 0.06, 0.06)])
+    depth = np.fmin(np.asarray(sqparts.render_range_image(parts, CAM)), plane_depth(CAM, TABLE_N, TABLE_D))
+    seen = []
+
+    def spy(depth, camera, *, search, **kwargs):
+        seen.append(search)
+        raise ValueError("found no part")
+
+    monkeypatch.setattr(_recover, "recover", spy)
+    with pytest.raises(ValueError, match="found no part"):
+        sqparts.recover_scene(depth.astype(np.float32), CAM)
+    assert len(seen) == 2 and seen[0].window != seen[1].window
+    widest = max(s.window for s in seen)
+    assert [s.frame_side for s in seen] == [widest, widest]
+    small, large = (sqparts.SearchSettings(window=w) for w in (16, 16 + 2 * PAD))
+    assert _recover._shared_frame(small, [small, large]) == small
+    assert _recover._shared_frame(large, [small, large]) == large

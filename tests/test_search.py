@@ -151,6 +151,40 @@ def test_passes_on_several_windows_in_one_call_equal_each_alone(data):
         assert np.isfinite(gam).any()
 
 
+def test_a_window_scored_in_a_larger_frame_equals_the_window_alone(data):
+    # recover_scene gives an image's figures one frame, so that their full-resolution
+    # passes and candidates share compiled programs: a window computed in a larger frame
+    # (its extra pixels masked) scores, polishes and ranks as the window alone, bit for
+    # bit, at the image's edge too.
+    st = sqparts.make_settings(
+        data, grid=SMALL, max_size=0.25, window=24, batch_size=8, polish_rounds=1, polish_candidates=2, restarts=0
+    )
+    framed = dataclasses.replace(st, frame=40)
+    assert (st.frame_side, framed.frame_side) == (24, 40)
+    rows, cols = np.nonzero(data.figure_mask)
+    centres = np.array([_centre(data), (rows.max(), cols[np.argmax(rows)])])
+    alone = sqparts.score_regions(data, st, centres, stride=1)
+    within = sqparts.score_regions(data, framed, centres, stride=1)
+    np.testing.assert_array_equal(within[0], alone[0])
+    np.testing.assert_array_equal(within[1], alone[1])
+    # The frame's extra pixels matter: the long hypotheses reach past 24 pixels, so the
+    # 40-pixel window scores them differently.
+    wider = sqparts.score_regions(data, dataclasses.replace(st, window=40), centres, stride=1)
+    assert not np.array_equal(wider[0], alone[0])
+    for a, b in zip(sqparts.fit_regions(data, st, centres), sqparts.fit_regions(data, framed, centres)):
+        np.testing.assert_array_equal(np.asarray(b.parts.to_vector()), np.asarray(a.parts.to_vector()))
+        np.testing.assert_array_equal(np.asarray(b.gamma), np.asarray(a.gamma))
+        for name in ("explained", "rendered", "commission"):
+            np.testing.assert_array_equal(np.asarray(getattr(b, name)), np.asarray(getattr(a, name)))
+        assert np.asarray(a.explained).any()
+    with pytest.raises(ValueError, match=r"frame: got 16, expected 24 to 76 pixels"):
+        sqparts.make_settings(data, grid=SMALL, max_size=0.25, window=24, frame=16)
+    with pytest.raises(ValueError, match=r"frame: got 80, expected 24 to 76 pixels"):
+        sqparts.make_settings(data, grid=SMALL, max_size=0.25, window=24, frame=80)
+    with pytest.raises(ValueError, match=r"frame: got 0, expected a positive integer or None"):
+        sqparts.SearchSettings(frame=0)
+
+
 def test_each_pass_is_traced_once(data, monkeypatch):
     # Tracing the search's program is seconds of a first recovery: each pass's kernel is
     # traced once (the loop over regions is told its output's shapes, it does not trace
