@@ -55,6 +55,8 @@ if TYPE_CHECKING:
 PARAMETERS_PER_PART = 14
 EDGE_FOOTPRINTS = 0.5
 """Least σ, in pixel footprints at the figure's depth (:func:`encoding_for`)."""
+MIN_SAVED = 0.5
+"""Least bits a part saves on each pixel it explains (:attr:`Encoding.pixel_bits`)."""
 
 
 @dataclasses.dataclass(frozen=True)
@@ -92,8 +94,11 @@ class Encoding:
 
     @property
     def pixel_bits(self) -> float:
-        """b: bits of one raw range pixel."""
-        return max(math.log2(self.depth_range / self.quantum), 1.0)
+        """b: bits of one raw range pixel, log2(D / q), but at least κ1 + ½: a figure
+        shallower than σ (a plate facing the camera) would otherwise price a pixel that
+        a part explains above the raw pixel, and its shortest description would be no
+        part at all (the parts recovered there explained nothing)."""
+        return max(math.log2(self.depth_range / self.quantum), self.noise_bits + MIN_SAVED, 1.0)
 
     @property
     def part_bits(self) -> float:
@@ -107,8 +112,8 @@ class Encoding:
 
     @property
     def saved_per_pixel(self) -> float:
-        """b - κ1: bits saved by each pixel a part explains."""
-        return max(self.pixel_bits - self.noise_bits, 0.5)
+        """b - κ1: bits saved by each pixel a part explains (at least ½)."""
+        return self.pixel_bits - self.noise_bits
 
     @property
     def commission_bits(self) -> float:

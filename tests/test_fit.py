@@ -77,6 +77,25 @@ def test_encoding_bits():
         sqparts.Encoding(sigma=-1.0, quantum=1.0, depth_range=2.0)
     with pytest.raises(ValueError, match=r"depth: got \d+ valid pixels, expected at least 2"):
         sqparts.encoding_for(np.array([np.nan, 1.0]))
+    # A figure shallower than σ (a plate facing the camera: σ from its pixel footprint):
+    # a raw pixel costs at least κ1 + ½, so an explained pixel still saves ½ bit.
+    shallow = sqparts.Encoding(sigma=0.015, quantum=0.003 / 64, depth_range=0.003)
+    assert shallow.noise_bits == pytest.approx(np.log2(320))
+    assert shallow.pixel_bits == pytest.approx(np.log2(320) + 0.5)
+    assert shallow.saved_per_pixel == pytest.approx(0.5)
+
+
+def test_a_plate_facing_the_camera_is_one_part_that_explains_it():
+    # Its depth varies by under a millimetre, far below σ (half a pixel footprint, 15
+    # mm): a part explaining a pixel cost more bits than the raw pixel, and recovery
+    # returned one part that explained none of it.
+    cam = sqparts.PinholeCamera(32, 32, 100.0, 100.0, 15.5, 15.5)
+    plate = sqparts.Part(size=[0.2, 0.2, 0.02], squareness=[0.1, 0.1], position=[0.0, 0.0, 3.0])
+    depth = np.asarray(sqparts.render_range_image(plate, cam))
+    assert np.nanmax(depth) - np.nanmin(depth) < 1e-3
+    rec = sqparts.recover(depth, cam)
+    assert len(rec.parts) == 1 and rec.fraction_explained > 0.95
+    np.testing.assert_allclose(np.sort(np.asarray(rec.parts.size)[0])[1:], [0.2, 0.2], rtol=0.15)  # its face
 
 
 CAM = sqparts.OrthographicCamera(48, 48, 0.01, 23.5, 23.5)
