@@ -435,18 +435,19 @@ def plan_batch(
         raise ValueError("input: got no inputs, expected at least one range image")
     names = output_names(paths)
     results = out / RESULTS_NAME
-    earlier = read_results(results) if results.exists() else []
-    if earlier and not (resume or overwrite):
+    ran = results.exists()  # an earlier run, even if a crash tore its only line
+    earlier = read_results(results) if ran else []
+    if ran and not (resume or overwrite):
         raise FileExistsError(
             f"--out: got {str(out)!r}, which holds the {RESULTS_NAME} of an earlier run, "
             "expected a new folder (or --resume to finish it, or --overwrite)"
         )
-    if resume and not earlier and any((out / name).exists() for name in OUTPUT_FILES):
+    if resume and not ran and any((out / name).exists() for name in OUTPUT_FILES):
         raise FileExistsError(
             f"--out: got {str(out)!r}, which holds one recovery's outputs, "
             f"expected a batch's folder to resume (with its {RESULTS_NAME}) or a new one"
         )
-    if resume and not earlier and out.is_dir() and any(not p.name.startswith(".sqparts-") for p in out.iterdir()):
+    if resume and not ran and out.is_dir() and any(not p.name.startswith(".sqparts-") for p in out.iterdir()):
         raise FileExistsError(
             f"--resume: got --out {str(out)!r}, which holds no {RESULTS_NAME} of an earlier run, "
             "expected a batch's folder to resume or a new one"

@@ -162,6 +162,22 @@ def test_resume_ignores_a_torn_last_line(batch):
     assert no_staging_left(batch)
 
 
+def test_resume_after_a_crash_that_tore_the_only_line(batch, capsys):
+    # The first input's line torn by a crash: the folder is still a batch's, so --resume
+    # finishes it (it said the folder held no results.jsonl), and a run without --resume
+    # or --overwrite refuses it.
+    argv = recover_argv(batch, batch / "in")
+    assert main(argv) == 0
+    results = batch / "out" / "results.jsonl"
+    results.write_text(results.read_text()[:25])
+    assert main(argv) == 2
+    assert "holds the results.jsonl of an earlier run" in capsys.readouterr().err
+    assert main(argv + ["--resume"]) == 0
+    records = lines(results)
+    assert [r["output"] for r in records] == ["f0", "f1", "f2"] and all(r["status"] == "ok" for r in records)
+    assert no_staging_left(batch)
+
+
 def test_glob_patterns_folders_and_recursive(batch, tmp_path):
     sub = batch / "in" / "deeper" / "more"
     sub.mkdir(parents=True)
