@@ -622,6 +622,7 @@ def recover_scene(
     factor = auto_factor(d.shape, st.resolution) if st.resolution else 1
     if factor > 1:
         d, camera = downsample(d, camera, factor)
+    binned = d
     if st.clean:
         cleaned = clean_range_image(d, camera, tear=tear, depth_range=st.depth_range)
         d = cleaned.depth
@@ -630,10 +631,15 @@ def recover_scene(
         d = crop_depth_range(d, st.depth_range)
     left = int(np.isfinite(d).sum())
     if st.figure_ground and left < 16 and left != given:  # too few once binned and cleaned: say so
+        # The depth range alone leaves too few: name it, not the clean-up.
+        ranged = st.depth_range is not None and np.isfinite(crop_depth_range(binned, st.depth_range)).sum() < 16
         steps = [f"binning to {d.shape[1]}x{d.shape[0]}"] * (factor > 1) + [
-            "clean-up" if st.clean else "the depth range"
+            "clean-up" if st.clean and not ranged else "the depth range"
         ]
-        hints = (["a finer --resolution"] * (factor > 1) + ["--no-clean"] * st.clean) * (given >= 16)
+        hints = (
+            ["a finer --resolution"] * (factor > 1)
+            + (["a wider --depth-range"] if ranged else ["--no-clean"] * st.clean)
+        ) * (given >= 16)
         raise ValueError(
             f"depth: got {left} of {given} returns left after {' and '.join(steps)}, expected at least 16"
             + (f" ({' or '.join(hints)})" if hints else "")

@@ -1113,6 +1113,12 @@ def test_returns_lost_to_binning_or_clean_up_are_not_blamed_on_the_input(files, 
     assert err == f"sqparts: error: input: got 0 of 1 returns left after clean-up in {argv[1]!r}, expected at least 16"
     err = cli_error(capsys, [*argv, "--no-clean"])
     assert err.startswith(f"sqparts: error: input: got 1 returns in {argv[1]!r}, expected at least 16"), err
+    # A depth range that holds none of the returns is named, not clean-up (whose
+    # --no-clean would not help).
+    argv[1] = str(files / "x.npy")
+    err = cli_error(capsys, [*argv, "--resolution", "0", "--depth-range", "50,60"])
+    assert err.startswith(f"sqparts: error: input: got 0 of {given} returns left after the depth range in "), err
+    assert err.endswith("expected at least 16 (a wider --depth-range)"), err
     assert not (files / "o").exists()
 
 
