@@ -5,7 +5,10 @@ recovered parts are bit-for-bit the same.
 Per scene and checkout: one process that recovers the scene once cold (compiling, and
 counting the XLA programs it builds) and ``--runs`` times warm with
 :func:`sqparts.recover`'s defaults; the warm runs' median is the figure. ``single`` is
-``bench_cli.py``'s 96x96 one-part image; the others are built-in scenes. Several
+``bench_cli.py``'s 96x96 one-part image, ``kinect`` the Kinect frame of
+``../shared/data``; the others are built-in scenes. ``scene:NAME`` recovers NAME through
+:func:`sqparts.recover_scene` instead (clean-up, figure/ground, a recovery per
+figure; e.g. ``scene:kinect``, ``scene:human``). Several
 ``--rounds`` repeat the whole interleaving (the machines are shared and noisy: compare
 medians taken in the same run).
 
@@ -32,21 +35,29 @@ CHILD = (
     CHILD_PREAMBLE
     + r"""
 name, runs, scene, camera = sys.argv[1], int(sys.argv[2]), json.loads(sys.argv[3]), json.loads(sys.argv[4])
+whole = name.startswith("scene:")  # through recover_scene (clean-up, figure/ground, a recovery per figure)
+name = name.removeprefix("scene:")
 if name == "single":
     parts, cam = sqparts.scene_from_dict(scene)[0], sqparts.camera_from_json(camera)
+elif name == "kinect":
+    parts, cam = None, None
 else:
     s = sqparts.builtin_scene(name)
     parts, cam = s.parts, s.camera
-depth = np.asarray(sqparts.render_range_image(parts, cam))
+if parts is None:
+    depth, cam = sqparts.read_range_image(sys.argv[5])
+else:
+    depth = np.asarray(sqparts.render_range_image(parts, cam))
+recover = sqparts.recover_scene if whole else sqparts.recover
 built[0] = 0
 t = time.perf_counter()
-r = sqparts.recover(depth, cam)
+r = recover(depth, cam)
 cold = time.perf_counter() - t
 programs = built[0]
 times, stages = [], []
 for _ in range(runs):
     t = time.perf_counter()
-    r = sqparts.recover(depth, cam)
+    r = recover(depth, cam)
     times.append(time.perf_counter() - t)
     stages.append(dict(r.timings))
 print("RESULT " + json.dumps({"parts": len(r.parts), "E": r.cost.total, "explained": r.fraction_explained,
@@ -55,8 +66,11 @@ print("RESULT " + json.dumps({"parts": len(r.parts), "E": r.cost.total, "explain
 )
 
 
+KINECT = ROOT.parent / "shared" / "data" / "grabber_frame0.pcd"
+
+
 def run(checkout: Path, scene: str, runs: int) -> dict:
-    return run_in_checkout(checkout, CHILD, scene, str(runs), json.dumps(SCENE), json.dumps(CAMERA))
+    return run_in_checkout(checkout, CHILD, scene, str(runs), json.dumps(SCENE), json.dumps(CAMERA), str(KINECT))
 
 
 def main():
