@@ -404,7 +404,7 @@ def _map_regions(fn, region, starts, replicated, out_shape):
     )(starts, region, *replicated)
 
 
-@persistent_jit(static_argnames=("camera", "pad", "windows", "stride", "batches", "newton_steps"))
+@persistent_jit(static_argnames=("camera", "pad", "frames", "stride", "batches", "newton_steps"))
 def _score_hypotheses(
     arrays,
     tables,
@@ -417,7 +417,7 @@ def _score_hypotheses(
     *,
     camera,
     pad,
-    windows,
+    frames,
     stride,
     batches,
     newton_steps,
@@ -425,9 +425,9 @@ def _score_hypotheses(
     """Γ and depth offset p of hypotheses at several regions (the one parallel
     operation), in one or more passes: pass q scores the hypotheses of ``tables[q]`` =
     (``orientation_rel`` (m, 3), ``shape`` (m, 8)) on a ``sides[q]`` window computed in a
-    ``windows[q]`` frame (:func:`_region_inputs`), in chunks of ``batches[q]``: region ``region[k]`` (``centre``: (R, 2); ``corners[q]``: (R, 2);
-    ``max_size``: (R,)) scores the table's rows ``starts[q][k, j]`` to ``starts[q][k, j]
-    + batches[q]``; regions of ``region`` -1 are padding, after the live ones, not scored
+    ``frames[q]`` frame (:func:`_region_inputs`), in chunks of ``batches[q]``: region
+    ``region[k]`` (``centre``: (R, 2); ``corners[q]``: (R, 2); ``max_size``: (R,)) scores
+    the table's rows ``starts[q][k, j]`` to ``starts[q][k, j] + batches[q]``; regions of ``region`` -1 are padding, after the live ones, not scored
     (Γ -inf). Returns one (Γ, p) pair of (R, c, batch) arrays per pass."""
     depth, fig, sigma, lam = arrays
     s = slice(stride // 2, None, stride)
@@ -435,13 +435,13 @@ def _score_hypotheses(
 
     def at_region(r, starts, tables, corners, sides, centre, sigma, lam, max_size):
         out = []
-        for (orientation_rel, shape), first_rows, corner, side, window, batch in zip(
-            tables, starts, corners, sides, windows, batches
+        for (orientation_rel, shape), first_rows, corner, side, frame, batch in zip(
+            tables, starts, corners, sides, frames, batches
         ):
             # The region's window is cut once, outside its loop over chunks: what depends
             # on the window alone is computed once, not per chunk.
             measured, figure, valid, origins, directions, c_o, c_d, surface_t = _region_inputs(
-                depth, fig, camera, pad, corner[r], centre[r], window, side
+                depth, fig, camera, pad, corner[r], centre[r], frame, side
             )
             measured, figure, valid, origins, directions = (
                 a[s, s] for a in (measured, figure, valid, origins, directions)
@@ -561,7 +561,7 @@ def _score_passes(
             bucket(sizes, 1.0),
             camera=data.compiled_camera,
             pad=data.pad,
-            windows=tuple(lay.frame for lay in layouts),
+            frames=tuple(lay.frame for lay in layouts),
             stride=stride,
             batches=tuple(lay.batch for lay in layouts),
             newton_steps=settings.newton_steps,
