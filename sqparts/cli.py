@@ -125,6 +125,11 @@ def cmd_render(args) -> int:
     parts = load_scene(args.scene)
     camera = load_camera(args.camera)
     depth = render_range_image(parts, camera)
+    if not np.isfinite(np.asarray(depth)).any():  # an image of NaN alone: nothing to write
+        raise ValueError(
+            f"scene: got {len(parts)} part(s) that no pixel of the camera sees, "
+            "expected at least one in view (in front of the camera, not around it)"
+        )
     write_range_image(out, depth, depth_scale=args.depth_scale)
     _say(args, f"wrote {out} ({camera.width}x{camera.height}, {len(parts)} parts)")
     return 0

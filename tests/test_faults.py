@@ -1098,6 +1098,24 @@ def test_a_batch_shows_a_file_name_holding_a_newline_on_one_line(files, capsys):
     assert f"{str(bad)!r}: " in err and str(bad) not in err, err
 
 
+@pytest.mark.parametrize("z", [-2.0, 0.0], ids=["behind", "around"])
+def test_render_of_parts_the_camera_cannot_see_is_an_error(files, capsys, z):
+    """A part behind the camera, or one the camera sits inside, rendered an image of NaN
+    alone (exit 0)."""
+    scene = json.loads(json.dumps(SCENE))
+    scene["parts"][0]["position"] = [0, 0, z]
+    (files / "unseen.json").write_text(json.dumps(scene))
+    out = files / "unseen.npy"
+    err = cli_error(
+        capsys, ["render", str(files / "unseen.json"), "--camera", str(files / "cam.json"), "--out", str(out)]
+    )
+    assert err == (
+        "sqparts: error: scene: got 1 part(s) that no pixel of the camera sees, "
+        "expected at least one in view (in front of the camera, not around it)"
+    )
+    assert not out.exists()
+
+
 def test_returns_lost_to_binning_or_clean_up_are_not_blamed_on_the_input(files, capsys):
     """``--resolution 1`` (or clean-up taking a lone return) said the input had 0 returns."""
     argv = ["recover", str(files / "x.npy"), "--camera", str(files / "cam.json"), "--out", str(files / "o")]
