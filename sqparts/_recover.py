@@ -665,6 +665,12 @@ def recover_scene(
             )
     else:
         masks = [np.isfinite(d) | missing_returns(d, camera, np.isfinite(d), holes=st.holes, tear=tear)]
+    gravity = st.up if st.up is not None else (fg.up if fg is not None else None)
+    if st.prettify and gravity is None:  # said before the figures' recoveries, not after
+        raise ValueError(
+            "up: got nothing and no ground plane was found, expected the gravity direction up=(x, y, z) "
+            "for prettifying (--up X,Y,Z)"
+        )
     t1 = time.perf_counter()
     recoveries, reports = [], []
     noise = estimate_noise(d)
@@ -706,11 +712,6 @@ def recover_scene(
     if not recoveries:
         raise ValueError("depth: got figures on which the search found no part, expected at least one part")
     if st.prettify:
-        gravity = st.up if st.up is not None else (fg.up if fg is not None else None)
-        if gravity is None:
-            raise ValueError(
-                "up: got nothing and no ground plane was found, expected the gravity direction up=(x, y, z) for prettifying"
-            )
         finished = []
         for rec in recoveries:
             parts, cost, report = _prettify(

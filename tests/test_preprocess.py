@@ -314,3 +314,16 @@ def test_recover_scene_gives_its_figures_one_frame(monkeypatch):
     small, large = (sqparts.SearchSettings(window=w) for w in (16, 16 + 2 * PAD))
     assert _recover._shared_frame(small, [small, large]) == small
     assert _recover._shared_frame(large, [small, large]) == large
+
+
+def test_prettifying_without_a_ground_plane_or_up_is_refused_before_recovering(monkeypatch):
+    # The missing gravity direction was reported after every figure had been recovered.
+    from sqparts import _recover
+
+    part = sqparts.Part(size=[0.1, 0.08, 0.2], squareness=[0.5, 1.0], position=[0.0, 0.0, 1.5])
+    depth = np.asarray(sqparts.render_range_image(part, CAM))
+    called = []
+    monkeypatch.setattr(_recover, "recover", lambda *a, **k: called.append(1))
+    with pytest.raises(ValueError, match=r"^up: got nothing and no ground plane was found, .*\(--up X,Y,Z\)$"):
+        sqparts.recover_scene(depth, CAM, scene=sqparts.SceneSettings(prettify=True))
+    assert called == []
