@@ -257,6 +257,7 @@ def recover(
     if parts is None:
         raise ValueError(
             "depth: got an image where the search found no part that explains any pixel, expected a figure the grid can fit"
+            + _max_size_hint(search)
         )
     assert layers is not None and explained is not None  # None only together with parts
     problem = SelectionProblem.from_masks(explained, commission, costs)
@@ -554,6 +555,13 @@ class SceneRecovery(_Fractions, _Meshes):
         )
 
 
+def _max_size_hint(search: SearchSettings) -> str:
+    """What to try when a search given its own ``max_size`` found no part."""
+    if search.max_size is None:
+        return ""
+    return f" (parts were searched with semi-axes up to max_size {search.max_size:g}: try another --max-size, or none)"
+
+
 def _snap_window(window: int) -> int:
     return next((w for w in WINDOW_SIZES if w >= window), int(window))
 
@@ -710,7 +718,9 @@ def recover_scene(
             raise
         recoveries.append(rec)
     if not recoveries:
-        raise ValueError("depth: got figures on which the search found no part, expected at least one part")
+        raise ValueError(
+            "depth: got figures on which the search found no part, expected at least one part" + _max_size_hint(search)
+        )
     if st.prettify:
         finished = []
         for rec in recoveries:

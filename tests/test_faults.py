@@ -1116,6 +1116,16 @@ def test_render_of_parts_the_camera_cannot_see_is_an_error(files, capsys, z):
     assert not out.exists()
 
 
+def test_a_max_size_that_finds_no_part_is_named(files, capsys):
+    """``--max-size 1e-30`` said only that the search found no part."""
+    out = files / "o"
+    argv = ["recover", str(files / "x.npy"), "--camera", str(files / "cam.json"), "--out", str(out)]
+    err = cli_error(capsys, [*argv, "--max-size", "1e-30", "--resolution", "0", "--quiet"])
+    assert err.startswith("sqparts: error: input: got figures on which the search found no part"), err
+    assert err.endswith("(parts were searched with semi-axes up to max_size 1e-30: try another --max-size, or none)")
+    assert not out.exists()
+
+
 def test_returns_lost_to_binning_or_clean_up_are_not_blamed_on_the_input(files, capsys):
     """``--resolution 1`` (or clean-up taking a lone return) said the input had 0 returns."""
     argv = ["recover", str(files / "x.npy"), "--camera", str(files / "cam.json"), "--out", str(files / "o")]
