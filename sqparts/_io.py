@@ -539,8 +539,13 @@ def _float32_depth(raw: np.ndarray, argument: str, where: str = "") -> np.ndarra
 
 def _declared_shape(path: Path, suffix: str) -> tuple[int, ...]:
     """The image shape a file's header declares, read before any pixel is decoded."""
-    if suffix == ".npy":
-        return tuple(np.load(path, mmap_mode="r", allow_pickle=False).shape)  # maps, reads nothing
+    if suffix == ".npy":  # the header alone: mapping a file shorter than it declares fails
+        with open(path, "rb") as f:
+            version = np.lib.format.read_magic(f)
+            read = {(1, 0): np.lib.format.read_array_header_1_0, (2, 0): np.lib.format.read_array_header_2_0}
+            if version in read:
+                return tuple(read[version](f)[0])
+        return tuple(np.load(path, mmap_mode="r", allow_pickle=False).shape)
     if suffix == ".png":
         from PIL import Image
 
