@@ -578,7 +578,7 @@ def build_parser() -> argparse.ArgumentParser:
         nargs="+",
         help="range images (.npy .png .tif .pcd), folders of them, or glob patterns ('scans/**/*.png'; quote them)",
     )
-    p.add_argument("--camera", help="camera JSON (a .pcd carries its own)")
+    p.add_argument("--camera", help="camera JSON (a .pcd carries its own; this one, if given, is used instead)")
     p.add_argument(
         "--out",
         required=True,
@@ -688,7 +688,7 @@ def build_parser() -> argparse.ArgumentParser:
     p.set_defaults(func=cmd_demo)
 
     def recognition_options(p):
-        p.add_argument("--camera", help="camera JSON (a .pcd carries its own)")
+        p.add_argument("--camera", help="camera JSON (a .pcd carries its own; this one, if given, is used instead)")
         p.add_argument("--db", required=True, help="model database folder")
         p.add_argument("--grid", default="coarse", choices=["coarse", "default", "fine"], help="hypothesis grid")
         p.add_argument(
