@@ -18,6 +18,7 @@ from __future__ import annotations
 import collections
 import contextlib
 import json
+import logging
 import math
 import numbers
 import os
@@ -149,6 +150,10 @@ def staged_folder(path, *, overwrite: bool = False, inputs=()):
                 shutil.rmtree(old, ignore_errors=True)
             else:
                 old.unlink(missing_ok=True)
+            if old.exists():  # e.g. a read-only folder inside it: the new output is in place
+                logging.getLogger(__name__).warning(
+                    "sqparts: warning: %s replaced, but its old copy could not be removed: %s", path, old
+                )
 
 
 def _load_json(path, what: str):

@@ -715,6 +715,25 @@ def test_overwrite_never_replaces_a_folder_holding_the_input(files, capsys, monk
     assert sorted(p.name for p in folder.iterdir()) == before
 
 
+def test_an_old_output_that_cannot_be_removed_is_reported(tmp_path, monkeypatch, caplog):
+    """With --overwrite, a replaced folder's old copy that could not be deleted (a
+    read-only folder inside it) was left beside the new output without a word."""
+    import shutil
+
+    from sqparts._io import staged_folder
+
+    out = tmp_path / "out"
+    out.mkdir()
+    (out / "old.txt").write_text("old")
+    monkeypatch.setattr(shutil, "rmtree", lambda *a, **k: None)  # what a read-only folder does to it
+    with staged_folder(out, overwrite=True) as tmp:
+        (tmp / "new.txt").write_text("new")
+    assert [p.name for p in out.iterdir()] == ["new.txt"]
+    (left,) = [p for p in tmp_path.iterdir() if p.name.endswith(".old")]
+    assert (left / "old.txt").read_text() == "old"
+    assert f"sqparts: warning: {out} replaced, but its old copy could not be removed: {left}" in caplog.text
+
+
 # --- session 40's fuzzing: numbers as JSON gives them, names as the user typed them -----
 
 
