@@ -175,6 +175,7 @@ _EXPORTS = {
     "_io": (
         "PARTS_SCHEMA_PATH",
         "camera_from_realsense",
+        "camera_depth_scale",
         "load_camera",
         "load_scene",
         "parts_schema",

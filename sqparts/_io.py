@@ -383,6 +383,25 @@ def load_camera(path) -> Camera:
 REALSENSE_KEYS = {"width", "height", "fx", "fy", "ppx", "ppy"}
 
 
+def camera_depth_scale(path) -> float | None:
+    """The ``depth_scale`` (metres per depth unit) of a RealSense camera JSON file, beside
+    its intrinsics (flat, or at the top of a dump with them under ``"intrinsics"`` or
+    ``"depth"``); None when the file has none. ``sqparts`` reads integer depth (a PNG's)
+    with it unless ``--depth-scale`` is given."""
+    data = _load_json(path, "camera")
+    intr = _realsense_intrinsics(data) if isinstance(data, dict) else None
+    if intr is None:
+        return None
+    found = [d["depth_scale"] for d in (data, intr) if "depth_scale" in d]
+    for value in found:
+        number = isinstance(value, (int, float)) and not isinstance(value, bool)
+        if not (number and math.isfinite(value) and value > 0):
+            raise ValueError(f"camera.depth_scale: got {value!r:.40}, expected a finite number > 0 (metres per unit)")
+    if len(set(found)) > 1:
+        raise ValueError(f"camera.depth_scale: got {found[0]!r} and {found[1]!r}, expected one value")
+    return float(found[0]) if found else None
+
+
 def _realsense_intrinsics(data: dict) -> dict | None:
     """The RealSense intrinsics in ``data``: at the top level or under one of
     ``intrinsics``, ``depth`` (as a dump of several streams); None if there are none."""
@@ -416,10 +435,11 @@ def camera_from_realsense(data: dict) -> PinholeCamera:
         raise ValueError(
             f"camera: got {type(data).__name__}, expected RealSense intrinsics with keys {sorted(REALSENSE_KEYS)}"
         )
-    unknown = sorted(set(intr) - REALSENSE_KEYS - {"model", "coeffs"})
+    known = REALSENSE_KEYS | {"model", "coeffs", "depth_scale"}  # depth_scale: camera_depth_scale's
+    unknown = sorted(set(intr) - known)
     if unknown:
         raise ValueError(
-            f"camera: got unknown key(s) {unknown}, expected only {sorted(REALSENSE_KEYS | {'model', 'coeffs'})} for RealSense intrinsics"
+            f"camera: got unknown key(s) {unknown}, expected only {sorted(known)} for RealSense intrinsics"
         )
     coeffs = intr.get("coeffs", [0.0] * 5)
     try:

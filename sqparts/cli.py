@@ -130,7 +130,7 @@ def cmd_render(args) -> int:
             f"scene: got {len(parts)} part(s) that no pixel of the camera sees, "
             "expected at least one in view (in front of the camera, not around it)"
         )
-    write_range_image(out, depth, depth_scale=args.depth_scale)
+    write_range_image(out, depth, depth_scale=_depth_scale(args))
     _say(args, f"wrote {out} ({camera.width}x{camera.height}, {len(parts)} parts)")
     return 0
 
@@ -156,7 +156,7 @@ def cmd_show(args) -> int:
     if Path(args.out).suffix.lower() != ".png":
         raise ValueError(f"--out: got {args.out!r}, expected a path ending in .png")
     out = _new_file(args, args.out, (args.input,))
-    depth, _ = read_range_image(args.input, depth_scale=args.depth_scale)
+    depth, _ = read_range_image(args.input, depth_scale=_depth_scale(args))
     save_range_image_png(out, depth, title=Path(args.input).name)
     _say(args, f"wrote {out}")
     return 0
@@ -261,7 +261,7 @@ def cmd_recover(args) -> int:
             path,
             out,
             camera=camera,
-            depth_scale=args.depth_scale,
+            depth_scale=_depth_scale(args),
             sigma=args.sigma,
             overwrite=args.overwrite,
             progress=_progress(args, "regions", "region"),
@@ -279,7 +279,7 @@ def cmd_recover(args) -> int:
         recursive=args.recursive,
         overwrite=args.overwrite,
         resume=args.resume,
-        depth_scale=args.depth_scale,
+        depth_scale=_depth_scale(args),
         sigma=args.sigma,
         **opts,
     )
@@ -391,7 +391,24 @@ def _read_inputs(args, inputs) -> list:
     from ._io import load_camera
 
     camera = load_camera(args.camera) if args.camera else None
-    return [(path, *read_input(path, camera=camera, depth_scale=args.depth_scale)) for path in inputs]
+    scale = _depth_scale(args)
+    return [(path, *read_input(path, camera=camera, depth_scale=scale)) for path in inputs]
+
+
+def _depth_scale(args) -> float:
+    """Metres per unit of integer depth (a PNG's): ``--depth-scale`` as given, else the
+    camera file's own ``depth_scale`` (a RealSense dump's), else 0.001 (millimetres).
+    A flag that contradicts the camera file is an error."""
+    from ._io import camera_depth_scale
+
+    own = camera_depth_scale(args.camera) if getattr(args, "camera", None) else None
+    if args.depth_scale is None:
+        return DEFAULT_DEPTH_SCALE if own is None else own
+    if own is not None and own != args.depth_scale:
+        raise ValueError(
+            f"--depth-scale: got {args.depth_scale:g}, expected the camera file's depth_scale {own:g} (or no --depth-scale)"
+        )
+    return args.depth_scale
 
 
 def _recognition_options(args) -> dict:
@@ -534,6 +551,12 @@ def _say(args, msg: str) -> None:
         print(msg)
 
 
+DEFAULT_DEPTH_SCALE = 0.001
+DEPTH_SCALE_HELP = (
+    "metres per unit of integer depth, e.g. a 16-bit PNG's (default: the camera file's depth_scale, else 0.001)"
+)
+
+
 def build_parser() -> argparse.ArgumentParser:
     from ._refine import MAX_REFINE_ROUNDS
 
@@ -551,7 +574,7 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("scene", help='scene JSON ({"parts": [...]})')
     p.add_argument("--camera", required=True, help="camera JSON (Open3D pinhole or orthographic)")
     p.add_argument("--out", required=True, help="output range image (.npy, .png 16-bit, .tif)")
-    p.add_argument("--depth-scale", type=depth_scale, default=0.001, help="PNG units per value (m)")
+    p.add_argument("--depth-scale", type=depth_scale, default=None, help=DEPTH_SCALE_HELP)
     p.set_defaults(func=cmd_render)
 
     p = sub.add_parser("mesh", help="export a scene JSON as a mesh")
@@ -569,7 +592,7 @@ def build_parser() -> argparse.ArgumentParser:
     p = sub.add_parser("show", help="save a range image as a PNG picture")
     p.add_argument("input", help="range image (.npy, .png, .tif, .pcd)")
     p.add_argument("--out", required=True, help="output picture (.png)")
-    p.add_argument("--depth-scale", type=depth_scale, default=0.001)
+    p.add_argument("--depth-scale", type=depth_scale, default=None, help=DEPTH_SCALE_HELP)
     p.set_defaults(func=cmd_show)
 
     p = sub.add_parser("recover", help="recover parts from range images")
@@ -613,7 +636,7 @@ def build_parser() -> argparse.ArgumentParser:
         type=_number(f"an integer in [0, {MAX_REFINE_ROUNDS}]", low=0, high=MAX_REFINE_ROUNDS, integer=True),
         default=2,
     )
-    p.add_argument("--depth-scale", type=depth_scale, default=0.001, help="PNG units per value (m)")
+    p.add_argument("--depth-scale", type=depth_scale, default=None, help=DEPTH_SCALE_HELP)
     g = p.add_argument_group("real data (clean-up, figure/ground, prettifying)")
     g.add_argument(
         "--resolution",
@@ -702,7 +725,7 @@ def build_parser() -> argparse.ArgumentParser:
             default=160,
             help="bin the image so its longest side is about this many pixels (0 = full resolution)",
         )
-        p.add_argument("--depth-scale", type=depth_scale, default=0.001, help="PNG units per value (m)")
+        p.add_argument("--depth-scale", type=depth_scale, default=None, help=DEPTH_SCALE_HELP)
 
     p = sub.add_parser("learn", help="recover views of an object and add them to a model database")
     p.add_argument("name", help="the object's name (letters, digits, '.', '_', '-')")

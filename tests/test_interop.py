@@ -110,6 +110,50 @@ def test_realsense_intrinsics_missing_a_field_name_it(tmp_path):
         sqparts.load_camera(tmp_path / "rs.json")
 
 
+@pytest.mark.parametrize(
+    "wrap",
+    [
+        lambda d: {**d, "depth_scale": 0.0001},
+        lambda d: {"intrinsics": d, "depth_scale": 0.0001},
+        lambda d: {"depth": {**d, "depth_scale": 0.0001}},
+    ],
+    ids=["flat", "beside", "inside"],
+)
+def test_a_realsense_dumps_depth_scale_reads_its_pngs(tmp_path, capsys, wrap):
+    """A dump's depth_scale (here 0.1 mm a unit, as on a D405) was ignored: its PNGs were
+    read as millimetres, every depth ten times too large. It is the default now, and a
+    --depth-scale that contradicts it is an error."""
+    from conftest import cli_error
+
+    from sqparts.cli import main
+
+    small = {**REALSENSE, "width": 32, "height": 24, "fx": 30.0, "fy": 30.0, "ppx": 15.5, "ppy": 11.5}
+    (tmp_path / "rs.json").write_text(json.dumps(wrap(small)))
+    assert sqparts.camera_depth_scale(tmp_path / "rs.json") == 0.0001
+    scene = {
+        "parts": [
+            {"size": [0.1, 0.1, 0.1], "squareness": [1, 1], "position": [0, 0, 0.5], "rotation": np.eye(3).tolist()}
+        ]
+    }
+    (tmp_path / "scene.json").write_text(json.dumps(scene))
+    argv = ["render", str(tmp_path / "scene.json"), "--camera", str(tmp_path / "rs.json")]
+    assert main([*argv, "--out", str(tmp_path / "d.png"), "--quiet"]) == 0
+    units = np.asarray(__import__("PIL.Image").Image.open(tmp_path / "d.png"))
+    assert int(units[units > 0].min()) == pytest.approx(4000, abs=20)  # the sphere's front, 0.4 m, in 0.1 mm units
+    err = cli_error(capsys, [*argv, "--out", str(tmp_path / "e.png"), "--depth-scale", "0.001"])
+    assert (
+        err
+        == "sqparts: error: --depth-scale: got 0.001, expected the camera file's depth_scale 0.0001 (or no --depth-scale)"
+    )
+    assert main([*argv, "--out", str(tmp_path / "f.png"), "--depth-scale", "0.0001", "--quiet"]) == 0
+    # Intrinsics without one: millimetres, as before.
+    (tmp_path / "mm.json").write_text(json.dumps(small))
+    assert sqparts.camera_depth_scale(tmp_path / "mm.json") is None
+    (tmp_path / "bad.json").write_text(json.dumps({**small, "depth_scale": -1}))
+    with pytest.raises(ValueError, match=r"^camera.depth_scale: got -1, expected a finite number > 0"):
+        sqparts.camera_depth_scale(tmp_path / "bad.json")
+
+
 # --- depth from datasets ----------------------------------------------------------------
 
 
