@@ -471,7 +471,11 @@ def save_camera(path, camera: Camera) -> None:
 # --- range images ------------------------------------------------------------------
 
 
-def read_range_image(path, *, depth_scale: float = 0.001) -> tuple[np.ndarray, Camera | None]:
+DEPTH_SCALE = 0.001
+"""Metres per unit of integer depth (a 16-bit PNG's) when none is given: millimetres."""
+
+
+def read_range_image(path, *, depth_scale: float = DEPTH_SCALE) -> tuple[np.ndarray, Camera | None]:
     """Read a range image; returns (float32 depth with NaN = no return, camera or None).
 
     * ``.npy``: a 2-D float array (NaN, inf or <= 0 = no return).
@@ -680,7 +684,7 @@ def intrinsics_from_points(xyz: np.ndarray) -> PinholeCamera:
     return PinholeCamera(w, h, float(fx), float(fy), float(cx), float(cy))
 
 
-def write_range_image(path, depth, *, depth_scale: float = 0.001) -> None:
+def write_range_image(path, depth, *, depth_scale: float = DEPTH_SCALE) -> None:
     """Write a range image atomically: .npy (float32, NaN kept), .png (uint16 of
     depth / depth_scale, 0 = no return) or .tif (float32). Pixels without a return
     (NaN, inf, 0 or negative) are written as NaN (0 in a PNG), as reading gives them."""

@@ -39,7 +39,7 @@ from ._grid import lookup_preset
 from ._part import Part, stack_parts
 from ._refine import RefineSettings
 from ._render import render_range_image
-from ._search import SearchSettings, fit_image, search_preset
+from ._search import SearchSettings, fit_image, largest_frame, search_preset
 from ._select import SelectionProblem, SelectSettings, select_rendered
 from ._typing import freeze_fields
 
@@ -574,7 +574,7 @@ def _shared_frame(search: SearchSettings, searches) -> SearchSettings:
     if search.window is None:
         return search
     frame = max(int(s.window) for s in searches if s.window is not None)
-    if frame <= search.window or frame > search.window // 2 + PAD:
+    if frame <= search.window or frame > largest_frame(search.window, PAD):
         return search
     return dataclasses.replace(search, frame=frame)
 

@@ -164,11 +164,9 @@ class SearchSettings:
         stride = DEFAULT_STRIDE if self.stride is None else self.stride
         if stride // 2 >= window:  # the lattice would hold no pixel of the window
             raise ValueError(f"stride: got {stride}, expected at most {2 * window - 1} (the window is {window} pixels)")
-        # A frame is cut from the corner of a window centred anywhere on the image: it
-        # must stay within the padding beyond the image's last row and column.
-        if self.frame is not None and not window <= self.frame <= window // 2 + data.pad:
+        if self.frame is not None and not window <= self.frame <= largest_frame(window, data.pad):
             raise ValueError(
-                f"frame: got {self.frame}, expected {window} to {window // 2 + data.pad} pixels "
+                f"frame: got {self.frame}, expected {window} to {largest_frame(window, data.pad)} pixels "
                 f"(the window, {window}, to half of it plus the padding, {data.pad})"
             )
         return dataclasses.replace(self, max_size=max_size, window=window, stride=stride)
@@ -197,6 +195,13 @@ class SearchSettings:
         out = dataclasses.asdict(self)
         out["hypotheses_per_region"] = self.grid.size  # type: ignore[union-attr]
         return out
+
+
+def largest_frame(window: int, pad: int) -> int:
+    """The widest frame a ``window`` can be computed in (:attr:`SearchSettings.frame`):
+    a frame is cut from the corner of a window centred anywhere on the image, so it must
+    stay within the ``pad`` pixels beyond the image's last row and column."""
+    return int(window) // 2 + int(pad)
 
 
 SEARCH_PRESETS = {
@@ -427,8 +432,9 @@ def _score_hypotheses(
     (``orientation_rel`` (m, 3), ``shape`` (m, 8)) on a ``sides[q]`` window computed in a
     ``frames[q]`` frame (:func:`_region_inputs`), in chunks of ``batches[q]``: region
     ``region[k]`` (``centre``: (R, 2); ``corners[q]``: (R, 2); ``max_size``: (R,)) scores
-    the table's rows ``starts[q][k, j]`` to ``starts[q][k, j] + batches[q]``; regions of ``region`` -1 are padding, after the live ones, not scored
-    (Γ -inf). Returns one (Γ, p) pair of (R, c, batch) arrays per pass."""
+    the table's rows ``starts[q][k, j]`` to ``starts[q][k, j] + batches[q]``; regions of
+    ``region`` -1 are padding, after the live ones, not scored (Γ -inf). Returns one (Γ,
+    p) pair of (R, c, batch) arrays per pass."""
     depth, fig, sigma, lam = arrays
     s = slice(stride // 2, None, stride)
     weight = jnp.float32(stride * stride)
@@ -699,10 +705,10 @@ def _score_candidates(
 ):
     """Score a batch of candidates at full resolution, each over its own region's
     ``side`` × ``side`` window (``corner``, ``centre``: (n, 2)), computed in a ``frame`` ×
-    ``frame`` array (:func:`_region_inputs`; the masks returned are the frame's). Where ``posed``, candidate i is the hypothesis
-    (``orientation_rel``, ``shape``) posed at its region and moved by -``offsets`` in
-    depth along the region's centre ray (the peak of its Γ histogram); elsewhere it is
-    the part ``vectors[i]``.
+    ``frame`` array (:func:`_region_inputs`; the masks returned are the frame's). Where
+    ``posed``, candidate i is the hypothesis (``orientation_rel``, ``shape``) posed at its
+    region and moved by -``offsets`` in depth along the region's centre ray (the peak of
+    its Γ histogram); elsewhere it is the part ``vectors[i]``.
 
     Returns the parts' vectors, Γ, the window masks explained/rendered/commission, and
     ``anchored``: whether the part explains a pixel within one of the region's centre. A

@@ -124,13 +124,14 @@ def cmd_render(args) -> int:
     out = _new_file(args, _range_out(args.out), (args.scene, args.camera))
     parts = load_scene(args.scene)
     camera = load_camera(args.camera)
+    scale = _depth_scale(args)  # checked before any work
     depth = render_range_image(parts, camera)
     if not np.isfinite(np.asarray(depth)).any():  # an image of NaN alone: nothing to write
         raise ValueError(
             f"scene: got {len(parts)} part(s) that no pixel of the camera sees, "
             "expected at least one in view (in front of the camera, not around it)"
         )
-    write_range_image(out, depth, depth_scale=_depth_scale(args))
+    write_range_image(out, depth, depth_scale=scale)
     _say(args, f"wrote {out} ({camera.width}x{camera.height}, {len(parts)} parts)")
     return 0
 
@@ -399,11 +400,11 @@ def _depth_scale(args) -> float:
     """Metres per unit of integer depth (a PNG's): ``--depth-scale`` as given, else the
     camera file's own ``depth_scale`` (a RealSense dump's), else 0.001 (millimetres).
     A flag that contradicts the camera file is an error."""
-    from ._io import camera_depth_scale
+    from ._io import DEPTH_SCALE, camera_depth_scale
 
     own = camera_depth_scale(args.camera) if getattr(args, "camera", None) else None
     if args.depth_scale is None:
-        return DEFAULT_DEPTH_SCALE if own is None else own
+        return DEPTH_SCALE if own is None else own
     if own is not None and own != args.depth_scale:
         raise ValueError(
             f"--depth-scale: got {args.depth_scale:g}, expected the camera file's depth_scale {own:g} (or no --depth-scale)"
@@ -551,7 +552,6 @@ def _say(args, msg: str) -> None:
         print(msg)
 
 
-DEFAULT_DEPTH_SCALE = 0.001
 DEPTH_SCALE_HELP = (
     "metres per unit of integer depth, e.g. a 16-bit PNG's (default: the camera file's depth_scale, else 0.001)"
 )
