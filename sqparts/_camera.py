@@ -346,7 +346,8 @@ Camera = PinholeCamera | OrthographicCamera | ScannerCamera
 
 def check_range_image(depth, camera: Camera) -> np.ndarray:
     """A range image checked against its camera, as float64 with NaN for every pixel
-    without a return (NaN, inf, 0 or negative)."""
+    without a return (NaN, inf, 0 or negative, or beyond :data:`DEPTH_RANGE` beside
+    returns within it: a renderer's background marker, Blender's 1e10)."""
     if not isinstance(camera, _Camera):
         raise TypeError(f"camera: got {type(camera).__name__}, expected a sqparts camera")
     raw = np.asarray(depth) if not isinstance(depth, (str, bytes)) else np.asarray(None)
@@ -359,6 +360,9 @@ def check_range_image(depth, camera: Camera) -> np.ndarray:
         raise ValueError(f"depth: got shape {d.shape}, expected {(camera.height, camera.width)} to match the camera")
     with np.errstate(invalid="ignore"):
         d = np.where(np.isfinite(d) & (d > 0), d, np.nan)
+        far = d > DEPTH_RANGE[1]
+    if far.any() and not far[np.isfinite(d)].all():  # a renderer's "no hit" (Blender's Z pass: 1e10)
+        d[far] = np.nan
     if np.isfinite(d).any():
         lo, hi = float(np.nanmin(d)), float(np.nanmax(d))
         if lo < DEPTH_RANGE[0] or hi > DEPTH_RANGE[1]:

@@ -45,7 +45,8 @@ ANNOTATION_KEYS = {
 }
 RANGE_IMAGE_SUFFIXES = (".npy", ".png", ".tif", ".tiff", ".pcd", ".exr")
 EXR_DEPTH_CHANNELS = ("Z", "depth", "Y", "R")
-"""Channels of an OpenEXR file read as depth, in order of preference."""
+"""Channels of an OpenEXR file read as depth, in order of preference (R only where the
+file's R, G and B agree: a grey image, not a colour render)."""
 
 
 MAX_JSON_BYTES = 64 * 2**20
@@ -369,9 +370,13 @@ def save_scene(path, parts: Part, annotations=None, **metadata) -> None:
 
 
 def load_camera(path) -> Camera:
-    """Read a camera JSON file: Open3D pinhole intrinsics, orthographic, scanner, or
-    RealSense intrinsics (see :func:`camera_from_realsense`)."""
+    """Read a camera JSON file: Open3D pinhole intrinsics (or Open3D's camera parameters,
+    whose ``"intrinsic"`` they are; the extrinsic pose is not needed for a range image in
+    the camera's own frame), orthographic, scanner, or RealSense intrinsics (see
+    :func:`camera_from_realsense`)."""
     data = _load_json(path, "camera")
+    if isinstance(data, dict) and "intrinsic_matrix" not in data and isinstance(data.get("intrinsic"), dict):
+        data = data["intrinsic"]  # open3d.io.write_pinhole_camera_parameters
     if isinstance(data, dict) and _realsense_intrinsics(data) is not None:
         return camera_from_realsense(data)
     if isinstance(data, dict) and "intrinsic_matrix" not in data and {"fx", "fy", "ppx", "ppy"} & set(data):
@@ -628,12 +633,15 @@ def _open_exr(path: Path, *, header_only: bool = False):
 
 def _read_exr(path: Path, depth_scale: float) -> np.ndarray:
     channels = {name: c.pixels for name, c in _open_exr(path).channels().items()}
-    name = next((n for n in EXR_DEPTH_CHANNELS if n in channels), None)
+    colour = [channels[c] for c in ("R", "G", "B") if c in channels]
+    grey = all(np.array_equal(colour[0], c, equal_nan=True) for c in colour[1:])
+    name = next((n for n in EXR_DEPTH_CHANNELS if n in channels and (n != "R" or grey)), None)
     if name is None and len(channels) == 1:
         name = next(iter(channels))
     if name is None:
         raise ValueError(
-            f"input: got channels {sorted(channels)} in {str(path)!r}, expected one of {list(EXR_DEPTH_CHANNELS)} or a single channel"
+            f"input: got channels {sorted(channels)} in {str(path)!r}, expected one of {list(EXR_DEPTH_CHANNELS)} "
+            "(R where R, G and B agree: not a colour image) or a single channel"
         )
     raw = np.asarray(channels[name])
     return raw if np.issubdtype(raw.dtype, np.floating) else raw * depth_scale
@@ -670,8 +678,18 @@ def _read_pcd(path) -> tuple[np.ndarray, PinholeCamera]:
     return xyz[..., 2], intrinsics_from_points(xyz)
 
 
+PCD_MAX_REPROJECTION = 0.5
+"""Largest RMS reprojection error, in pixels, of the pinhole fitted to an organized
+cloud (:func:`intrinsics_from_points`): a pinhole camera's own cloud fits to a small
+fraction of a pixel (the Kinect and stereo clouds in the shared data: 3e-5 and 0.02)."""
+
+
 def intrinsics_from_points(xyz: np.ndarray) -> PinholeCamera:
-    """Pinhole intrinsics of an organized cloud by least squares: u = fx x/z + cx."""
+    """Pinhole intrinsics of an organized cloud by least squares: u = fx x/z + cx. A
+    cloud that no pinhole at the origin explains within :data:`PCD_MAX_REPROJECTION`
+    pixels is refused: its points are not in its camera's optical frame (moved to a
+    world or robot frame), or its camera is not a pinhole (a scanner's), and its z is
+    then not the depth its pixels saw."""
     h, w = xyz.shape[:2]
     v, u = np.mgrid[0:h, 0:w]
     ok = np.isfinite(xyz).all(-1) & (xyz[..., 2] > 0)
@@ -681,6 +699,13 @@ def intrinsics_from_points(xyz: np.ndarray) -> PinholeCamera:
     yz = xyz[..., 1][ok] / xyz[..., 2][ok]
     fx, cx = np.linalg.lstsq(np.c_[xz, np.ones_like(xz)], u[ok], rcond=None)[0]
     fy, cy = np.linalg.lstsq(np.c_[yz, np.ones_like(yz)], v[ok], rcond=None)[0]
+    error = float(np.sqrt(np.mean((fx * xz + cx - u[ok]) ** 2 + (fy * yz + cy - v[ok]) ** 2)))
+    if not error <= PCD_MAX_REPROJECTION:
+        raise ValueError(
+            f"input: got an organized cloud that a pinhole camera at its origin reprojects to its pixels within "
+            f"{error:.3g} px (RMS), expected {PCD_MAX_REPROJECTION} px at most (points in the camera's optical frame, "
+            "x right, y down, z forward; give a range image and --camera otherwise)"
+        )
     return PinholeCamera(w, h, float(fx), float(fy), float(cx), float(cy))
 
 

@@ -560,7 +560,12 @@ DEPTH_SCALE_HELP = (
 def build_parser() -> argparse.ArgumentParser:
     from ._refine import MAX_REFINE_ROUNDS
 
-    depth_scale = _number("a finite number > 0 (metres per PNG unit)", low=0, open_low=True)
+    depth_scale = _number(
+        "a number in (0, 1]: metres per unit (Open3D's and TUM's 1000 or 5000 units per metre are 0.001 or 0.0002)",
+        low=0,
+        open_low=True,
+        high=1,
+    )
     parser = _Parser(
         prog="sqparts",
         description="Recover part structure (deformed superquadrics) from range images.",

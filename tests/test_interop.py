@@ -59,6 +59,51 @@ def test_sqparts_reads_the_camera_open3d_writes(tmp_path):
     assert camera == sqparts.PinholeCamera(640, 480, 525.0, 526.0, 319.5, 239.5)
 
 
+def test_sqparts_reads_open3ds_camera_parameters(tmp_path):
+    """Open3D's camera parameters (the intrinsics under "intrinsic", beside an extrinsic
+    pose) were refused with "got no height, intrinsic_matrix, width"."""
+    o3d = _open3d()
+    params = o3d.camera.PinholeCameraParameters()
+    params.intrinsic = o3d.camera.PinholeCameraIntrinsic(64, 48, 60.0, 80.0, 30.5, 20.25)
+    params.extrinsic = np.array([[1, 0, 0, 0.3], [0, 0, -1, 0.1], [0, 1, 0, 2.0], [0, 0, 0, 1.0]])
+    assert o3d.io.write_pinhole_camera_parameters(str(tmp_path / "params.json"), params)
+    assert sqparts.load_camera(tmp_path / "params.json") == sqparts.PinholeCamera(64, 48, 60.0, 80.0, 30.5, 20.25)
+
+
+def _write_pcd(path, xyz):
+    h, w = xyz.shape[:2]
+    rows = "".join(" ".join(f"{v:.9g}" for v in p) + "\n" for p in xyz.reshape(-1, 3))
+    path.write_text(
+        "# .PCD v0.7\nVERSION 0.7\nFIELDS x y z\nSIZE 4 4 4\nTYPE F F F\nCOUNT 1 1 1\n"
+        f"WIDTH {w}\nHEIGHT {h}\nVIEWPOINT 0 0 0 1 0 0 0\nPOINTS {w * h}\nDATA ascii\n" + rows
+    )
+
+
+def test_an_organized_cloud_not_in_its_cameras_frame_is_refused(tmp_path):
+    """The intrinsics are fitted to the points; a cloud moved to a world frame was read
+    with made-up intrinsics and a wrong depth (its z), with exit 0. Open3D's reader gives
+    the reference points."""
+    o3d = _open3d()
+    camera = sqparts.PinholeCamera(40, 30, 40.0, 40.0, 19.5, 14.5)
+    part = sqparts.Part(size=[0.4, 0.3, 0.2], position=[0.0, 0.0, 1.0])
+    depth = np.asarray(sqparts.render_range_image(part, camera), np.float64)
+    xyz = camera.points(np.where(np.isfinite(depth), depth, 1.5))  # a wall behind the part
+    _write_pcd(tmp_path / "camera.pcd", xyz)
+    np.testing.assert_allclose(
+        np.asarray(o3d.io.read_point_cloud(str(tmp_path / "camera.pcd")).points), xyz.reshape(-1, 3), rtol=1e-6
+    )
+    back, cam = sqparts.read_range_image(tmp_path / "camera.pcd")
+    np.testing.assert_allclose(back, xyz[..., 2], rtol=1e-6)
+    np.testing.assert_allclose([cam.fx, cam.fy, cam.cx, cam.cy], [40, 40, 19.5, 14.5], atol=1e-3)
+    a = np.radians(20)
+    turn = np.array([[1, 0, 0], [0, np.cos(a), -np.sin(a)], [0, np.sin(a), np.cos(a)]])
+    _write_pcd(tmp_path / "world.pcd", xyz @ turn.T + [0.3, -0.2, 0.5])
+    with pytest.raises(
+        ValueError, match=r"input: got an organized cloud that a pinhole camera at its origin reprojects"
+    ):
+        sqparts.read_range_image(tmp_path / "world.pcd")
+
+
 REALSENSE = {
     "width": 848,
     "height": 480,
@@ -157,6 +202,19 @@ def test_a_realsense_dumps_depth_scale_reads_its_pngs(tmp_path, capsys, wrap):
 # --- depth from datasets ----------------------------------------------------------------
 
 
+def test_a_depth_scale_in_units_per_metre_is_refused(tmp_path, capsys):
+    """Open3D and TUM give 1000 or 5000 units per metre; sqparts' --depth-scale is metres
+    per unit, so 5000 read millimetres as kilometres, with exit 0."""
+    from conftest import cli_error
+
+    line = cli_error(
+        capsys, ["show", str(tmp_path / "d.png"), "--out", str(tmp_path / "s.png"), "--depth-scale", "5000"]
+    )
+    assert line.startswith("sqparts: error: --depth-scale: got '5000', expected a number in (0, 1]: metres per unit"), (
+        line
+    )
+
+
 def test_tum_png_at_5000_units_per_metre(tmp_path):
     from PIL import Image
 
@@ -186,6 +244,30 @@ def test_exr_depth(tmp_path, channel):
     assert camera is None and back.dtype == np.float32 and back.shape == (24, 32)
     assert np.isnan(back[:2, :4]).all()
     np.testing.assert_array_equal(back[2:], depth[2:])
+
+
+def test_a_colour_exr_is_not_depth(tmp_path):
+    """A colour render's red channel was read as depth; a grey image (R = G = B) still is."""
+    depth = np.linspace(0.5, 3.0, 24 * 32, dtype=np.float32).reshape(24, 32)
+    _write_exr(tmp_path / "grey.exr", {"R": depth, "G": depth, "B": depth})
+    np.testing.assert_array_equal(sqparts.read_range_image(tmp_path / "grey.exr")[0], depth)
+    _write_exr(tmp_path / "colour.exr", {"R": depth, "G": depth * 0.5, "B": depth})
+    with pytest.raises(ValueError, match=r"input: got channels \['B', 'G', 'R'\] in .*\(R where R, G and B agree"):
+        sqparts.read_range_image(tmp_path / "colour.exr")
+
+
+def test_a_renderers_far_background_is_no_return(tmp_path):
+    """Blender's Z pass marks "no hit" as 1e10: the image was refused whole ("rescale the
+    image"). Beside returns within range, such depths are no return; an image of nothing
+    else is still refused."""
+    camera = sqparts.PinholeCamera(32, 24, 30.0, 30.0, 15.5, 11.5)
+    depth = np.asarray(sqparts.render_range_image(sqparts.Part(size=[0.2, 0.2, 0.2], position=[0, 0, 1.0]), camera))
+    _write_exr(tmp_path / "z.exr", {"Z": np.where(np.isfinite(depth), depth, 1e10).astype(np.float32)})
+    back, _ = sqparts.read_range_image(tmp_path / "z.exr")
+    data = sqparts.prepare(back, camera)
+    np.testing.assert_array_equal(np.isfinite(data.image), np.isfinite(depth))
+    with pytest.raises(ValueError, match=r"depth: got returns from 1e\+10 to 1e\+10, expected depths in"):
+        sqparts.prepare(np.full((24, 32), 1e10), camera)
 
 
 def test_exr_errors(tmp_path):
