@@ -486,30 +486,34 @@ def _object_face(
     plane: Plane,
     inliers: np.ndarray,
     rest: np.ndarray,
-    pts: np.ndarray,
+    depth: np.ndarray,
+    camera: Camera,
+    *,
     threshold: float,
     least: int,
-    sheet: np.ndarray,
+    tear: float,
+    against_nothing: bool,
 ) -> bool:
     """Whether a plane through ``inliers`` is the face of an object rather than
     background. Background carries or stands behind the figures: at least ``least``/2
     of the returns ``rest`` within 3 pixels of it lie in front of it (more than
     ``threshold`` on the camera's side; the camera sees the inside of a room, a table or
     a floor, whose other surfaces stand in front). Without those, the plane is a face
-    when as many lie behind it on the same piece of the rubber sheet (``sheet``:
-    :func:`torn_components` labels; the camera sees the outside of a convex body, whose
-    other faces turn away behind the face it shows), or when the returns are objects
-    against nothing (no measured area, :func:`_measured_box`): there no plane is needed
-    to part a figure from its surroundings. A face cut by the image's edge runs off the
-    image as a table does; taken for the ground, it would drop its object and everything
-    beyond it."""
+    when as many lie behind it on the same piece of the rubber sheet
+    (:func:`torn_components`; the camera sees the outside of a convex body, whose other
+    faces turn away behind the face it shows), or when the returns are objects
+    ``against_nothing`` (no measured area, :func:`_measured_box`): there no plane is
+    needed to part a figure from its surroundings. A face cut by the image's edge runs off
+    the image as a table does; taken for the ground, it would drop its object and
+    everything beyond it."""
     ring = rest & ~inliers & ndimage.binary_dilation(inliers, iterations=3)
     with np.errstate(invalid="ignore"):
-        dist = plane.distance(pts)
+        dist = plane.distance(camera.points(depth))
     if 2 * int((ring & (dist > threshold)).sum()) >= least:
         return False
-    if _measured_box(np.isfinite(pts[..., 2])) is None:
+    if against_nothing:
         return True
+    sheet = torn_components(depth, camera, rest, tear=tear)
     joined = np.isin(sheet, np.unique(sheet[inliers & (sheet >= 0)])) & (sheet >= 0)
     return 2 * int((ring & joined & (dist < -threshold)).sum()) >= least
 
@@ -565,7 +569,7 @@ def figure_ground(
     Up to ``planes`` background planes are removed (a table or floor and the two walls
     of a corner): each is the RANSAC plane of the remaining returns through local triples
     that start on the outer frame of the measured area (a table, floor or wall runs off
-    the image; an object's face does not), kept if it holds at least
+    the image), kept if it holds at least
     ``min_plane_fraction`` of the remaining returns and 5% of the frame, and
     not an object's face (:func:`_object_face`: the returns it joins turn away behind it,
     none stand in front). Returns within
@@ -620,7 +624,15 @@ def figure_ground(
         if inl.sum() < min_plane_fraction * rest.sum() or (inl & frame).sum() < 0.05 * frame.sum():
             break
         if _object_face(
-            plane, inl, rest, pts, plane_threshold, min_pixels, torn_components(d, camera, rest, tear=tear)
+            plane,
+            inl,
+            rest,
+            d,
+            camera,
+            threshold=plane_threshold,
+            least=min_pixels,
+            tear=tear,
+            against_nothing=_measured_box(valid) is None,
         ):
             break
         found.append(plane)
