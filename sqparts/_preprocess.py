@@ -65,9 +65,11 @@ def downsample(depth, camera: Camera, factor: int) -> tuple[np.ndarray, Camera]:
     A binned pixel looks along its block's central ray, which meets the surface where the
     surface covers most of the block: a block holds a return when at least half of it
     does (as :func:`downsample_mask`), or when it holds any and so do its four
-    neighbours (a sensor's scattered dropouts inside a surface are not its outline).
-    Keeping every block with any return would widen each silhouette against empty
-    space by half a binned pixel a side (a 4× binned box recovered 15-20% too thick)."""
+    neighbours (a sensor's scattered dropouts inside a surface are not its outline), or
+    when it holds any and no block around it is mostly covered (a member thinner than
+    half a block, which would otherwise vanish). Keeping every block with any return
+    would widen each silhouette against empty space by half a binned pixel a side (a 4×
+    binned box recovered 15-20% too thick)."""
     check_positive("factor", factor, integer=True)
     d = _check_depth(depth, camera)
     cam = camera.downsampled(int(factor))
@@ -75,9 +77,11 @@ def downsample(depth, camera: Camera, factor: int) -> tuple[np.ndarray, Camera]:
     h, w = cam.height, cam.width
     blocks = d[: h * f, : w * f].reshape(h, f, w, f).transpose(0, 2, 1, 3).reshape(h, w, f * f)
     count = np.isfinite(blocks).sum(axis=-1)
+    most = 2 * count >= f * f
     cross = np.array([[0, 1, 0], [1, 1, 1], [0, 1, 0]], bool)
     inside = ndimage.binary_erosion(count > 0, structure=cross, border_value=1)
-    keep = (2 * count >= f * f) | ((count > 0) & inside)
+    thin = ~ndimage.binary_dilation(most, structure=np.ones((3, 3), bool))
+    keep = most | ((count > 0) & (inside | thin))
     with np.errstate(all="ignore"):
         import warnings
 

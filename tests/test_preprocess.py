@@ -93,6 +93,13 @@ def test_downsample_does_not_widen_a_silhouette_against_nothing(rng):
     holes = np.where(rng.random(plane.shape) < 0.4, np.nan, plane)
     binned, _ = sqparts.downsample(holes, CAM, 4)
     np.testing.assert_array_equal(np.isfinite(binned), np.isfinite(sqparts.downsample(plane, CAM, 4)[0]))
+    # A bar two pixels wide, straddling two blocks (a quarter of each), or inside one
+    # (half of it): it stays, at its depth.
+    for cols in (slice(43, 45), slice(41, 43)):
+        bar = np.full(plane.shape, np.nan)
+        bar[8:112, cols] = 1.0
+        binned, _ = sqparts.downsample(bar, CAM, 4)
+        assert set(np.isfinite(binned).sum(axis=1)[2:28].tolist()) <= {1, 2} and np.nanmax(np.abs(binned - 1.0)) == 0
 
 
 def test_downsample_other_cameras():
