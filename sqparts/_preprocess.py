@@ -58,18 +58,36 @@ def footprint(depth, camera: Camera) -> np.ndarray:
 # --- 1. resolution -------------------------------------------------------------------
 
 
+def _measured_box(valid: np.ndarray) -> tuple[int, int, int, int] | None:
+    """The bounding box (r0, r1, c0, c1) of the returns when they fill at least half of
+    it and of the image (a sensor's image, often with a dead frame); None when they do
+    not (objects rendered against nothing)."""
+    rows, cols = np.nonzero(valid)
+    if rows.size == 0:
+        return None
+    r0, r1, c0, c1 = int(rows.min()), int(rows.max()) + 1, int(cols.min()), int(cols.max()) + 1
+    if valid.mean() < 0.5 or valid[r0:r1, c0:c1].mean() < 0.5:
+        return None
+    return r0, r1, c0, c1
+
+
 def downsample(depth, camera: Camera, factor: int) -> tuple[np.ndarray, Camera]:
     """Bin ``factor`` × ``factor`` blocks to their median valid depth, cropping the image
     to a multiple of ``factor``; returns (depth, camera).
 
-    A binned pixel looks along its block's central ray, which meets the surface where the
-    surface covers most of the block: a block holds a return when at least half of it
-    does (as :func:`downsample_mask`), or when it holds any and so do its four
-    neighbours (a sensor's scattered dropouts inside a surface are not its outline), or
-    when it holds any and no block around it is mostly covered (a member thinner than
-    half a block, which would otherwise vanish). Keeping every block with any return
-    would widen each silhouette against empty space by half a binned pixel a side (a 4×
-    binned box recovered 15-20% too thick)."""
+    A sensor's image (its returns fill a measured area, :func:`_measured_box`): a block
+    holds a return when any of its pixels does, its dropouts filled. Objects against
+    nothing (a render): a binned pixel looks along its block's central ray, which meets
+    the object where it covers most of the block, so a block holds a return when at
+    least half of it does (as :func:`downsample_mask`), or when it holds any and so do
+    its four neighbours (dropouts inside a surface are not its outline), or when it
+    holds any and no block around it is mostly covered (a member thinner than half a
+    block, which would otherwise vanish). There, keeping every block with any return
+    widened each silhouette by half a binned pixel a side (a box in a 640x480 render came
+    back 15-20% too thick). In a sensor's image most holes are dropouts, and growing them
+    changed the shared stereo mug's description for the worse (5 parts explaining 61% of
+    its returns at full resolution, where 8 explain 71%).
+    """
     check_positive("factor", factor, integer=True)
     d = _check_depth(depth, camera)
     cam = camera.downsampled(int(factor))
@@ -77,11 +95,13 @@ def downsample(depth, camera: Camera, factor: int) -> tuple[np.ndarray, Camera]:
     h, w = cam.height, cam.width
     blocks = d[: h * f, : w * f].reshape(h, f, w, f).transpose(0, 2, 1, 3).reshape(h, w, f * f)
     count = np.isfinite(blocks).sum(axis=-1)
-    most = 2 * count >= f * f
-    cross = np.array([[0, 1, 0], [1, 1, 1], [0, 1, 0]], bool)
-    inside = ndimage.binary_erosion(count > 0, structure=cross, border_value=1)
-    thin = ~ndimage.binary_dilation(most, structure=np.ones((3, 3), bool))
-    keep = most | ((count > 0) & (inside | thin))
+    keep = count > 0
+    if _measured_box(np.isfinite(d)) is None:
+        most = 2 * count >= f * f
+        cross = np.array([[0, 1, 0], [1, 1, 1], [0, 1, 0]], bool)
+        inside = ndimage.binary_erosion(keep, structure=cross, border_value=1)
+        thin = ~ndimage.binary_dilation(most, structure=np.ones((3, 3), bool))
+        keep = most | (keep & (inside | thin))
     with np.errstate(all="ignore"):
         import warnings
 
@@ -458,19 +478,6 @@ def _frame_triples(rest: np.ndarray, frame: np.ndarray, *, iterations: int = 256
         if len(near) >= 2:
             out.append([index[r, c], *rng.choice(near, 2, replace=False)])
     return np.asarray(out, np.int64) if out else None
-
-
-def _measured_box(valid: np.ndarray) -> tuple[int, int, int, int] | None:
-    """The bounding box (r0, r1, c0, c1) of the returns when they fill at least half of
-    it and of the image (a sensor's image, often with a dead frame); None when they do
-    not (objects rendered against nothing)."""
-    rows, cols = np.nonzero(valid)
-    if rows.size == 0:
-        return None
-    r0, r1, c0, c1 = int(rows.min()), int(rows.max()) + 1, int(cols.min()), int(cols.max()) + 1
-    if valid.mean() < 0.5 or valid[r0:r1, c0:c1].mean() < 0.5:
-        return None
-    return r0, r1, c0, c1
 
 
 def _outer_frame(valid: np.ndarray, width: int = 3) -> np.ndarray:

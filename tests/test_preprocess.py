@@ -72,15 +72,17 @@ def test_downsample_keeps_geometry():
 
 
 def test_downsample_does_not_widen_a_silhouette_against_nothing(rng):
-    """A part against empty space, binned 4x: the binned image's returns are the pixels
-    the binned camera sees the part at (rendered at that camera: the reference), give or
-    take its outline; keeping every block with any return widened the silhouette by half
-    a binned pixel a side (a recovered box came back 15-20% too thick). Dropouts scattered
-    inside a surface are not its outline: a plane with 40% of its pixels missing bins to
-    every block."""
+    """A part against nothing (a render), binned 4x: the binned image's returns are the
+    pixels the binned camera sees the part at (rendered at that camera: the reference),
+    give or take its outline; keeping every block with any return widened the silhouette
+    by half a binned pixel a side (a recovered box came back 15-20% too thick). Dropouts
+    inside the part are not its outline, and a bar thinner than half a block stays. A
+    sensor's image (its returns fill the frame) keeps every block with a return: its
+    holes are mostly dropouts."""
     fine = sqparts.PinholeCamera(640, 480, 600.0, 600.0, 319.5, 239.5)
     part = sqparts.Part(size=[0.15, 0.08, 0.05], squareness=[0.3, 0.3], position=[0.0, 0.0, 1.0])
-    small, cam = sqparts.downsample(np.asarray(sqparts.render_range_image(part, fine)), fine, 4)
+    depth = np.asarray(sqparts.render_range_image(part, fine))
+    small, cam = sqparts.downsample(depth, fine, 4)
     seen = np.isfinite(np.asarray(sqparts.render_range_image(part, cam)))
     got = np.isfinite(small)
     outline = seen.sum() - ndimage.binary_erosion(seen).sum()
@@ -89,17 +91,20 @@ def test_downsample_does_not_widen_a_silhouette_against_nothing(rng):
         (seen & ~got).sum(),
         outline,
     )
-    plane = plane_depth(CAM, TABLE_N, TABLE_D)
-    holes = np.where(rng.random(plane.shape) < 0.4, np.nan, plane)
-    binned, _ = sqparts.downsample(holes, CAM, 4)
-    np.testing.assert_array_equal(np.isfinite(binned), np.isfinite(sqparts.downsample(plane, CAM, 4)[0]))
-    # A bar two pixels wide, straddling two blocks (a quarter of each), or inside one
-    # (half of it): it stays, at its depth.
-    for cols in (slice(43, 45), slice(41, 43)):
-        bar = np.full(plane.shape, np.nan)
+    holes = np.where(rng.random(depth.shape) < 0.6, np.nan, depth)
+    inner = ndimage.binary_erosion(seen, iterations=2)
+    assert np.isfinite(sqparts.downsample(holes, fine, 4)[0])[inner].mean() > 0.98  # a block left empty loses its rim
+    for cols in (slice(43, 45), slice(41, 43)):  # two pixels wide: a quarter of two blocks, or half of one
+        bar = np.full((CAM.height, CAM.width), np.nan)
         bar[8:112, cols] = 1.0
         binned, _ = sqparts.downsample(bar, CAM, 4)
         assert set(np.isfinite(binned).sum(axis=1)[2:28].tolist()) <= {1, 2} and np.nanmax(np.abs(binned - 1.0)) == 0
+    plane = plane_depth(CAM, TABLE_N, TABLE_D)
+    rows, cols = np.mgrid[: CAM.height, : CAM.width]
+    sensor = np.where((rows - 60.3) ** 2 + (cols - 80.5) ** 2 < 30**2, np.nan, plane)  # a round hole, not on blocks
+    h, w = CAM.height // 4, CAM.width // 4
+    anything = np.isfinite(sensor).reshape(h, 4, w, 4).any(axis=(1, 3))
+    np.testing.assert_array_equal(np.isfinite(sqparts.downsample(sensor, CAM, 4)[0]), anything)
 
 
 def test_downsample_other_cameras():
