@@ -656,8 +656,10 @@ def figure_ground(
         check_positive("max_height", max_height)
         with np.errstate(invalid="ignore"):
             background |= valid & (ground.distance(pts) > max_height)
-    # A figure's rim: drop one-pixel slivers the planes leave along the objects' bases.
-    keep = ndimage.binary_opening(valid & ~background, structure=np.ones((2, 2), bool)) if found else valid
+    keep = valid & ~background
+    if found:  # one-pixel slivers the planes leave along the objects' bases go; a dropout's neighbours stay
+        opened = ndimage.binary_opening(keep, structure=np.ones((2, 2), bool))
+        keep &= opened | ~ndimage.binary_dilation(background, structure=np.ones((3, 3), bool))
     pieces = torn_components(d, camera, keep, tear=tear)
     sizes = np.bincount(pieces[pieces >= 0], minlength=1)
     border = _outer_frame(valid, width=max(3, min(d.shape) // 40)) if found and max_border_fraction < 1 else None
