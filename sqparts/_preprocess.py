@@ -99,8 +99,8 @@ def downsample(depth, camera: Camera, factor: int) -> tuple[np.ndarray, Camera]:
     if _measured_box(np.isfinite(d)) is None:
         most = 2 * count >= f * f
         cross = np.array([[0, 1, 0], [1, 1, 1], [0, 1, 0]], bool)
-        inside = ndimage.binary_erosion(keep, structure=cross, border_value=1)
-        thin = ~ndimage.binary_dilation(most, structure=np.ones((3, 3), bool))
+        inside = np.asarray(ndimage.binary_erosion(keep, structure=cross, border_value=1), bool)
+        thin = ~np.asarray(ndimage.binary_dilation(most, structure=np.ones((3, 3), bool)), bool)
         keep = most | (keep & (inside | thin))
     with np.errstate(all="ignore"):
         import warnings
@@ -517,7 +517,7 @@ def _object_face(
     needed to part a figure from its surroundings. A face cut by the image's edge runs off
     the image as a table does; taken for the ground, it would drop its object and
     everything beyond it."""
-    ring = rest & ~inliers & ndimage.binary_dilation(inliers, iterations=3)
+    ring = rest & ~inliers & np.asarray(ndimage.binary_dilation(inliers, iterations=3), bool)
     with np.errstate(invalid="ignore"):
         dist = plane.distance(camera.points(depth))
     if 2 * int((ring & (dist > threshold)).sum()) >= least:
@@ -658,8 +658,8 @@ def figure_ground(
             background |= valid & (ground.distance(pts) > max_height)
     keep = valid & ~background
     if found:  # one-pixel slivers the planes leave along the objects' bases go; a dropout's neighbours stay
-        opened = ndimage.binary_opening(keep, structure=np.ones((2, 2), bool))
-        keep &= opened | ~ndimage.binary_dilation(background, structure=np.ones((3, 3), bool))
+        opened = np.asarray(ndimage.binary_opening(keep, structure=np.ones((2, 2), bool)), bool)
+        keep &= opened | ~np.asarray(ndimage.binary_dilation(background, structure=np.ones((3, 3), bool)), bool)
     pieces = torn_components(d, camera, keep, tear=tear)
     sizes = np.bincount(pieces[pieces >= 0], minlength=1)
     border = _outer_frame(valid, width=max(3, min(d.shape) // 40)) if found and max_border_fraction < 1 else None
