@@ -494,7 +494,7 @@ def _outer_frame(valid: np.ndarray, width: int = 3) -> np.ndarray:
 
 
 def _object_face(
-    plane: Plane,
+    dist: np.ndarray,
     inliers: np.ndarray,
     rest: np.ndarray,
     depth: np.ndarray,
@@ -505,21 +505,19 @@ def _object_face(
     tear: float,
     against_nothing: bool,
 ) -> bool:
-    """Whether a plane through ``inliers`` is the face of an object rather than
-    background. Background carries or stands behind the figures: at least ``least``/2
-    of the returns ``rest`` within 3 pixels of it lie in front of it (more than
-    ``threshold`` on the camera's side; the camera sees the inside of a room, a table or
-    a floor, whose other surfaces stand in front). Without those, the plane is a face
-    when as many lie behind it on the same piece of the rubber sheet
-    (:func:`torn_components`; the camera sees the outside of a convex body, whose other
-    faces turn away behind the face it shows), or when the returns are objects
-    ``against_nothing`` (no measured area, :func:`_measured_box`): there no plane is
-    needed to part a figure from its surroundings. A face cut by the image's edge runs off
-    the image as a table does; taken for the ground, it would drop its object and
-    everything beyond it."""
+    """Whether a plane through ``inliers`` (``dist``: every pixel's signed distance from
+    it, positive on the camera's side) is the face of an object rather than background.
+    Background carries or stands behind the figures: at least ``least``/2 of the returns
+    ``rest`` within 3 pixels of it lie in front of it (more than ``threshold``; the
+    camera sees the inside of a room, a table or a floor, whose other surfaces stand in
+    front). Without those, the plane is a face when as many lie behind it on the same
+    piece of the rubber sheet (:func:`torn_components`; the camera sees the outside of a
+    convex body, whose other faces turn away behind the face it shows), or when the
+    returns are objects ``against_nothing`` (no measured area, :func:`_measured_box`):
+    there no plane is needed to part a figure from its surroundings. A face cut by the
+    image's edge runs off the image as a table does; taken for the ground, it would drop
+    its object and everything beyond it."""
     ring = rest & ~inliers & np.asarray(ndimage.binary_dilation(inliers, iterations=3), bool)
-    with np.errstate(invalid="ignore"):
-        dist = plane.distance(camera.points(depth))
     if 2 * int((ring & (dist > threshold)).sum()) >= least:
         return False
     if against_nothing:
@@ -580,10 +578,9 @@ def figure_ground(
     Up to ``planes`` background planes are removed (a table or floor and the two walls
     of a corner): each is the RANSAC plane of the remaining returns through local triples
     that start on the outer frame of the measured area (a table, floor or wall runs off
-    the image), kept if it holds at least
-    ``min_plane_fraction`` of the remaining returns and 5% of the frame, and
-    not an object's face (:func:`_object_face`: the returns it joins turn away behind it,
-    none stand in front). Returns within
+    the image), kept if it holds at least ``min_plane_fraction`` of the remaining returns
+    and 5% of the frame, and is not an object's face (:func:`_object_face`: the returns
+    it joins turn away behind it, none stand in front). Returns within
     ``plane_threshold`` (default: 1% of the median depth, at least 3 depth quanta) of a
     plane, or below the ground plane, are background; with ``max_height`` so is everything farther than that above the ground
     (the paper's "cube of data"). The rest is torn into pieces at depth discontinuities
@@ -618,6 +615,7 @@ def figure_ground(
         raise ValueError(f"max_border_fraction: got {max_border_fraction!r}, expected a number in [0, 1]")
     pts = camera.points(d)
     frame = _outer_frame(valid)
+    sparse = _measured_box(valid) is None  # objects against nothing
     background = np.zeros(d.shape, bool)
     found = []
     for _ in range(int(planes)):
@@ -631,19 +629,12 @@ def figure_ground(
             break
         plane, _ = fit_plane(pts[rest], threshold=plane_threshold, seed=seed + len(found), triples=triples)
         with np.errstate(invalid="ignore"):
-            inl = rest & (np.abs(plane.distance(pts)) <= plane_threshold)
+            dist = plane.distance(pts)
+            inl = rest & (np.abs(dist) <= plane_threshold)
         if inl.sum() < min_plane_fraction * rest.sum() or (inl & frame).sum() < 0.05 * frame.sum():
             break
         if _object_face(
-            plane,
-            inl,
-            rest,
-            d,
-            camera,
-            threshold=plane_threshold,
-            least=min_pixels,
-            tear=tear,
-            against_nothing=_measured_box(valid) is None,
+            dist, inl, rest, d, camera, threshold=plane_threshold, least=min_pixels, tear=tear, against_nothing=sparse
         ):
             break
         found.append(plane)
