@@ -100,25 +100,32 @@ class _Camera:
         """The model-specific fields of :meth:`downsampled` (``cx``, ``cy`` excluded)."""
         raise NotImplementedError
 
-    def _pixel_grid(self, window, xp=jnp):
+    def _pixel_grid(self, window, xp=jnp, stride=1):
         """Pixel centres (u, v) of the window (row0, col0, rows, cols) or the full image,
-        float32 arrays of ``xp`` (jax.numpy or numpy)."""
+        float32 arrays of ``xp`` (jax.numpy or numpy); with ``stride``, the window's
+        ``rows`` × ``cols`` pixels at every stride-th row and column from stride // 2."""
         if window is None:
             row0, col0, rows, cols = 0, 0, self.height, self.width
         else:
             row0, col0, rows, cols = window
-        v = row0 + xp.arange(rows, dtype=xp.float32)
-        u = col0 + xp.arange(cols, dtype=xp.float32)
+        every = isinstance(stride, (int, np.integer)) and stride == 1  # a traced stride is a lattice
+
+        def pixels(n):
+            return xp.arange(n, dtype=xp.float32) if every else (stride // 2 + stride * xp.arange(n)).astype(xp.float32)
+
+        v, u = row0 + pixels(rows), col0 + pixels(cols)
         return xp.meshgrid(u, v, indexing="xy")
 
-    def rays(self, window=None) -> tuple[Float[Array, "h w 3"], Float[Array, "h w 3"]]:
+    def rays(self, window=None, *, stride=1) -> tuple[Float[Array, "h w 3"], Float[Array, "h w 3"]]:
         """Ray origins and directions for every pixel, or for ``window``.
 
         ``window`` is ``(row0, col0, rows, cols)``; ``row0``/``col0`` may be traced,
         ``rows``/``cols`` must be Python ints. Pixels outside the image are still given
-        rays (the window may hang over the border).
+        rays (the window may hang over the border). With ``stride`` (may be traced), the
+        window's rows and columns are every stride-th from stride // 2: a pruning
+        lattice, whose rays are the full window's at those pixels, bit for bit.
         """
-        uu, vv = self._pixel_grid(window)
+        uu, vv = self._pixel_grid(window, stride=stride)
         return self._rays(uu, vv)
 
     def pixel_size_at(

@@ -579,6 +579,21 @@ def _shared_frame(search: SearchSettings, searches) -> SearchSettings:
     return dataclasses.replace(search, frame=frame)
 
 
+def _shared_lattices(search: SearchSettings, searches) -> SearchSettings:
+    """``search`` (given its :func:`_shared_frame`) with the pruning lattices of the widest
+    window's search among ``searches`` (one image's figures), where its own lattice fits
+    within each of them: the figures' pruning passes then share one compiled program,
+    each scored as on its own lattice. A figure whose stride is finer than the widest
+    one's keeps its own (the widest figure's regions are most of the search's work)."""
+    widest = max((s for s in searches if s.window is not None), key=lambda s: s.window, default=None)
+    if widest is None or None in (widest.stride, search.window, search.stride) or search.frame_side != widest.window:
+        return search
+    shared, mine = widest.own_lattices(), search.own_lattices()
+    if shared is None or mine is None or len(mine) != len(shared) or any(a > b for a, b in zip(mine, shared)):
+        return search
+    return dataclasses.replace(search, lattices=shared)
+
+
 def recover_scene(
     depth,
     camera: Camera,
@@ -599,7 +614,9 @@ def recover_scene(
     still sees every member able to pay for a part (2 for the built-in gate's two-pixel
     bars, 1 for a one-pixel one), and its window is snapped to a few sizes so that figures
     share compiled programs; the figures' full-resolution scoring runs in one frame, the
-    widest window's (``SearchSettings.frame``), so that they share those programs too.
+    widest window's (``SearchSettings.frame``), and their pruning passes on the widest
+    window's lattices where theirs fit in them (``SearchSettings.lattices``), so that they
+    share those programs too.
     """
     from ._data import figure_footprint, prepare
     from ._encoding import encoding_for
@@ -700,6 +717,8 @@ def recover_scene(
         figures.append((mask, enc, figure_search))
     if search.frame is None:  # the figures' full-resolution scoring in one frame: one program
         figures = [(mask, enc, _shared_frame(s, [f[2] for f in figures])) for mask, enc, s in figures]
+        if search.lattices is None:  # and their pruning on one set of lattices: one program
+            figures = [(mask, enc, _shared_lattices(s, [f[2] for f in figures])) for mask, enc, s in figures]
     for mask, enc, figure_search in figures:
         try:
             rec = recover(

@@ -104,8 +104,13 @@ class SearchSettings:
     full-resolution pass and the candidates' scoring compute a window, its pixels beyond
     the window masked (the same Γ as the window alone): searches whose windows differ
     but whose frames agree share those compiled programs (:func:`~sqparts.recover_scene`
-    gives an image's figures one frame). The resolved settings are part of the compiled
-    computation's key.
+    gives an image's figures one frame). ``lattices`` (None: each window's own) gives the
+    pruning passes' lattices, in points a side, one per window of the frame's
+    (:meth:`pruning_passes`): each at least its window's own, the points beyond it
+    masked (the same Γ as its own lattice), so that searches whose windows and strides
+    differ but whose lattices agree share the pruning program (:func:`~sqparts.recover_scene`
+    gives an image's figures the widest window's where theirs fit in it). The resolved
+    settings are part of the compiled computation's key.
     """
 
     grid: Grid | str = "coarse"
@@ -125,6 +130,7 @@ class SearchSettings:
     spacing: float | None = None
     prune: bool = True
     frame: int | None = None
+    lattices: tuple[int, ...] | None = None
 
     def __post_init__(self):
         object.__setattr__(self, "grid", grid_preset(self.grid))
@@ -145,6 +151,15 @@ class SearchSettings:
             v = getattr(self, name)
             if v is not None and (not isinstance(v, (int, np.integer)) or isinstance(v, bool) or v <= 0):
                 raise ValueError(f"{name}: got {v!r}, expected a positive integer or None")
+        if self.lattices is not None:
+            v = self.lattices
+            if not (
+                isinstance(v, (tuple, list))
+                and 0 < len(v) <= 16
+                and all(isinstance(x, (int, np.integer)) and not isinstance(x, bool) and x > 0 for x in v)
+            ):
+                raise ValueError(f"lattices: got {v!r:.60}, expected a tuple of positive integers or None")
+            object.__setattr__(self, "lattices", tuple(int(x) for x in v))
         if not isinstance(self.prune, (bool, np.bool_)):
             raise ValueError(f"prune: got {self.prune!r}, expected True or False")
         if self.region_method not in ("skeleton", "grid", "both"):
@@ -169,7 +184,9 @@ class SearchSettings:
                 f"frame: got {self.frame}, expected {window} to {largest_frame(window, data.pad)} pixels "
                 f"(the window, {window}, to half of it plus the padding, {data.pad})"
             )
-        return dataclasses.replace(self, max_size=max_size, window=window, stride=stride)
+        resolved = dataclasses.replace(self, max_size=max_size, window=window, stride=stride)
+        resolved.pruning_passes()  # lattices that fit the windows, or an error
+        return resolved
 
     @property
     def side(self) -> int:
@@ -189,6 +206,38 @@ class SearchSettings:
         if self.stride is None:
             raise ValueError("stride: got None, expected settings resolved on the data (SearchSettings.resolve)")
         return int(self.stride)
+
+    def own_lattices(self, frame: int | None = None) -> tuple[int, ...] | None:
+        """The pruning lattice (points a side) of each window of ``frame``'s passes (None:
+        :attr:`frame_side`; :func:`_by_window`) at this search's window and stride, of
+        settings resolved on the data; None where a pass of ``frame`` holds hypotheses of
+        two of this window's sides."""
+        grid: Grid = self.grid  # pyright: ignore[reportAssignmentType]  # resolved in __post_init__
+        side_of = np.zeros(len(_grid_arrays(grid)["shape"]), np.int64)
+        for side, sel in _by_window(grid, self.side):
+            side_of[sel] = side
+        sides = [np.unique(side_of[sel]) for _, sel in _by_window(grid, frame or self.frame_side)]
+        if any(len(u) != 1 for u in sides):
+            return None
+        return tuple(_lattice_side(int(u[0]), self.lattice) for u in sides)
+
+    def pruning_passes(self) -> tuple[list[tuple[int, np.ndarray]], tuple[int, ...] | None]:
+        """The pruning passes, (window side, the grid's rows) each, and their lattices (None:
+        each window's own), of settings resolved on the data: without :attr:`lattices`, the
+        window's (:func:`_by_window`); with them, the frame's windows, each pass's rows on
+        their own window's side."""
+        grid: Grid = self.grid  # pyright: ignore[reportAssignmentType]  # resolved in __post_init__
+        own = _by_window(grid, self.side)
+        if self.lattices is None:
+            return own, None
+        fits = self.own_lattices()
+        if fits is None or len(fits) != len(self.lattices) or any(a > b for a, b in zip(fits, self.lattices)):
+            raise ValueError(
+                f"lattices: got {self.lattices}, expected one per pruning pass of the {self.frame_side}-pixel "
+                f"frame, each at least its window's own ({fits})"
+            )
+        side_of = {int(i): side for side, sel in own for i in sel}
+        return [(side_of[int(sel[0])], sel) for _, sel in _by_window(grid, self.frame_side)], self.lattices
 
     def to_json(self) -> dict:
         """The settings as JSON (the grid by its fields)."""
@@ -334,18 +383,29 @@ def pose_hypothesis(orientation_rel, shape, max_size, ray_origin, ray_direction,
     )
 
 
-def _region_inputs(depth, figure, camera, pad, corner, centre, frame: int, side):
+def _region_inputs(depth, figure, camera, pad, corner, centre, frame: int, side, stride=1):
     """A region's window: its ``side`` × ``side`` pixels from ``corner`` in a ``frame`` ×
     ``frame`` array (``frame`` >= ``side``; ``side`` may be traced). The frame's pixels
     beyond the window are ``valid`` False and off the figure: windows of several sides
-    share one compiled program, each scoring as if cut to its own side."""
+    share one compiled program, each scoring as if cut to its own side. With ``stride``
+    (may be traced; a pruning lattice), the array holds the window's pixels at every
+    stride-th row and column from stride // 2, ``frame`` of them a side: lattices of
+    several strides and sides share one program too, each scoring as its own."""
     p = pad
-    measured = jax.lax.dynamic_slice(depth, (corner[0] + p, corner[1] + p), (frame, frame))
-    fig = jax.lax.dynamic_slice(figure, (corner[0] + p, corner[1] + p), (frame, frame))
-    inside = jnp.arange(frame) < side
+    if isinstance(stride, int) and stride == 1:
+        at = jnp.arange(frame)
+        measured = jax.lax.dynamic_slice(depth, (corner[0] + p, corner[1] + p), (frame, frame))
+        fig = jax.lax.dynamic_slice(figure, (corner[0] + p, corner[1] + p), (frame, frame))
+    else:  # lattice points past the padded image are masked as the frame's are
+        at = stride // 2 + stride * jnp.arange(frame)
+        rows, cols = (corner[0] + p + at)[:, None], (corner[1] + p + at)[None, :]
+        measured = depth.at[rows, cols].get(mode="fill", fill_value=jnp.nan)
+        fig = figure.at[rows, cols].get(mode="fill", fill_value=False)
+    inside = at < side
     valid = inside[:, None] & inside[None, :]
     fig = fig & valid
-    origins, directions = camera.rays((corner[0].astype(jnp.float32), corner[1].astype(jnp.float32), frame, frame))
+    window = (corner[0].astype(jnp.float32), corner[1].astype(jnp.float32), frame, frame)
+    origins, directions = camera.rays(window, stride=stride)
     c_o, c_d = camera.rays((centre[0].astype(jnp.float32), centre[1].astype(jnp.float32), 1, 1))
     # Depth at the centre: the nearest figure pixel in a 5x5 neighbourhood.
     nb = jax.lax.dynamic_slice(depth, (centre[0] + p - 2, centre[1] + p - 2), (5, 5))
@@ -409,7 +469,7 @@ def _map_regions(fn, region, starts, replicated, out_shape):
     )(starts, region, *replicated)
 
 
-@persistent_jit(static_argnames=("camera", "pad", "frames", "stride", "batches", "newton_steps"))
+@persistent_jit(static_argnames=("camera", "pad", "lattices", "batches", "newton_steps"))
 def _score_hypotheses(
     arrays,
     tables,
@@ -419,38 +479,36 @@ def _score_hypotheses(
     sides,
     centre,
     max_size,
+    stride,
     *,
     camera,
     pad,
-    frames,
-    stride,
+    lattices,
     batches,
     newton_steps,
 ):
     """Γ and depth offset p of hypotheses at several regions (the one parallel
     operation), in one or more passes: pass q scores the hypotheses of ``tables[q]`` =
-    (``orientation_rel`` (m, 3), ``shape`` (m, 8)) on a ``sides[q]`` window computed in a
-    ``frames[q]`` frame (:func:`_region_inputs`), in chunks of ``batches[q]``: region
-    ``region[k]`` (``centre``: (R, 2); ``corners[q]``: (R, 2); ``max_size``: (R,)) scores
-    the table's rows ``starts[q][k, j]`` to ``starts[q][k, j] + batches[q]``; regions of
-    ``region`` -1 are padding, after the live ones, not scored (Γ -inf). Returns one (Γ,
-    p) pair of (R, c, batch) arrays per pass."""
+    (``orientation_rel`` (m, 3), ``shape`` (m, 8)) on a ``sides[q]`` window at every
+    ``stride``-th pixel, a ``lattices[q]`` × ``lattices[q]`` array of them
+    (:func:`_region_inputs`), in chunks of ``batches[q]``: region ``region[k]``
+    (``centre``: (R, 2); ``corners[q]``: (R, 2); ``max_size``: (R,)) scores the table's
+    rows ``starts[q][k, j]`` to ``starts[q][k, j] + batches[q]``; regions of ``region``
+    -1 are padding, after the live ones, not scored (Γ -inf). ``stride`` and the sides
+    are traced: searches whose lattices and chunks agree share the program. Returns one
+    (Γ, p) pair of (R, c, batch) arrays per pass."""
     depth, fig, sigma, lam = arrays
-    s = slice(stride // 2, None, stride)
-    weight = jnp.float32(stride * stride)
+    weight = (stride * stride).astype(jnp.float32)  # each lattice point stands for stride² pixels
 
-    def at_region(r, starts, tables, corners, sides, centre, sigma, lam, max_size):
+    def at_region(r, starts, tables, corners, sides, centre, sigma, lam, max_size, stride):
         out = []
-        for (orientation_rel, shape), first_rows, corner, side, frame, batch in zip(
-            tables, starts, corners, sides, frames, batches
+        for (orientation_rel, shape), first_rows, corner, side, lattice, batch in zip(
+            tables, starts, corners, sides, lattices, batches
         ):
             # The region's window is cut once, outside its loop over chunks: what depends
             # on the window alone is computed once, not per chunk.
             measured, figure, valid, origins, directions, c_o, c_d, surface_t = _region_inputs(
-                depth, fig, camera, pad, corner[r], centre[r], frame, side
-            )
-            measured, figure, valid, origins, directions = (
-                a[s, s] for a in (measured, figure, valid, origins, directions)
+                depth, fig, camera, pad, corner[r], centre[r], lattice, side, stride
             )
 
             def one(o, shp):
@@ -479,7 +537,8 @@ def _score_hypotheses(
     def out_shape(starts):  # per pass: Γ and p of each chunk's hypotheses
         return tuple((jax.ShapeDtypeStruct((len(f), b), depth.dtype),) * 2 for f, b in zip(starts, batches))
 
-    out = _map_regions(at_region, region, starts, (tables, corners, sides, centre, sigma, lam, max_size), out_shape)
+    replicated = (tables, corners, sides, centre, sigma, lam, max_size, stride)
+    out = _map_regions(at_region, region, starts, replicated, out_shape)
     live = (region >= 0)[:, None, None]
     return tuple((jnp.where(live & jnp.isfinite(gam), gam, -jnp.inf), off) for gam, off in out)
 
@@ -534,17 +593,26 @@ def _score_passes(
     stride: int | None = None,
     max_sizes=None,
     frame: int | None = None,
+    lattices=None,
 ) -> list[tuple[np.ndarray, np.ndarray]]:
     """:func:`score_regions` of several sets of hypotheses, each on its own window:
     ``passes`` = [(window side, hypotheses)], all in the same compiled calls, each
-    window computed in a ``frame`` × ``frame`` array (None: its own side). Returns one
-    (Γ, p) pair of (r, n) host arrays per pass."""
+    window computed in a ``frame`` × ``frame`` array (None: its own side), or, where
+    ``lattices`` gives one per pass, on a lattice of that many points a side (at least
+    the window's own, :func:`_lattice_side`). Returns one (Γ, p) pair of (r, n) host
+    arrays per pass."""
     centres = np.asarray(centres, np.int32).reshape(-1, 2)
     r = len(centres)
     sizes = np.full(r, settings.max_size, np.float32) if max_sizes is None else np.asarray(max_sizes, np.float32)
     stride = stride or settings.lattice
     devices = len(jax.devices())
-    layouts = [_Layout.of(side, frame or side, hyp, stride, settings.batch_size, devices) for side, hyp in passes]
+    if lattices is None:
+        lattices = [_lattice_side(frame or side, stride) for side, _ in passes]
+    if any(lattice < _lattice_side(side, stride) for (side, _), lattice in zip(passes, lattices)):
+        raise ValueError(f"lattices: got {list(lattices)}, expected at least each window's own lattice")
+    layouts = [
+        _Layout.of(side, lattice, hyp, settings.batch_size, devices) for (side, hyp), lattice in zip(passes, lattices)
+    ]
     out = [(np.empty((r, lay.n), np.float32), np.empty((r, lay.n), np.float32)) for lay in layouts]
     for first in range(0, r, REGION_BUCKET):
         rows = np.arange(first, min(r, first + REGION_BUCKET))
@@ -565,10 +633,10 @@ def _score_passes(
             tuple(np.int32(lay.side) for lay in layouts),
             bucket(centres),
             bucket(sizes, 1.0),
+            np.int32(stride),
             camera=data.compiled_camera,
             pad=data.pad,
-            frames=tuple(lay.frame for lay in layouts),
-            stride=stride,
+            lattices=tuple(lay.lattice for lay in layouts),
             batches=tuple(lay.batch for lay in layouts),
             newton_steps=settings.newton_steps,
         )
@@ -578,16 +646,22 @@ def _score_passes(
     return out
 
 
+def _lattice_side(side: int, stride: int) -> int:
+    """Points a side of a ``side``-pixel window's lattice at ``stride`` (every
+    stride-th pixel from stride // 2)."""
+    return len(range(int(stride) // 2, int(side), int(stride)))
+
+
 @dataclasses.dataclass(frozen=True)
 class _Layout:
     """One pass of :func:`_score_passes` laid out for the compiled call: its window
-    ``side`` computed in a ``frame`` × ``frame`` array, its ``n`` hypotheses
+    ``side`` computed on a ``lattice`` × ``lattice`` array, its ``n`` hypotheses
     (``orientation`` (n, 3) and ``shape`` (n, 8) shared by the regions, or (r, n, ...) one
     set per region) in ``chunks`` of ``batch`` per region, ``padded`` = chunks · batch
     rows per set."""
 
     side: int
-    frame: int
+    lattice: int
     orientation: np.ndarray
     shape: np.ndarray
     n: int
@@ -595,15 +669,14 @@ class _Layout:
     chunks: int
 
     @classmethod
-    def of(cls, side: int, frame: int, hyp: dict, stride: int, batch_size: int, devices: int) -> _Layout:
+    def of(cls, side: int, lattice: int, hyp: dict, batch_size: int, devices: int) -> _Layout:
         orientation, shape = (np.asarray(hyp[k], np.float32) for k in ("orientation", "shape"))
         n = orientation.shape[-2]
         # Chunks of about 2^16 rays keep temporaries in cache (one huge vmap is slower).
-        pixels = len(range(stride // 2, frame, stride)) ** 2
-        cap = int(max(1, min(batch_size, CHUNK_RAYS // pixels)))
+        cap = int(max(1, min(batch_size, CHUNK_RAYS // lattice**2)))
         batch = -(-n // (-(-n // (cap * devices)) * devices))  # as few chunks as the cap allows, least padding
         chunks = int(math.ceil(n / (batch * devices)) * devices)  # per region
-        return cls(side, frame, orientation, shape, n, batch, chunks)
+        return cls(side, lattice, orientation, shape, n, batch, chunks)
 
     @property
     def shared(self) -> bool:
@@ -855,9 +928,10 @@ def _choose_rows(data: RangeData, settings: SearchSettings, centres, sizes) -> l
     grid_hypotheses = n  # the pools' first rows: the ratio is the grid's own
     if settings.prune and settings.lattice > 1 and settings.survivors < n:
         gam = np.empty((r, n), np.float32)
-        windows = _by_window(settings.grid, settings.window)
+        windows, lattices = settings.pruning_passes()
         passes = [(side, {k: v[sel] for k, v in hyp.items()}) for side, sel in windows]
-        for (_, sel), (g, _) in zip(windows, _score_passes(data, settings, centres, passes, max_sizes=sizes)):
+        scored = _score_passes(data, settings, centres, passes, max_sizes=sizes, lattices=lattices)
+        for (_, sel), (g, _) in zip(windows, scored):
             gam[:, sel] = g
         keep = np.argsort(-gam, axis=1, kind="stable")[:, : settings.survivors]
         pools = [{k: v[kept] for k, v in hyp.items()} for kept in keep]

@@ -1,5 +1,7 @@
 """Sensor clean-up and figure/ground on synthetic scenes with known answers."""
 
+import dataclasses
+
 import numpy as np
 import pytest
 from scipy import ndimage
@@ -394,6 +396,16 @@ def test_recover_scene_gives_its_figures_one_frame(monkeypatch):
     small, large = (sqparts.SearchSettings(window=w) for w in (16, 16 + 2 * PAD))
     assert _recover._shared_frame(small, [small, large]) == small
     assert _recover._shared_frame(large, [small, large]) == large
+    # Their pruning passes run on the widest window's lattices, where theirs fit in them
+    # (each scored as on its own lattice: tests/test_search.py); a figure pruned on a
+    # finer stride keeps its own.
+    wide = next(s for s in seen if s.window == widest)
+    assert [s.lattices for s in seen] == [wide.own_lattices()] * 2
+    narrow = next(s for s in seen if s.window != widest)
+    fine = dataclasses.replace(narrow, stride=1, lattices=None)
+    assert _recover._shared_lattices(fine, [fine, wide]) == fine
+    with pytest.raises(ValueError, match=r"lattices: got \(1,\), expected one per pruning pass"):
+        dataclasses.replace(narrow, lattices=(1,)).pruning_passes()
 
 
 def test_prettifying_without_a_ground_plane_or_up_is_refused_before_recovering(monkeypatch):

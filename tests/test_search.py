@@ -151,6 +151,39 @@ def test_passes_on_several_windows_in_one_call_equal_each_alone(data):
         assert np.isfinite(gam).any()
 
 
+def test_a_lattice_scored_in_a_larger_one_equals_its_own(data):
+    # recover_scene gives an image's figures the widest window's pruning lattices, so
+    # that their pruning passes share one compiled program: a window's lattice computed
+    # in a larger one (its extra points masked, past the padded image too) scores as its
+    # own, bit for bit; a stride and a window whose lattice has as many points share
+    # the program.
+    from sqparts._search import _score_passes
+
+    sys.path.insert(0, os.path.dirname(__file__))
+    from test_compile import count_programs
+
+    st = sqparts.make_settings(data, grid=SMALL, max_size=0.25, batch_size=8)
+    rows, cols = np.nonzero(data.figure_mask)
+    centres = np.array([_centre(data), (rows.max(), cols[np.argmax(rows)])])  # one at the image's edge
+    hyp = _grid_arrays(SMALL)
+    half = SMALL.size // 2
+    passes = [(24, {k: v[:half] for k, v in hyp.items()}), (16, {k: v[half:] for k, v in hyp.items()})]
+    own = _score_passes(data, st, centres, passes, stride=4)  # lattices of 6 and 4 points
+    larger = _score_passes(data, st, centres, passes, stride=4, lattices=[12, 8])
+    for (g, o), (g2, o2) in zip(own, larger):
+        np.testing.assert_array_equal(g2, g)
+        np.testing.assert_array_equal(o2, o)
+        assert np.isfinite(g).any()
+    # Another stride on the same lattices: the program just compiled, its own Γ.
+    with count_programs() as built:
+        finer = _score_passes(data, st, centres, passes, stride=2, lattices=[12, 8])
+    assert built["n"] == 0
+    for (g, _), (g2, _) in zip(_score_passes(data, st, centres, passes, stride=2), finer):
+        np.testing.assert_array_equal(g2, g)
+    with pytest.raises(ValueError, match=r"lattices: got \[12, 7\], expected at least each window's own lattice"):
+        _score_passes(data, st, centres, passes, stride=2, lattices=[12, 7])
+
+
 def test_a_window_scored_in_a_larger_frame_equals_the_window_alone(data):
     # recover_scene gives an image's figures one frame, so that their full-resolution
     # passes and candidates share compiled programs: a window computed in a larger frame

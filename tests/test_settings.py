@@ -45,6 +45,8 @@ def test_presets_by_name_and_object():
         (lambda: sqparts.SearchSettings(window=-3), "window: got -3"),
         (lambda: sqparts.SearchSettings(region_method="random"), "region_method: got 'random'"),
         (lambda: sqparts.SearchSettings(grid="huge"), "grid: got 'huge'"),
+        (lambda: sqparts.SearchSettings(lattices=(8, 0)), "lattices: got"),
+        (lambda: sqparts.SearchSettings(lattices=8), "lattices: got 8"),
         (lambda: sqparts.SelectSettings(method="annealing"), "method: got 'annealing'"),
         (lambda: sqparts.RefineSettings(rounds=-1), "rounds: got -1"),
         (lambda: sqparts.RefineSettings(split="yes"), "split: got 'yes'"),
