@@ -580,16 +580,16 @@ def _shared_frame(search: SearchSettings, searches) -> SearchSettings:
 
 
 def _shared_lattices(search: SearchSettings, searches) -> SearchSettings:
-    """``search`` (given its :func:`_shared_frame`) with the pruning lattices of the widest
-    window's search among ``searches`` (one image's figures), where its own lattice fits
-    within each of them: the figures' pruning passes then share one compiled program,
-    each scored as on its own lattice. A figure whose stride is finer than the widest
-    one's keeps its own (the widest figure's regions are most of the search's work)."""
+    """``search`` with the pruning lattices of the widest window's search among
+    ``searches`` (one image's figures) where they hold its own: the figures' pruning
+    passes then share one compiled program, each window scored as on its own lattice,
+    on the pass of the fewest points that holds it. A figure pruned on a finer lattice
+    than any of the widest one's keeps its own."""
     widest = max((s for s in searches if s.window is not None), key=lambda s: s.window, default=None)
-    if widest is None or None in (widest.stride, search.window, search.stride) or search.frame_side != widest.window:
+    if widest is None or None in (widest.stride, search.window, search.stride):
         return search
-    shared, mine = widest.own_lattices(), search.own_lattices()
-    if shared is None or mine is None or len(mine) != len(shared) or any(a > b for a, b in zip(mine, shared)):
+    shared = widest.own_lattices()
+    if max(search.own_lattices()) > max(shared):
         return search
     return dataclasses.replace(search, lattices=shared)
 

@@ -104,12 +104,12 @@ class SearchSettings:
     full-resolution pass and the candidates' scoring compute a window, its pixels beyond
     the window masked (the same Γ as the window alone): searches whose windows differ
     but whose frames agree share those compiled programs (:func:`~sqparts.recover_scene`
-    gives an image's figures one frame). ``lattices`` (None: each window's own) gives the
-    pruning passes' lattices, in points a side, one per window of the frame's
-    (:meth:`pruning_passes`): each at least its window's own, the points beyond it
-    masked (the same Γ as its own lattice), so that searches whose windows and strides
-    differ but whose lattices agree share the pruning program (:func:`~sqparts.recover_scene`
-    gives an image's figures the widest window's where theirs fit in it). The resolved
+    gives an image's figures one frame). ``lattices`` (None: the windows' own) are the
+    pruning program's passes, in lattice points a side: each window's lattice goes to the
+    pass of the fewest points that holds it, the points beyond it masked (the same Γ as
+    on its own), so that searches whose windows and strides differ share the pruning
+    program (:func:`~sqparts.recover_scene` gives an image's figures the widest window's
+    lattices, :meth:`own_lattices`, where theirs fit in them). The resolved
     settings are part of the compiled computation's key.
     """
 
@@ -185,7 +185,7 @@ class SearchSettings:
                 f"(the window, {window}, to half of it plus the padding, {data.pad})"
             )
         resolved = dataclasses.replace(self, max_size=max_size, window=window, stride=stride)
-        resolved.pruning_passes()  # lattices that fit the windows, or an error
+        resolved.pruning_program()  # lattices that hold the windows', or an error
         return resolved
 
     @property
@@ -207,37 +207,25 @@ class SearchSettings:
             raise ValueError("stride: got None, expected settings resolved on the data (SearchSettings.resolve)")
         return int(self.stride)
 
-    def own_lattices(self, frame: int | None = None) -> tuple[int, ...] | None:
-        """The pruning lattice (points a side) of each window of ``frame``'s passes (None:
-        :attr:`frame_side`; :func:`_by_window`) at this search's window and stride, of
-        settings resolved on the data; None where a pass of ``frame`` holds hypotheses of
-        two of this window's sides."""
+    def own_lattices(self) -> tuple[int, ...]:
+        """The pruning passes' own lattices (points a side, distinct, ascending: one per
+        window of :func:`_by_window` at the stride), of settings resolved on the data."""
         grid: Grid = self.grid  # pyright: ignore[reportAssignmentType]  # resolved in __post_init__
-        side_of = np.zeros(len(_grid_arrays(grid)["shape"]), np.int64)
-        for side, sel in _by_window(grid, self.side):
-            side_of[sel] = side
-        sides = [np.unique(side_of[sel]) for _, sel in _by_window(grid, frame or self.frame_side)]
-        if any(len(u) != 1 for u in sides):
-            return None
-        return tuple(_lattice_side(int(u[0]), self.lattice) for u in sides)
+        return tuple(sorted({_lattice_side(side, self.lattice) for side, _ in _by_window(grid, self.side)}))
 
-    def pruning_passes(self) -> tuple[list[tuple[int, np.ndarray]], tuple[int, ...] | None]:
-        """The pruning passes, (window side, the grid's rows) each, and their lattices (None:
-        each window's own), of settings resolved on the data: without :attr:`lattices`, the
-        window's (:func:`_by_window`); with them, the frame's windows, each pass's rows on
-        their own window's side."""
-        grid: Grid = self.grid  # pyright: ignore[reportAssignmentType]  # resolved in __post_init__
-        own = _by_window(grid, self.side)
+    def pruning_program(self) -> _Program | None:
+        """The pruning passes' compiled layout given by :attr:`lattices` (None: the windows'
+        own, :meth:`_Program.exact`), of settings resolved on the data."""
         if self.lattices is None:
-            return own, None
-        fits = self.own_lattices()
-        if fits is None or len(fits) != len(self.lattices) or any(a > b for a, b in zip(fits, self.lattices)):
+            return None
+        need = max(self.own_lattices())
+        if max(self.lattices) < need:
             raise ValueError(
-                f"lattices: got {self.lattices}, expected one per pruning pass of the {self.frame_side}-pixel "
-                f"frame, each at least its window's own ({fits})"
+                f"lattices: got {self.lattices}, expected one of at least {need} points "
+                f"(the {self.side}-pixel window's lattice at stride {self.lattice})"
             )
-        side_of = {int(i): side for side, sel in own for i in sel}
-        return [(side_of[int(sel[0])], sel) for _, sel in _by_window(grid, self.frame_side)], self.lattices
+        grid: Grid = self.grid  # pyright: ignore[reportAssignmentType]  # resolved in __post_init__
+        return _Program.shared(self.lattices, grid, self.batch_size, len(jax.devices()))
 
     def to_json(self) -> dict:
         """The settings as JSON (the grid by its fields)."""
@@ -472,11 +460,9 @@ def _map_regions(fn, region, starts, replicated, out_shape):
 @persistent_jit(static_argnames=("camera", "pad", "lattices", "batches", "newton_steps"))
 def _score_hypotheses(
     arrays,
-    tables,
+    table,
     region,
-    starts,
-    corners,
-    sides,
+    chunks,
     centre,
     max_size,
     stride,
@@ -488,57 +474,59 @@ def _score_hypotheses(
     newton_steps,
 ):
     """Γ and depth offset p of hypotheses at several regions (the one parallel
-    operation), in one or more passes: pass q scores the hypotheses of ``tables[q]`` =
-    (``orientation_rel`` (m, 3), ``shape`` (m, 8)) on a ``sides[q]`` window at every
-    ``stride``-th pixel, a ``lattices[q]`` × ``lattices[q]`` array of them
-    (:func:`_region_inputs`), in chunks of ``batches[q]``: region ``region[k]``
-    (``centre``: (R, 2); ``corners[q]``: (R, 2); ``max_size``: (R,)) scores the table's
-    rows ``starts[q][k, j]`` to ``starts[q][k, j] + batches[q]``; regions of ``region``
-    -1 are padding, after the live ones, not scored (Γ -inf). ``stride`` and the sides
-    are traced: searches whose lattices and chunks agree share the program. Returns one
-    (Γ, p) pair of (R, c, batch) arrays per pass."""
+    operation), in one or more passes. Pass q is a loop over chunks: ``chunks[q]`` =
+    (``first``, ``side``, ``live``), each (R, c): chunk j of region ``region[k]``
+    (``centre``: (R, 2); ``max_size``: (R,)) scores ``batches[q]`` rows of ``table`` =
+    (``orientation_rel`` (m, 3), ``shape`` (m, 8)) from ``first[k, j]`` on the
+    ``side[k, j]`` window centred at the region, at every ``stride``-th pixel, a
+    ``lattices[q]`` × ``lattices[q]`` array of them (:func:`_region_inputs`); its
+    ``live`` chunks come first (in each device's share) and the rest are not scored
+    (zeros). Regions of ``region`` -1 are padding, after the live ones, not scored (Γ
+    -inf). The stride, the sides and the chunks are traced: searches whose lattices,
+    batches and numbers of chunks agree share the program, however their windows and
+    hypotheses fall into its passes. Returns one (Γ, p) pair of (R, c, batch) arrays per
+    pass."""
     depth, fig, sigma, lam = arrays
     weight = (stride * stride).astype(jnp.float32)  # each lattice point stands for stride² pixels
 
-    def at_region(r, starts, tables, corners, sides, centre, sigma, lam, max_size, stride):
+    def at_region(r, chunks, table, centre, sigma, lam, max_size, stride):
+        orientation_rel, shape = table
         out = []
-        for (orientation_rel, shape), first_rows, corner, side, lattice, batch in zip(
-            tables, starts, corners, sides, lattices, batches
-        ):
-            # The region's window is cut once, outside its loop over chunks: what depends
-            # on the window alone is computed once, not per chunk.
-            measured, figure, valid, origins, directions, c_o, c_d, surface_t = _region_inputs(
-                depth, fig, camera, pad, corner[r], centre[r], lattice, side, stride
-            )
+        for (first, side, live), lattice, batch in zip(chunks, lattices, batches):
 
-            def one(o, shp):
-                part = pose_hypothesis(o, shp, max_size[r], c_o, c_d, surface_t)
-                return _score_one(
-                    part,
-                    origins,
-                    directions,
-                    measured,
-                    figure,
-                    weight,
-                    sigma=sigma,
-                    lam=lam,
-                    num_bins=NUM_BINS,
-                    newton_steps=newton_steps,
-                    valid=valid,
+            def body(j, acc, first=first, side=side, lattice=lattice, batch=batch):
+                measured, figure, valid, origins, directions, c_o, c_d, surface_t = _region_inputs(
+                    depth, fig, camera, pad, centre[r] - side[j] // 2, centre[r], lattice, side[j], stride
                 )
 
-            def chunk(first):
-                rows = (jax.lax.dynamic_slice_in_dim(a, first, batch) for a in (orientation_rel, shape))
-                return jax.vmap(one)(*rows)
+                def one(o, shp):
+                    part = pose_hypothesis(o, shp, max_size[r], c_o, c_d, surface_t)
+                    return _score_one(
+                        part,
+                        origins,
+                        directions,
+                        measured,
+                        figure,
+                        weight,
+                        sigma=sigma,
+                        lam=lam,
+                        num_bins=NUM_BINS,
+                        newton_steps=newton_steps,
+                        valid=valid,
+                    )
 
-            out.append(jax.lax.map(chunk, first_rows))
+                rows = (jax.lax.dynamic_slice_in_dim(a, first[j], batch) for a in (orientation_rel, shape))
+                g, p = jax.vmap(one)(*rows)
+                return acc[0].at[j].set(g), acc[1].at[j].set(p)
+
+            empty = jnp.zeros((len(first), batch), depth.dtype)
+            out.append(jax.lax.fori_loop(0, jnp.sum(live), body, (empty, empty)))  # live chunks only
         return tuple(out)
 
-    def out_shape(starts):  # per pass: Γ and p of each chunk's hypotheses
-        return tuple((jax.ShapeDtypeStruct((len(f), b), depth.dtype),) * 2 for f, b in zip(starts, batches))
+    def out_shape(chunks):  # per pass: Γ and p of each chunk's hypotheses
+        return tuple((jax.ShapeDtypeStruct((len(f), b), depth.dtype),) * 2 for (f, _, _), b in zip(chunks, batches))
 
-    replicated = (tables, corners, sides, centre, sigma, lam, max_size, stride)
-    out = _map_regions(at_region, region, starts, replicated, out_shape)
+    out = _map_regions(at_region, region, chunks, (table, centre, sigma, lam, max_size, stride), out_shape)
     live = (region >= 0)[:, None, None]
     return tuple((jnp.where(live & jnp.isfinite(gam), gam, -jnp.inf), off) for gam, off in out)
 
@@ -593,29 +581,29 @@ def _score_passes(
     stride: int | None = None,
     max_sizes=None,
     frame: int | None = None,
-    lattices=None,
+    program: _Program | None = None,
 ) -> list[tuple[np.ndarray, np.ndarray]]:
     """:func:`score_regions` of several sets of hypotheses, each on its own window:
-    ``passes`` = [(window side, hypotheses)], all in the same compiled calls, each
-    window computed in a ``frame`` × ``frame`` array (None: its own side), or, where
-    ``lattices`` gives one per pass, on a lattice of that many points a side (at least
-    the window's own, :func:`_lattice_side`). Returns one (Γ, p) pair of (r, n) host
-    arrays per pass."""
+    ``passes`` = [(window side, hypotheses)], all in the same compiled calls, each window
+    at the ``stride`` on its own lattice (computed in a ``frame`` × ``frame`` array at
+    stride 1; None: its own side). The windows go to the passes of ``program`` (None:
+    one per distinct lattice, :meth:`_Program.exact`), each to the one of the fewest
+    points that holds its lattice, the points beyond it masked: it scores as on its own.
+    Returns one (Γ, p) pair of (r, n) host arrays per window."""
     centres = np.asarray(centres, np.int32).reshape(-1, 2)
     r = len(centres)
     sizes = np.full(r, settings.max_size, np.float32) if max_sizes is None else np.asarray(max_sizes, np.float32)
     stride = stride or settings.lattice
     devices = len(jax.devices())
-    if lattices is None:
-        lattices = [_lattice_side(frame or side, stride) for side, _ in passes]
-    if any(lattice < _lattice_side(side, stride) for (side, _), lattice in zip(passes, lattices)):
-        raise ValueError(f"lattices: got {list(lattices)}, expected at least each window's own lattice")
-    layouts = [
-        _Layout.of(side, lattice, hyp, settings.batch_size, devices) for (side, hyp), lattice in zip(passes, lattices)
-    ]
-    out = [(np.empty((r, lay.n), np.float32), np.empty((r, lay.n), np.float32)) for lay in layouts]
-    for first in range(0, r, REGION_BUCKET):
-        rows = np.arange(first, min(r, first + REGION_BUCKET))
+    own = [_lattice_side(frame or side, stride) for side, _ in passes]
+    counts = [int(np.shape(hyp["orientation"])[-2]) for _, hyp in passes]
+    program = program or _Program.exact(own, counts, settings.batch_size, devices)
+    route = [program.route(lattice) for lattice in own]
+    table, chunks = program.layout(passes, route, counts, devices)
+    shared = table[0].ndim == 2  # one set of hypotheses for every region
+    out = [(np.empty((r, n), np.float32), np.empty((r, n), np.float32)) for n in counts]
+    for start in range(0, r, REGION_BUCKET):
+        rows = np.arange(start, min(r, start + REGION_BUCKET))
         m = len(rows)
         region = np.where(np.arange(REGION_BUCKET) < m, np.arange(REGION_BUCKET), -1).astype(np.int32)
 
@@ -624,25 +612,39 @@ def _score_passes(
             out[:m] = a[rows]
             return out
 
+        if shared:
+            sets, own_rows = table, np.zeros((REGION_BUCKET, 1), np.int32)
+        else:  # region k's set at rows k·program.rows: the padding regions get the first's
+            picked = np.concatenate([rows, np.full(REGION_BUCKET - m, rows[0])])
+            sets = tuple(a[picked].reshape(-1, a.shape[-1]) for a in table)
+            own_rows = (np.arange(REGION_BUCKET) * program.rows)[:, None].astype(np.int32)
         scored = _score_hypotheses(
             data.arrays,
-            tuple(lay.tables(rows) for lay in layouts),
+            sets,
             region,
-            tuple(lay.starts() for lay in layouts),
-            tuple(bucket(centres - np.int32(lay.side // 2)) for lay in layouts),
-            tuple(np.int32(lay.side) for lay in layouts),
+            tuple(
+                (
+                    first[None] + own_rows,
+                    np.repeat(side[None], REGION_BUCKET, 0),
+                    np.repeat(live[None], REGION_BUCKET, 0),
+                )
+                for first, side, live, _ in chunks
+            ),
             bucket(centres),
             bucket(sizes, 1.0),
             np.int32(stride),
             camera=data.compiled_camera,
             pad=data.pad,
-            lattices=tuple(lay.lattice for lay in layouts),
-            batches=tuple(lay.batch for lay in layouts),
+            lattices=program.lattices,
+            batches=program.batches,
             newton_steps=settings.newton_steps,
         )
-        for (gam, off), (g, p), lay in zip(out, scored, layouts):
-            gam[rows] = np.asarray(g).reshape(REGION_BUCKET, -1)[:m, : lay.n]
-            off[rows] = np.asarray(p).reshape(REGION_BUCKET, -1)[:m, : lay.n]
+        results = [(np.asarray(g), np.asarray(p)) for g, p in scored]
+        for k, (n, q) in enumerate(zip(counts, route)):
+            g, p = results[q]
+            at = chunks[q][3][k]  # this window's chunks, in order
+            out[k][0][rows] = g[:m, at].reshape(m, -1)[:, :n]
+            out[k][1][rows] = p[:m, at].reshape(m, -1)[:, :n]
     return out
 
 
@@ -652,59 +654,96 @@ def _lattice_side(side: int, stride: int) -> int:
     return len(range(int(stride) // 2, int(side), int(stride)))
 
 
-@dataclasses.dataclass(frozen=True)
-class _Layout:
-    """One pass of :func:`_score_passes` laid out for the compiled call: its window
-    ``side`` computed on a ``lattice`` × ``lattice`` array, its ``n`` hypotheses
-    (``orientation`` (n, 3) and ``shape`` (n, 8) shared by the regions, or (r, n, ...) one
-    set per region) in ``chunks`` of ``batch`` per region, ``padded`` = chunks · batch
-    rows per set."""
+def _chunking(n: int, lattice: int, batch_size: int, devices: int) -> tuple[int, int]:
+    """(batch, chunks) for ``n`` hypotheses on a ``lattice``² array: chunks of about
+    :data:`CHUNK_RAYS` rays (temporaries stay in cache; one huge vmap is slower), at
+    most ``batch_size`` hypotheses, as few as that allows with the least padding, a
+    multiple of ``devices``."""
+    cap = int(max(1, min(batch_size, CHUNK_RAYS // lattice**2)))
+    batch = -(-n // (-(-n // (cap * devices)) * devices))
+    return batch, int(math.ceil(n / (batch * devices)) * devices)
 
-    side: int
-    lattice: int
-    orientation: np.ndarray
-    shape: np.ndarray
-    n: int
-    batch: int
-    chunks: int
+
+@dataclasses.dataclass(frozen=True)
+class _Program:
+    """The passes of a compiled call of :func:`_score_hypotheses`: each pass's lattice
+    (points a side), ``batches`` (hypotheses a chunk) and ``chunks`` (per region); ``rows``
+    of the table per set of hypotheses. Windows go to passes (:meth:`route`), so
+    searches whose windows and hypotheses differ share a program."""
+
+    lattices: tuple[int, ...]
+    batches: tuple[int, ...]
+    chunks: tuple[int, ...]
+    rows: int
 
     @classmethod
-    def of(cls, side: int, lattice: int, hyp: dict, batch_size: int, devices: int) -> _Layout:
-        orientation, shape = (np.asarray(hyp[k], np.float32) for k in ("orientation", "shape"))
-        n = orientation.shape[-2]
-        # Chunks of about 2^16 rays keep temporaries in cache (one huge vmap is slower).
-        cap = int(max(1, min(batch_size, CHUNK_RAYS // lattice**2)))
-        batch = -(-n // (-(-n // (cap * devices)) * devices))  # as few chunks as the cap allows, least padding
-        chunks = int(math.ceil(n / (batch * devices)) * devices)  # per region
-        return cls(side, lattice, orientation, shape, n, batch, chunks)
+    def exact(cls, lattices, counts, batch_size: int, devices: int) -> _Program:
+        """A pass per distinct lattice of the windows (``lattices``, with ``counts``
+        hypotheses each), just holding their hypotheses."""
+        passes = sorted(set(lattices))
+        batches, chunks, rows = [], [], 0
+        for lattice in passes:
+            mine = [n for own, n in zip(lattices, counts) if own == lattice]
+            batch, _ = _chunking(sum(mine), lattice, batch_size, devices)
+            used = sum(-(-n // batch) for n in mine)
+            batches.append(batch)
+            chunks.append(-(-used // devices) * devices)
+            rows += used * batch
+        return cls(tuple(passes), tuple(batches), tuple(chunks), rows)
 
-    @property
-    def shared(self) -> bool:
-        return self.orientation.ndim == 2
+    @classmethod
+    def shared(cls, lattices, grid: Grid, batch_size: int, devices: int) -> _Program:
+        """Passes of ``lattices``, each with room for all of ``grid``'s hypotheses
+        (chunks as for one length's), whatever windows a search's lengths fall into."""
+        total, lengths = grid.size, len(grid.lengths)
+        batches = [_chunking(total // lengths, lattice, batch_size, devices)[0] for lattice in lattices]
+        chunks = [-(-(-(-total // b) + lengths) // devices) * devices for b in batches]
+        return cls(tuple(int(x) for x in lattices), tuple(batches), tuple(chunks), total + lengths * max(batches))
 
-    @property
-    def padded(self) -> int:
-        return self.chunks * self.batch
+    def route(self, lattice: int) -> int:
+        """The pass of the fewest points that holds a window's ``lattice``."""
+        fits = [q for q, points in enumerate(self.lattices) if points >= lattice]
+        if not fits:
+            raise ValueError(
+                f"lattices: got {self.lattices}, expected one of at least {lattice} points (a window's own)"
+            )
+        return min(fits, key=lambda q: self.lattices[q])
 
-    def starts(self) -> np.ndarray:
-        """(REGION_BUCKET, chunks) first rows: chunk j of region k starts at row j·batch of
-        the shared table, or of region k's own."""
-        own = np.arange(REGION_BUCKET)[:, None] * self.padded * (not self.shared)
-        return (own + np.arange(self.chunks)[None] * self.batch).astype(np.int32)
-
-    def tables(self, rows: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        """The (orientation, shape) tables of regions ``rows`` (one set if shared), each
-        set's rows padded to ``padded`` with its first row (not read); per-region sets
-        padded to REGION_BUCKET regions (the padding regions' are not read either)."""
-        sets = np.zeros(1, np.int64) if self.shared else rows
-        out = []
-        for a in (self.orientation, self.shape):
-            a = a.reshape(-1, self.n, a.shape[-1])[sets]
-            a = np.concatenate([a, np.repeat(a[:, :1], self.padded - self.n, axis=1)], axis=1).reshape(-1, a.shape[-1])
-            if not self.shared:
-                a = np.concatenate([a, np.repeat(a[:1], (REGION_BUCKET - len(rows)) * self.padded, axis=0)])
-            out.append(a)
-        return out[0], out[1]
+    def layout(self, passes, route, counts, devices: int):
+        """The table ((sets, rows, 3) and (sets, rows, 8); sets = 1 when the regions share
+        the hypotheses, (rows, ...) then) and, per pass, (first row, side, live) of each
+        of its chunks, and for each window its chunks' places: a window's hypotheses in
+        consecutive chunks, each device's live chunks first in its share."""
+        blocks, logical, at = ([], []), [[] for _ in self.lattices], 0
+        for k, ((side, hyp), q, n) in enumerate(zip(passes, route, counts)):
+            batch = self.batches[q]
+            padded = -(-n // batch) * batch
+            for out, name in zip(blocks, ("orientation", "shape")):
+                a = np.asarray(hyp[name], np.float32)
+                a = a.reshape(-1, n, a.shape[-1])
+                out.append(np.concatenate([a, np.repeat(a[:, :1], padded - n, axis=1)], axis=1))
+            logical[q] += [(at + i * batch, int(side), k) for i in range(padded // batch)]
+            at += padded
+        if at > self.rows or any(len(c) > n for c, n in zip(logical, self.chunks)):
+            raise ValueError(
+                f"passes: got {at} rows in {[len(c) for c in logical]} chunks, expected at most {self.rows} in {self.chunks}"
+            )
+        table = []
+        for parts in blocks:
+            a = np.concatenate(parts, axis=1)
+            a = np.concatenate([a, np.repeat(a[:, :1], self.rows - at, axis=1)], axis=1)
+            table.append(a[0] if np.ndim(passes[0][1]["orientation"]) == 2 else a)
+        chunks = []
+        for c, todo in zip(self.chunks, logical):
+            per = c // devices
+            place = np.array([(j % devices) * per + j // devices for j in range(len(todo))], np.int64)
+            first, side, live = np.zeros(c, np.int32), np.full(c, 16, np.int32), np.zeros(c, bool)
+            first[place] = [f for f, _, _ in todo]
+            side[place] = [s for _, s, _ in todo]
+            live[place] = True
+            owner = np.array([k for _, _, k in todo], np.int64)
+            chunks.append((first, side, live, {k: place[owner == k] for k in set(owner.tolist())}))
+        return tuple(table), chunks
 
 
 def score_region(data: RangeData, settings: SearchSettings, centre, *, hypotheses=None, stride: int | None = None):
@@ -928,9 +967,9 @@ def _choose_rows(data: RangeData, settings: SearchSettings, centres, sizes) -> l
     grid_hypotheses = n  # the pools' first rows: the ratio is the grid's own
     if settings.prune and settings.lattice > 1 and settings.survivors < n:
         gam = np.empty((r, n), np.float32)
-        windows, lattices = settings.pruning_passes()
+        windows = _by_window(settings.grid, settings.window)
         passes = [(side, {k: v[sel] for k, v in hyp.items()}) for side, sel in windows]
-        scored = _score_passes(data, settings, centres, passes, max_sizes=sizes, lattices=lattices)
+        scored = _score_passes(data, settings, centres, passes, max_sizes=sizes, program=settings.pruning_program())
         for (_, sel), (g, _) in zip(windows, scored):
             gam[:, sel] = g
         keep = np.argsort(-gam, axis=1, kind="stable")[:, : settings.survivors]

@@ -397,15 +397,15 @@ def test_recover_scene_gives_its_figures_one_frame(monkeypatch):
     assert _recover._shared_frame(small, [small, large]) == small
     assert _recover._shared_frame(large, [small, large]) == large
     # Their pruning passes run on the widest window's lattices, where theirs fit in them
-    # (each scored as on its own lattice: tests/test_search.py); a figure pruned on a
-    # finer stride keeps its own.
+    # (each scored as on its own lattice: tests/test_search.py); a figure whose lattice is
+    # finer than any of the widest one's keeps its own.
     wide = next(s for s in seen if s.window == widest)
     assert [s.lattices for s in seen] == [wide.own_lattices()] * 2
     narrow = next(s for s in seen if s.window != widest)
     fine = dataclasses.replace(narrow, stride=1, lattices=None)
     assert _recover._shared_lattices(fine, [fine, wide]) == fine
-    with pytest.raises(ValueError, match=r"lattices: got \(1,\), expected one per pruning pass"):
-        dataclasses.replace(narrow, lattices=(1,)).pruning_passes()
+    with pytest.raises(ValueError, match=r"lattices: got \(1,\), expected one of at least"):
+        dataclasses.replace(narrow, lattices=(1,)).pruning_program()
 
 
 def test_prettifying_without_a_ground_plane_or_up_is_refused_before_recovering(monkeypatch):

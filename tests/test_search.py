@@ -151,13 +151,13 @@ def test_passes_on_several_windows_in_one_call_equal_each_alone(data):
         assert np.isfinite(gam).any()
 
 
-def test_a_lattice_scored_in_a_larger_one_equals_its_own(data):
+def test_windows_on_a_shared_pruning_program_score_as_on_their_own(data):
     # recover_scene gives an image's figures the widest window's pruning lattices, so
-    # that their pruning passes share one compiled program: a window's lattice computed
-    # in a larger one (its extra points masked, past the padded image too) scores as its
-    # own, bit for bit; a stride and a window whose lattice has as many points share
-    # the program.
-    from sqparts._search import _score_passes
+    # that their pruning passes share one compiled program: each window's lattice goes to
+    # the pass of the fewest points that holds it (its extra points masked, past the
+    # padded image too) and scores as on its own lattice, bit for bit; other strides and
+    # other windows, two windows in one pass or in two, use the program just compiled.
+    from sqparts._search import _Program, _score_passes
 
     sys.path.insert(0, os.path.dirname(__file__))
     from test_compile import count_programs
@@ -168,20 +168,23 @@ def test_a_lattice_scored_in_a_larger_one_equals_its_own(data):
     hyp = _grid_arrays(SMALL)
     half = SMALL.size // 2
     passes = [(24, {k: v[:half] for k, v in hyp.items()}), (16, {k: v[half:] for k, v in hyp.items()})]
-    own = _score_passes(data, st, centres, passes, stride=4)  # lattices of 6 and 4 points
-    larger = _score_passes(data, st, centres, passes, stride=4, lattices=[12, 8])
-    for (g, o), (g2, o2) in zip(own, larger):
+    program = _Program.shared((8, 12), SMALL, st.batch_size, len(jax.devices()))
+    shared = _score_passes(data, st, centres, passes, stride=4, program=program)  # 6 and 4 points: both in the first
+    for (g, o), (g2, o2) in zip(_score_passes(data, st, centres, passes, stride=4), shared):
         np.testing.assert_array_equal(g2, g)
         np.testing.assert_array_equal(o2, o)
         assert np.isfinite(g).any()
-    # Another stride on the same lattices: the program just compiled, its own Γ.
+    whole = [(16, hyp)]
+    alone = [_score_passes(data, st, centres, passes, stride=2), _score_passes(data, st, centres, whole, stride=3)]
     with count_programs() as built:
-        finer = _score_passes(data, st, centres, passes, stride=2, lattices=[12, 8])
+        finer = _score_passes(data, st, centres, passes, stride=2, program=program)  # 12 and 8 points: one in each
+        one = _score_passes(data, st, centres, whole, stride=3, program=program)  # every hypothesis in one window
     assert built["n"] == 0
-    for (g, _), (g2, _) in zip(_score_passes(data, st, centres, passes, stride=2), finer):
+    for (g, o), (g2, o2) in zip(alone[0] + alone[1], finer + one):
         np.testing.assert_array_equal(g2, g)
-    with pytest.raises(ValueError, match=r"lattices: got \[12, 7\], expected at least each window's own lattice"):
-        _score_passes(data, st, centres, passes, stride=2, lattices=[12, 7])
+        np.testing.assert_array_equal(o2, o)
+    with pytest.raises(ValueError, match=r"lattices: got \(8, 12\), expected one of at least 16 points"):
+        _score_passes(data, st, centres, whole, stride=1, program=program)
 
 
 def test_a_window_scored_in_a_larger_frame_equals_the_window_alone(data):
