@@ -493,11 +493,17 @@ def _score_hypotheses(
         orientation_rel, shape = table
         out = []
         for (first, side, live), lattice, batch in zip(chunks, lattices, batches):
-
-            def body(j, acc, first=first, side=side, lattice=lattice, batch=batch):
-                measured, figure, valid, origins, directions, c_o, c_d, surface_t = _region_inputs(
-                    depth, fig, camera, pad, centre[r] - side[j] // 2, centre[r], lattice, side[j], stride
+            # Each chunk's window, rays and depths cut before the loop over chunks, all at
+            # once: cut inside it, XLA fused them into the kernel, recomputing them for
+            # every hypothesis (the human's grid search took 2.0 s instead of 1.2-1.6 s).
+            inputs = jax.vmap(
+                lambda s, lattice=lattice: _region_inputs(
+                    depth, fig, camera, pad, centre[r] - s // 2, centre[r], lattice, s, stride
                 )
+            )(side)
+
+            def body(j, acc, first=first, inputs=inputs, batch=batch):
+                measured, figure, valid, origins, directions, c_o, c_d, surface_t = (a[j] for a in inputs)
 
                 def one(o, shp):
                     part = pose_hypothesis(o, shp, max_size[r], c_o, c_d, surface_t)
