@@ -302,6 +302,28 @@ def test_recovery_programs_bounded_and_shared_within_a_bucket(one_part):
     np.testing.assert_allclose(rec2.parts.to_vector(), rec.parts.to_vector(), rtol=1e-4, atol=1e-5)
 
 
+def test_a_scenes_figures_share_the_programs_of_one():
+    # recover_scene's figures differ in window (32 and 16 pixels here): their
+    # full-resolution scoring runs in one frame and their pruning on one set of lattices,
+    # so two figures build the programs one does (each scored as on its own window:
+    # tests/test_search.py); without the shared lattices they built a pruning program
+    # each.
+    cam = sqparts.PinholeCamera(96, 96, 180.0, 180.0, 47.5, 47.5)
+    parts = sqparts.stack_parts(
+        [
+            sqparts.Part(
+                size=[0.05, 0.07, 0.16], squareness=[0.6, 1.0], position=[-0.1, 0, 1.2], orientation=[0.3, 0.2, 0]
+            ),
+            sqparts.Part(size=[0.02, 0.02, 0.03], position=[0.12, 0.05, 1.2]),
+        ]
+    )
+    depth = np.asarray(sqparts.render_range_image(parts, cam))
+    with count_programs() as built:
+        scene = sqparts.recover_scene(depth, cam, refine=sqparts.RefineSettings(rounds=1))
+    assert len({f.search.window for f in scene.figures}) == 2
+    assert built["n"] <= TRACED_BOUND
+
+
 @pytest.mark.parametrize(
     "camera",
     [
