@@ -479,9 +479,8 @@ def _score_hypotheses(
     (``centre``: (R, 2); ``max_size``: (R,)) scores ``batches[q]`` rows of ``table`` =
     (``orientation_rel`` (m, 3), ``shape`` (m, 8)) from ``first[k, j]`` on the
     ``side[k, j]`` window centred at the region, at every ``stride``-th pixel, a
-    ``lattices[q]`` × ``lattices[q]`` array of them (:func:`_region_inputs`); its
-    ``live`` chunks come first (in each device's share) and the rest are not scored
-    (zeros). Regions of ``region`` -1 are padding, after the live ones, not scored (Γ
+    ``lattices[q]`` × ``lattices[q]`` array of them (:func:`_region_inputs`); chunks
+    not ``live`` are not scored (zeros). Regions of ``region`` -1 are padding, after the live ones, not scored (Γ
     -inf). The stride, the sides and the chunks are traced: searches whose lattices,
     batches and numbers of chunks agree share the program, however their windows and
     hypotheses fall into its passes. Returns one (Γ, p) pair of (R, c, batch) arrays per
@@ -521,12 +520,17 @@ def _score_hypotheses(
                         valid=valid,
                     )
 
-                rows = (jax.lax.dynamic_slice_in_dim(a, first[j], batch) for a in (orientation_rel, shape))
-                g, p = jax.vmap(one)(*rows)
+                def score():
+                    rows = (jax.lax.dynamic_slice_in_dim(a, first[j], batch) for a in (orientation_rel, shape))
+                    return jax.vmap(one)(*rows)
+
+                g, p = jax.lax.cond(live[j], score, lambda: (jnp.zeros(batch, depth.dtype),) * 2)
                 return acc[0].at[j].set(g), acc[1].at[j].set(p)
 
             empty = jnp.zeros((len(first), batch), depth.dtype)
-            out.append(jax.lax.fori_loop(0, jnp.sum(live), body, (empty, empty)))  # live chunks only
+            # A loop of as many steps as chunks, the dead ones skipped: a loop as long as
+            # the live chunks (a traced trip count) took XLA 1-2 s longer to compile.
+            out.append(jax.lax.fori_loop(0, len(first), body, (empty, empty)))
         return tuple(out)
 
     def out_shape(chunks):  # per pass: Γ and p of each chunk's hypotheses
@@ -719,7 +723,7 @@ class _Program:
         """The table ((sets, rows, 3) and (sets, rows, 8); sets = 1 when the regions share
         the hypotheses, (rows, ...) then) and, per pass, (first row, side, live) of each
         of its chunks, and for each window its chunks' places: a window's hypotheses in
-        consecutive chunks, each device's live chunks first in its share."""
+        consecutive chunks, the live chunks spread evenly over the devices' shares."""
         blocks, logical, at = ([], []), [[] for _ in self.lattices], 0
         for k, ((side, hyp), q, n) in enumerate(zip(passes, route, counts)):
             batch = self.batches[q]
