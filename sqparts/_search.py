@@ -6,15 +6,17 @@ its centre on that ray behind the measured surface), rendered over the region's 
 and scored with Γ (Eq. 4): one jit-compiled computation for all regions' hypotheses
 together (:func:`score_regions`), vmapped over the pixels and the hypotheses of a chunk,
 a loop over a call's regions (up to :data:`REGION_BUCKET`, the loop as long as the live
-ones), each a loop over its chunks of hypotheses, sharded over ``jax.devices()`` with
-``jax.shard_map``. It is compiled once per (grid size, window, camera), never per
-region, number of regions or image.
+ones), each a loop over its chunks of hypotheses (each chunk carrying its window),
+sharded over ``jax.devices()`` with ``jax.shard_map``. It is compiled once per (lattice
+sizes, camera), never per region, number of regions, stride or image.
 
 **Pruning** (section 3.6): every hypothesis is first scored on a pixel subsample
 (``stride``: every stride-th row and column, each pixel standing for stride² pixels);
 only the best ``survivors`` are scored again at full resolution. ``stride=1`` is the
 brute force. The subsample scores each length of hypothesis on the window that covers
-it, every window in the same compiled call (:func:`_by_window`, :func:`_score_passes`).
+it, every window in the same compiled call (:func:`_by_window`, :func:`_score_passes`),
+on the pass of the fewest lattice points that holds its lattice (:class:`_Program`): an
+image's figures, whose windows and strides differ, share one pruning program.
 
 **Candidates** (:func:`fit_regions`): every region's best distinct hypotheses are posed,
 scored at full resolution, polished and scored again together, ``PART_BUCKET`` per
