@@ -482,11 +482,11 @@ def _score_hypotheses(
     (``orientation_rel`` (m, 3), ``shape`` (m, 8)) from ``first[k, j]`` on the
     ``side[k, j]`` window centred at the region, at every ``stride``-th pixel, a
     ``lattices[q]`` × ``lattices[q]`` array of them (:func:`_region_inputs`); chunks
-    not ``live`` are not scored (zeros). Regions of ``region`` -1 are padding, after the live ones, not scored (Γ
-    -inf). The stride, the sides and the chunks are traced: searches whose lattices,
-    batches and numbers of chunks agree share the program, however their windows and
-    hypotheses fall into its passes. Returns one (Γ, p) pair of (R, c, batch) arrays per
-    pass."""
+    not ``live`` are not scored (zeros). Regions of ``region`` -1 are padding, after the
+    live ones, not scored (Γ -inf). The stride, the sides and the chunks are traced:
+    searches whose lattices, batches and numbers of chunks agree share the program,
+    however their windows and hypotheses fall into its passes. Returns one (Γ, p) pair of
+    (R, c, batch) arrays per pass."""
     depth, fig, sigma, lam = arrays
     weight = (stride * stride).astype(jnp.float32)  # each lattice point stands for stride² pixels
 
