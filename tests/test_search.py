@@ -155,8 +155,8 @@ def test_windows_on_a_shared_pruning_program_score_as_on_their_own(data):
     # recover_scene gives an image's figures the widest window's pruning lattices, so
     # that their pruning passes share one compiled program: each window's lattice goes to
     # the pass of the fewest points that holds it (its extra points masked, past the
-    # padded image too) and scores as on its own lattice, bit for bit; other strides and
-    # other windows, two windows in one pass or in two, use the program just compiled.
+    # padded image too) and scores as on its own lattice, bit for bit; another stride,
+    # its windows in two passes instead of one, uses the program just compiled.
     from sqparts._search import _Program, _score_passes
 
     sys.path.insert(0, os.path.dirname(__file__))
@@ -174,17 +174,15 @@ def test_windows_on_a_shared_pruning_program_score_as_on_their_own(data):
         np.testing.assert_array_equal(g2, g)
         np.testing.assert_array_equal(o2, o)
         assert np.isfinite(g).any()
-    whole = [(16, hyp)]
-    alone = [_score_passes(data, st, centres, passes, stride=2), _score_passes(data, st, centres, whole, stride=3)]
+    alone = _score_passes(data, st, centres, passes, stride=2)
     with count_programs() as built:
         finer = _score_passes(data, st, centres, passes, stride=2, program=program)  # 12 and 8 points: one in each
-        one = _score_passes(data, st, centres, whole, stride=3, program=program)  # every hypothesis in one window
     assert built["n"] == 0
-    for (g, o), (g2, o2) in zip(alone[0] + alone[1], finer + one):
+    for (g, o), (g2, o2) in zip(alone, finer):
         np.testing.assert_array_equal(g2, g)
         np.testing.assert_array_equal(o2, o)
     with pytest.raises(ValueError, match=r"lattices: got \(8, 12\), expected one of at least 16 points"):
-        _score_passes(data, st, centres, whole, stride=1, program=program)
+        _score_passes(data, st, centres, [(16, hyp)], stride=1, program=program)
 
 
 def test_a_window_scored_in_a_larger_frame_equals_the_window_alone(data):
