@@ -487,8 +487,9 @@ def read_range_image(path, *, depth_scale: float = DEPTH_SCALE) -> tuple[np.ndar
     * ``.png``: 16-bit grey, depth = value * ``depth_scale`` (default 0.001: millimetres
       to metres, as Kinect/TUM data); 0 = no return.
     * ``.tif``/``.tiff``: 2-D float (or integer, scaled by ``depth_scale``).
-    * ``.pcd``: an organized point cloud (x, y, z in the camera frame); the depth is z and
-      the pinhole camera is recovered from the points by least squares.
+    * ``.pcd``: an organized point cloud (x, y, z in the camera frame, or in a frame where
+      its ``VIEWPOINT`` places the camera); the depth is z in the camera frame and the
+      pinhole camera is recovered from the points by least squares.
     * ``.exr``: OpenEXR (through the ``OpenEXR`` package: ``pip install sqparts[interop]``),
       the first of the channels ``Z``, ``depth``, ``Y``, ``R`` (or the only one), float in
       scene units (an integer channel is scaled by ``depth_scale``).
@@ -674,8 +675,33 @@ def _read_pcd(path) -> tuple[np.ndarray, PinholeCamera]:
         raise ValueError(
             f"input: got {points.size // 3} points (POINTS {declared}), expected width x height = {w} x {h} (an organized .pcd)"
         )
-    xyz = points.reshape(h, w, 3)
+    xyz = _sensor_frame(points, pc.metadata.viewpoint).reshape(h, w, 3)
     return xyz[..., 2], intrinsics_from_points(xyz)
+
+
+def _sensor_frame(points: np.ndarray, viewpoint) -> np.ndarray:
+    """A cloud's (n, 3) points in its sensor's frame: a .pcd's ``VIEWPOINT tx ty tz qw
+    qx qy qz`` is the sensor's pose in the frame of the points (PCL's ``sensor_origin_``
+    and ``sensor_orientation_``; default 0 0 0 1 0 0 0, the points already in it), so
+    the sensor sees R^T (p - t)."""
+    v = np.asarray(viewpoint, np.float64).reshape(-1)
+    norm = float(np.linalg.norm(v[3:])) if v.size == 7 else 0.0
+    if not (v.size == 7 and np.isfinite(v).all() and norm > 1e-9):
+        raise ValueError(
+            f"input: got VIEWPOINT {' '.join(f'{x:g}' for x in v)}, expected tx ty tz qw qx qy qz "
+            "(finite, a non-zero quaternion)"
+        )
+    if np.array_equal(v, [0, 0, 0, 1, 0, 0, 0]):
+        return points
+    w, x, y, z = v[3:] / norm
+    rotation = np.array(
+        [
+            [1 - 2 * (y * y + z * z), 2 * (x * y - w * z), 2 * (x * z + w * y)],
+            [2 * (x * y + w * z), 1 - 2 * (x * x + z * z), 2 * (y * z - w * x)],
+            [2 * (x * z - w * y), 2 * (y * z + w * x), 1 - 2 * (x * x + y * y)],
+        ]
+    )
+    return (points - v[:3]) @ rotation
 
 
 PCD_MAX_REPROJECTION = 0.5
@@ -704,7 +730,8 @@ def intrinsics_from_points(xyz: np.ndarray) -> PinholeCamera:
         raise ValueError(
             f"input: got an organized cloud that a pinhole camera at its origin reprojects to its pixels within "
             f"{error:.3g} px (RMS), expected {PCD_MAX_REPROJECTION} px at most (points in the camera's optical frame, "
-            "x right, y down, z forward; give a range image and --camera otherwise)"
+            "x right, y down, z forward, or a VIEWPOINT giving the camera's pose; give a range image and --camera "
+            "otherwise)"
         )
     return PinholeCamera(w, h, float(fx), float(fy), float(cx), float(cy))
 

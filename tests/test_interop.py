@@ -70,12 +70,12 @@ def test_sqparts_reads_open3ds_camera_parameters(tmp_path):
     assert sqparts.load_camera(tmp_path / "params.json") == sqparts.PinholeCamera(64, 48, 60.0, 80.0, 30.5, 20.25)
 
 
-def _write_pcd(path, xyz):
+def _write_pcd(path, xyz, viewpoint="0 0 0 1 0 0 0"):
     h, w = xyz.shape[:2]
     rows = "".join(" ".join(f"{v:.9g}" for v in p) + "\n" for p in xyz.reshape(-1, 3))
     path.write_text(
         "# .PCD v0.7\nVERSION 0.7\nFIELDS x y z\nSIZE 4 4 4\nTYPE F F F\nCOUNT 1 1 1\n"
-        f"WIDTH {w}\nHEIGHT {h}\nVIEWPOINT 0 0 0 1 0 0 0\nPOINTS {w * h}\nDATA ascii\n" + rows
+        f"WIDTH {w}\nHEIGHT {h}\nVIEWPOINT {viewpoint}\nPOINTS {w * h}\nDATA ascii\n" + rows
     )
 
 
@@ -102,6 +102,19 @@ def test_an_organized_cloud_not_in_its_cameras_frame_is_refused(tmp_path):
         ValueError, match=r"input: got an organized cloud that a pinhole camera at its origin reprojects"
     ):
         sqparts.read_range_image(tmp_path / "world.pcd")
+    # The same world points with the camera's pose as their VIEWPOINT (PCL's sensor
+    # origin and orientation, qw qx qy qz): read in the camera's frame. The VIEWPOINT was
+    # ignored, and such a cloud refused.
+    from scipy.spatial.transform import Rotation
+
+    qx, qy, qz, qw = Rotation.from_matrix(turn).as_quat()
+    _write_pcd(tmp_path / "posed.pcd", xyz @ turn.T + [0.3, -0.2, 0.5], f"0.3 -0.2 0.5 {qw} {qx} {qy} {qz}")
+    back, cam = sqparts.read_range_image(tmp_path / "posed.pcd")
+    np.testing.assert_allclose(back, xyz[..., 2], rtol=1e-5)
+    np.testing.assert_allclose([cam.fx, cam.fy, cam.cx, cam.cy], [40, 40, 19.5, 14.5], atol=1e-3)
+    _write_pcd(tmp_path / "nopose.pcd", xyz, "0 0 0 0 0 0 0")
+    with pytest.raises(ValueError, match=r"input: got VIEWPOINT 0 0 0 0 0 0 0, expected tx ty tz qw qx qy qz"):
+        sqparts.read_range_image(tmp_path / "nopose.pcd")
 
 
 REALSENSE = {
