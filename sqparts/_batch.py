@@ -44,20 +44,25 @@ _PATTERN_CHARACTERS = frozenset("*?[")
 # --- inputs and names ----------------------------------------------------------------
 
 
-def expand_inputs(paths, *, recursive: bool = False) -> list[Path]:
+def expand_inputs(paths, *, recursive: bool = False, exclude=None) -> list[Path]:
     """Range image files from files, folders and glob patterns, in order.
 
     A folder gives the range images in it (sorted; with ``recursive``, also in its
     sub-folders, skipping hidden ones); a path that does not exist but holds ``*``,
     ``?`` or ``[`` is a glob pattern (``**`` matches any depth) giving the range images
-    it matches, sorted. The ``report.png`` of an sqparts output folder (one holding
-    ``parts.json``) is never an input. Raises
+    it matches, sorted. Neither gives the ``report.png`` or ``range.npy`` of an sqparts
+    output folder (one holding ``parts.json``), nor anything in the folder ``exclude``
+    (a batch's ``--out``: a resumed batch inside the folders it scans would take its
+    own outputs for inputs). Raises
     ``FileNotFoundError`` for a missing path, ``ValueError`` for a folder or pattern
     without range images or an input given twice.
     """
     from ._io import RANGE_IMAGE_SUFFIXES
 
     wanted = ", ".join(RANGE_IMAGE_SUFFIXES)
+
+    written = {n for n in (*OUTPUT_FILES, *VIEW_FILES) if Path(n).suffix in RANGE_IMAGE_SUFFIXES}
+    skip = None if exclude is None else Path(exclude).resolve()
 
     def images(found, root=None):
         keep = []
@@ -66,7 +71,9 @@ def expand_inputs(paths, *, recursive: bool = False) -> list[Path]:
                 continue
             if root is not None and any(part.startswith(".") for part in q.relative_to(root).parts):
                 continue
-            if q.name == "report.png" and (q.parent / "parts.json").is_file():
+            if q.name in written and (q.parent / "parts.json").is_file():
+                continue
+            if skip is not None and q.resolve().is_relative_to(skip):
                 continue
             keep.append(q)
         return sorted(keep)
@@ -430,7 +437,7 @@ def plan_batch(
     camera_file = camera if isinstance(camera, (str, os.PathLike)) else None  # never inside a folder replaced
     if camera_file is not None:
         camera = load_camera(camera_file)
-    paths = expand_inputs(inputs, recursive=recursive)
+    paths = expand_inputs(inputs, recursive=recursive, exclude=out)
     if not paths:
         raise ValueError("input: got no inputs, expected at least one range image")
     names = output_names(paths)

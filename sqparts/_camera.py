@@ -403,11 +403,13 @@ def camera_from_json(data: dict) -> Camera:
     required = known[model] - {"model"}
     missing = sorted(required - set(data))
     if missing:
-        raise ValueError(f"camera: got no {', '.join(missing)}, expected keys {sorted(required)} for a {model} camera")
+        raise ValueError(
+            f"camera: got no {', '.join(missing)}, expected keys {sorted(required)} for camera model {model!r}"
+        )
     unknown = sorted(set(data) - known[model])
     if unknown:
         raise ValueError(
-            f"camera: got unknown key(s) {unknown}, expected only {sorted(known[model])} for a {model} camera"
+            f"camera: got unknown key(s) {unknown}, expected only {sorted(known[model])} for camera model {model!r}"
         )
     try:
         return _camera_of_model(model, data)

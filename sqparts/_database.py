@@ -335,6 +335,8 @@ class ModelDatabase:
                 raise ValueError(
                     f"{where}: got {type(data).__name__}, expected an object with format {MODEL_FORMAT!r} and views"
                 )
+            if not data["views"]:  # nothing to match: every recognition would quietly miss it
+                raise ValueError(f"{where}.views: got none, expected at least one view of the object")
             name = check_name(data.get("name"))
             if name != file.stem:
                 raise ValueError(

@@ -675,15 +675,24 @@ def _read_pcd(path) -> tuple[np.ndarray, PinholeCamera]:
         raise ValueError(
             f"input: got {points.size // 3} points (POINTS {declared}), expected width x height = {w} x {h} (an organized .pcd)"
         )
-    xyz = _sensor_frame(points, pc.metadata.viewpoint).reshape(h, w, 3)
+    xyz = points.reshape(h, w, 3)
+    try:
+        return xyz[..., 2], intrinsics_from_points(xyz)
+    except ValueError:
+        posed = _sensor_frame(points, pc.metadata.viewpoint)
+        if posed is points:
+            raise
+    xyz = posed.reshape(h, w, 3)
     return xyz[..., 2], intrinsics_from_points(xyz)
 
 
 def _sensor_frame(points: np.ndarray, viewpoint) -> np.ndarray:
-    """A cloud's (n, 3) points in its sensor's frame: a .pcd's ``VIEWPOINT tx ty tz qw
-    qx qy qz`` is the sensor's pose in the frame of the points (PCL's ``sensor_origin_``
-    and ``sensor_orientation_``; default 0 0 0 1 0 0 0, the points already in it), so
-    the sensor sees R^T (p - t)."""
+    """A cloud's (n, 3) points in its sensor's frame by its .pcd's ``VIEWPOINT tx ty tz
+    qw qx qy qz``, the sensor's pose in the frame of the points (PCL's ``sensor_origin_``
+    and ``sensor_orientation_``): R^T (p - t); the points themselves for the default 0 0
+    0 1 0 0 0. Only for a cloud that a pinhole at its origin does not explain as it is:
+    PCL's OpenNI grabber writes its Kinect frames in the camera's optical frame with
+    VIEWPOINT 0 0 0 0 1 0 0 (a half turn about x that its viewer applies)."""
     v = np.asarray(viewpoint, np.float64).reshape(-1)
     norm = float(np.linalg.norm(v[3:])) if v.size == 7 else 0.0
     if not (v.size == 7 and np.isfinite(v).all() and norm > 1e-9):

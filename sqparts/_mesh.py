@@ -93,6 +93,12 @@ MAX_MESH_TRIANGLES = 50_000_000
 memory, a 1 GB binary PLY): 300 parts at the command line's default resolution have 44 M;
 beyond it, lower the resolution (a part at resolution 512 alone has 38 M)."""
 
+MAX_UNION_TRIANGLES = 10_000_000
+"""Most triangles the parts' meshes may have for their Boolean union
+(:func:`scene_mesh`): manifold3d and trimesh hold about 220 bytes per input triangle
+(measured: 40 overlapping parts, 12.3 M triangles, 3.1 GB resident), so this bound is
+about the same 2.4 GB as :data:`MAX_MESH_TRIANGLES`'s."""
+
 
 def _angles(part: Part, resolution: int) -> tuple[np.ndarray, np.ndarray]:
     """A part's latitudes η (poles left out) and longitudes ω on its mesh."""
@@ -104,21 +110,22 @@ def _angles(part: Part, resolution: int) -> tuple[np.ndarray, np.ndarray]:
     ) - np.pi
 
 
-def check_mesh_size(parts, resolution) -> list:
+def check_mesh_size(parts, resolution, *, limit: int = MAX_MESH_TRIANGLES) -> list:
     """``resolution`` checked (an integer >= 4) and the triangles of single ``parts``'
-    meshes at it counted, before any is made: at most :data:`MAX_MESH_TRIANGLES`.
+    meshes at it counted, before any is made: at most ``limit``.
     Returns each part's (latitudes, longitudes) (:func:`_angles`)."""
     if not isinstance(resolution, (int, np.integer)) or isinstance(resolution, bool) or resolution < 4:
         raise ValueError(f"resolution: got {resolution!r}, expected an integer >= 4")
     # At least 2(r - 2) + 1 latitudes and 4(r - 1) longitudes each: an absurd resolution is
     # refused before its angles are made.
     least = len(parts) * 2 * (2 * int(resolution) - 3) * 4 * (int(resolution) - 1)
-    angles = [] if least > MAX_MESH_TRIANGLES else [_angles(p, int(resolution)) for p in parts]
+    angles = [] if least > limit else [_angles(p, int(resolution)) for p in parts]
     triangles = sum(2 * len(eta) * len(omega) for eta, omega in angles) if angles else least
-    if triangles > MAX_MESH_TRIANGLES:
+    if triangles > limit:
+        union = " for their union" if limit == MAX_UNION_TRIANGLES else ""
         raise ValueError(
             f"resolution: got {resolution!r}, which gives {len(parts)} part(s) {'at least ' * (triangles == least)}"
-            f"{triangles} triangles, expected at most {MAX_MESH_TRIANGLES} (a lower resolution)"
+            f"{triangles} triangles, expected at most {limit}{union} (a lower resolution)"
         )
     return angles
 
@@ -142,7 +149,7 @@ def scene_mesh(parts: Part, *, resolution: int = 48, union: bool = False) -> tri
 
     each = _parts_list(parts)
     if union and len(each) > 1:
-        check_mesh_size(each, resolution)
+        check_mesh_size(each, resolution, limit=MAX_UNION_TRIANGLES)
         meshes = [part_mesh(p, resolution=resolution) for p in each]
         return trimesh.boolean.union(meshes, engine="manifold")  # pyright: ignore[reportReturnType]  # trimesh annotates Geometry; manifold gives a Trimesh
     return trimesh.Trimesh(*scene_surface(parts, resolution=resolution), process=False)

@@ -261,8 +261,8 @@ def crop_depth_range(depth, depth_range: tuple[float, float] | None) -> np.ndarr
         near, far = (float(x) for x in depth_range)
     except (TypeError, ValueError):
         raise ValueError(f"depth_range: got {depth_range!r}, expected (near, far)") from None
-    if not (0 <= near < far):
-        raise ValueError(f"depth_range: got {depth_range!r}, expected 0 <= near < far")
+    if not (0 <= near < far < np.inf):
+        raise ValueError(f"depth_range: got {depth_range!r}, expected (near, far), finite, with 0 <= near < far")
     with np.errstate(invalid="ignore"):
         return np.where((d >= near) & (d <= far), d, np.nan).astype(d.dtype)
 

@@ -403,8 +403,10 @@ class SceneSettings:
                 near, far = (float(x) for x in self.depth_range)
             except (TypeError, ValueError):
                 near = far = np.nan
-            if not (0 <= near < far):
-                raise ValueError(f"depth_range: got {self.depth_range!r}, expected (near, far) with 0 <= near < far")
+            if not (0 <= near < far < np.inf):  # finite: a settings object is written to parts.json
+                raise ValueError(
+                    f"depth_range: got {self.depth_range!r}, expected (near, far), finite, with 0 <= near < far"
+                )
             object.__setattr__(self, "depth_range", (near, far))
         if self.up is not None:
             try:

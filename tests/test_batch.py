@@ -196,7 +196,15 @@ def test_glob_patterns_folders_and_recursive(batch, tmp_path):
     assert names(expand([str(batch / "in" / "**" / "*.npy")])) == ["deeper/more/g.npy", "f0.npy", "f1.npy", "f2.npy"]
     (sub / "parts.json").write_text("{}")  # an output folder inside the inputs: its report is no input
     (sub / "report.png").write_bytes(b"")
+    np.save(sub / "range.npy", np.zeros((2, 2)))  # nor the range image it keeps for `view`
     assert names(expand([batch / "in"], recursive=True)) == ["deeper/more/g.npy", "f0.npy", "f1.npy", "f2.npy"]
+    # Nor anything in a batch's --out: a resumed batch took its own outputs for new inputs.
+    assert names(expand([batch / "in"], recursive=True, exclude=batch / "in" / "deeper")) == [
+        "f0.npy",
+        "f1.npy",
+        "f2.npy",
+    ]
+    assert names(expand([str(batch / "in" / "**" / "*.npy")], exclude=sub)) == ["f0.npy", "f1.npy", "f2.npy"]
     with pytest.raises(ValueError, match="input: got pattern .*, which matches no range images"):
         expand([str(batch / "in" / "*.tif")])
     with pytest.raises(ValueError, match="input: got .* twice"):

@@ -446,6 +446,7 @@ def test_huge_camera_is_refused_before_allocating(files, capsys):
         ("--selection", "x"),
         ("--depth-range", "3,1"),
         ("--depth-range", "nan,2"),
+        ("--depth-range", "1,inf"),  # was written to parts.json as Infinity, which no JSON reader takes
         ("--up", "0,0,0"),
         ("--up", "1,inf,0"),
         ("--up", "1e308,0,1"),
@@ -1319,18 +1320,21 @@ def test_a_mesh_too_large_to_make_is_refused_before_any_work(files, capsys):
     """scene_mesh(resolution=10**6) asked numpy for 9 TiB (MemoryError), and the CLI's
     largest --resolution made a 5 GB mesh of six parts: meshes are bounded by triangles,
     counted before any part is made."""
-    from sqparts._mesh import MAX_MESH_TRIANGLES, part_surface
+    from sqparts._mesh import MAX_MESH_TRIANGLES, MAX_UNION_TRIANGLES, check_mesh_size, part_surface
 
     chair = sqparts.builtin_scene("chair").parts
-    for call in (
-        lambda: sqparts.scene_mesh(chair, resolution=10**6),
-        lambda: sqparts.scene_mesh(chair, resolution=10**9, union=True),
-        lambda: sqparts.scene_trimesh(chair, resolution=512),
+    for call, limit in (
+        (lambda: sqparts.scene_mesh(chair, resolution=10**6), MAX_MESH_TRIANGLES),
+        (lambda: sqparts.scene_mesh(chair, resolution=10**9, union=True), MAX_UNION_TRIANGLES),
+        (lambda: sqparts.scene_trimesh(chair, resolution=512), MAX_MESH_TRIANGLES),
     ):
-        with pytest.raises(
-            ValueError, match=rf"^resolution: got \d+, which gives 6 part\(s\) .* at most {MAX_MESH_TRIANGLES}"
-        ):
+        with pytest.raises(ValueError, match=rf"^resolution: got \d+, which gives 6 part\(s\) .* at most {limit}"):
             call()
+    # A union holds about 220 bytes per triangle of its parts' meshes (300 parts at the
+    # CLI's default resolution were killed for memory at 24 GB): a lower bound for it.
+    check_mesh_size(chair, 128)  # 13.4 M triangles: a mesh, not a union
+    with pytest.raises(ValueError, match=rf"^resolution: got 128, .* at most {MAX_UNION_TRIANGLES} for their union"):
+        sqparts.scene_mesh(chair, resolution=128, union=True)
     # The count is the mesh's own (its triangles, poles included), for round and boxy parts.
     from sqparts._mesh import _angles
 

@@ -112,7 +112,11 @@ def test_an_organized_cloud_not_in_its_cameras_frame_is_refused(tmp_path):
     back, cam = sqparts.read_range_image(tmp_path / "posed.pcd")
     np.testing.assert_allclose(back, xyz[..., 2], rtol=1e-5)
     np.testing.assert_allclose([cam.fx, cam.fy, cam.cx, cam.cy], [40, 40, 19.5, 14.5], atol=1e-3)
-    _write_pcd(tmp_path / "nopose.pcd", xyz, "0 0 0 0 0 0 0")
+    # A cloud a pinhole explains as it is is read as it is, whatever its VIEWPOINT says
+    # (PCL's Kinect grabber writes its camera-frame clouds with a half turn about x).
+    _write_pcd(tmp_path / "grabber.pcd", xyz, "0 0 0 0 1 0 0")
+    np.testing.assert_allclose(sqparts.read_range_image(tmp_path / "grabber.pcd")[0], xyz[..., 2], rtol=1e-6)
+    _write_pcd(tmp_path / "nopose.pcd", xyz @ turn.T + [0.3, -0.2, 0.5], "0 0 0 0 0 0 0")
     with pytest.raises(ValueError, match=r"input: got VIEWPOINT 0 0 0 0 0 0 0, expected tx ty tz qw qx qy qz"):
         sqparts.read_range_image(tmp_path / "nopose.pcd")
 

@@ -335,6 +335,10 @@ def test_a_broken_model_file_is_named(tmp_path):
     )
     with pytest.raises(ValueError, match=r"x.json.views\[0\].main"):
         ModelDatabase(tmp_path)
+    # A model with no views was loaded, and every recognition missed it with exit 0.
+    (tmp_path / "x.json").write_text(json.dumps({"format": "sqparts-model/1", "name": "x", "views": []}))
+    with pytest.raises(ValueError, match=r"^x.json.views: got none, expected at least one view"):
+        ModelDatabase(tmp_path)
 
 
 def test_a_hand_edited_database_is_refused_by_name(tmp_path):
