@@ -117,9 +117,17 @@ def polish_part(part: Part, points, weights, *, rays=None, steps: int = 20) -> P
     silhouette while hugging the visible points.
     Runs a fixed number of steps and never raises; returns the input if the solve produced
     non-finite values or the weights cover fewer than 8 points.
+
+    The solve is posed in units of :func:`_unit` (a power of two; 1 for scenes at a
+    metre-like scale), so that an image in millimetres or kilometres polishes as the
+    same image in metres: the prior, the damping and the tolerances are not
+    scale-free.
     """
+    w = weights.astype(part.size.dtype)
+    unit = _unit(points, w)
+    part = _scaled(part, 1 / unit)
+    points = points / unit
     u0 = to_unconstrained(part)
-    w = weights.astype(u0.dtype)
 
     def residuals(u, _):
         p = from_unconstrained(u)
@@ -127,7 +135,7 @@ def polish_part(part: Part, points, weights, *, rays=None, steps: int = 20) -> P
         if rays is not None:
             o, d, wr, *far = rays
             far = far[0] if far else jnp.full(wr.shape, jnp.inf, wr.dtype)
-            pen = jax.vmap(ray_penetration, in_axes=(None, 0, 0, 0))(p, o, d, far)
+            pen = jax.vmap(ray_penetration, in_axes=(None, 0, 0, 0))(p, o / unit, d, far / unit)
             r = jnp.concatenate([r, wr * jnp.minimum(pen, 0.0)])
         # A weak prior on the 14 numbers keeps unobserved ones near their start.
         return r, 1e-3 * (u - u0)
@@ -136,7 +144,28 @@ def polish_part(part: Part, points, weights, *, rays=None, steps: int = 20) -> P
 
     sol = optx.least_squares(residuals, _levenberg_marquardt(), u0, max_steps=steps, throw=False)
     ok = jnp.all(jnp.isfinite(sol.value)) & (jnp.sum(w > 0) >= 8)
-    return from_unconstrained(jnp.where(ok, sol.value, u0))
+    return _scaled(from_unconstrained(jnp.where(ok, sol.value, u0)), unit)
+
+
+UNIT_RANGE = (0.125, 64.0)
+"""The scene scale polishing takes as it is (:func:`_unit`): median distances of a part's
+points from the camera in this range, in scene units (metres: 12.5 cm to 64 m)."""
+
+
+def _unit(points, weights):
+    """1 when the median distance from the camera of the ``points`` with non-zero
+    ``weights`` lies in :data:`UNIT_RANGE`, else the power of two nearest it: exact in
+    floating point, so a scene in other units polishes in metre-like ones."""
+    r = jnp.where(weights > 0, jnp.linalg.norm(points, axis=-1), jnp.nan)
+    m = jnp.nanmedian(r)
+    inside = ~jnp.isfinite(m) | ((m >= UNIT_RANGE[0]) & (m < UNIT_RANGE[1]))
+    return jnp.where(inside, 1.0, jnp.exp2(jnp.round(jnp.log2(jnp.where(inside, 1.0, m))))).astype(points.dtype)
+
+
+def _scaled(part: Part, factor) -> Part:
+    """``part`` with its position and semi-axes times ``factor``."""
+    v = part.to_vector()
+    return Part.from_vector(jnp.concatenate([v[..., 0:3] * factor, v[..., 3:6], v[..., 6:9] * factor, v[..., 9:]], -1))
 
 
 # Points and background rays per part in one fit: a fixed random subset beyond these
