@@ -391,13 +391,27 @@ def surface_distance(part: Part, point: Float[ArrayLike, "3"]) -> Float[Array, "
     return _local_distance(part, to_local(part, point))
 
 
+_FAR = 8.0
+"""Largest |q_i / a_i| at which :func:`_local_distance` evaluates F as it is (F is then at
+most 2^20 8^20 = 1e24, its derivatives finite in float32)."""
+
+
 def _local_distance(part: Part, local: Float[Array, "3"]) -> Float[Array, ""]:
-    """:func:`surface_distance` of a point already in the part's (deformed) local frame."""
+    """:func:`surface_distance` of a point already in the part's (deformed) local frame.
+
+    Far outside a boxy part the terms |q_i / a_i|^(2/ε) of F overflow float32 (ε 0.1: a
+    point 90 semi-axes out, or nearer where a bend or taper stretches the undeformed
+    frame): the value stayed finite, its gradients were NaN. The norm F^(ε1/2) is degree-1
+    homogeneous in q, so beyond :data:`_FAR` semi-axes it is taken at q / λ and times λ, λ
+    the power of two at or above the largest |q_i / a_i| (exact in floating point; λ = 1
+    nearer, the computation as it always was)."""
     q = undeform(part, local)
     # At the centre the direction is undefined: step off it by a millionth of a1.
     tiny = 1e-6 * part.size[0]
     q = jnp.where(jnp.sum(q * q) < tiny * tiny, q + jnp.stack([tiny, 0.0 * tiny, 0.0 * tiny]), q)
-    norm = abs_pow(superquadric_function(part, q), part.squareness[0] / 2.0)
+    ratio = jax.lax.stop_gradient(jnp.max(jnp.abs(q / part.size)))
+    lam = jnp.where(ratio > _FAR, jnp.exp2(jnp.ceil(jnp.log2(jnp.where(ratio > _FAR, ratio, 1.0)))), 1.0)
+    norm = lam * abs_pow(superquadric_function(part, q / lam), part.squareness[0] / 2.0)
     length = jnp.sqrt(jnp.sum(q * q))
     return length - length / norm
 

@@ -135,6 +135,50 @@ def test_inside_outside_gradients_finite_at_singular_places(x64, squareness):
         assert np.all(np.isfinite(g_v)) and np.all(np.isfinite(g_p)), (squareness, p)
 
 
+def _distance_f64(v, x):
+    """numpy float64 reference of surface_distance (Eq. 1, the paper's deformations
+    undone as :func:`~sqparts._part.undeform` documents, the radial distance)."""
+    v, x = np.asarray(v, np.float64), np.asarray(x, np.float64)
+    local = Rotation.from_rotvec(v[3:6]).as_matrix().T @ (x - v[0:3])
+    a1, a2, a3, e1, e2 = v[6], v[7], v[8], v[9], v[10]
+    px, py, pz = local
+    pz = pz - v[12] * px * px / a1
+    px = px - v[11] * pz * pz / a3
+    k = 1.0 + v[13] * pz / a3
+    q = np.array([px / k, py / k, pz])
+    # F in logarithms: float64 itself overflows beyond |q/a|^(2/ε) ~ 1e308.
+    lx, ly, lz = (np.log(abs(q[i] / a)) * (2 / e) for i, a, e in ((0, a1, e2), (1, a2, e2), (2, a3, e1)))
+    log_f = np.logaddexp((e2 / e1) * np.logaddexp(lx, ly), lz)
+    length = np.linalg.norm(q)
+    return length - length / np.exp(0.5 * e1 * log_f)
+
+
+def test_surface_distance_gradients_finite_far_from_boxy_and_deformed_parts(rng):
+    """|q/a|^(2/ε) overflowed float32 away from boxy parts (ε 0.1: 90 semi-axes out, or
+    one semi-axis out where a bend stretches the undeformed frame): the value stayed
+    finite, every gradient was NaN (18% of boxy, deformed parts at four semi-axes). The
+    value and its gradient in the point against float64 numpy (central differences)."""
+    v0 = np.array([0.0, 0.0, 0.0, 0.3, -0.2, 0.5, 0.07, 0.403, 0.117, 0.1, 0.1, 0.294, -0.668, -0.035])
+    cases = [(v0, [-0.401, 0.033, -0.03])]  # the fuzzed case: NaN 1.4 semi-axes out
+    cases.append((np.r_[0, 0, 0, 0, 0, 0, 1.0, 0.5, 0.8, 0.1, 0.1, 0, 0, 0], [100.0, 30.0, 20.0]))
+    for _ in range(40):
+        v = np.r_[rng.normal(0, 0.1, 3), rng.normal(0, 1, 3), rng.uniform(0.05, 0.4, 3), 0.1, rng.uniform(0.1, 0.4)]
+        v = np.r_[v, rng.uniform(-0.9, 0.9, 2), rng.uniform(-0.9, 0.9)]
+        d = rng.normal(size=3)
+        cases.append((v, v[0:3] + rng.choice([1.5, 4.0, 30.0]) * v[6:9].max() * d / np.linalg.norm(d)))
+    grad = jax.jit(jax.grad(lambda v, x: sqparts.surface_distance(sqparts.Part.from_vector(v), x), argnums=(0, 1)))
+    for v, x in cases:
+        x = np.asarray(x, np.float64)
+        g_v, g_x = (np.asarray(g) for g in grad(jnp.asarray(v, jnp.float32), jnp.asarray(x, jnp.float32)))
+        assert np.isfinite(g_v).all() and np.isfinite(g_x).all(), (v, x)
+        value = float(sqparts.surface_distance(sqparts.Part.from_vector(jnp.asarray(v, jnp.float32)), jnp.asarray(x)))
+        ref = _distance_f64(v, x)
+        np.testing.assert_allclose(value, ref, rtol=1e-3, atol=1e-4)
+        h = 1e-5 * max(1.0, np.linalg.norm(x))
+        fd = [(_distance_f64(v, x + h * e) - _distance_f64(v, x - h * e)) / (2 * h) for e in np.eye(3)]
+        np.testing.assert_allclose(g_x, fd, rtol=2e-2, atol=2e-3)
+
+
 def test_surface_distance_closed_forms():
     # A sphere: the radial distance is the Euclidean distance, |x - c| - r.
     c = np.array([0.1, -0.2, 2.0])
