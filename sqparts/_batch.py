@@ -79,7 +79,12 @@ def expand_inputs(paths, *, recursive: bool = False, exclude=None) -> list[Path]
         return sorted(keep)
 
     out = []
-    for text in map(str, paths):
+    for given in paths:
+        if not isinstance(given, (str, os.PathLike)):
+            raise TypeError(
+                f"input: got {type(given).__name__}, expected a path (a range image file, a folder or a glob pattern)"
+            )
+        text = str(given)
         p = Path(text)
         if p.is_dir():
             found = images(p.rglob("*") if recursive else p.iterdir(), root=p)

@@ -746,7 +746,9 @@ def _coarse_levels(recovery, levels: int) -> list[Part]:
         mask = downsample_mask(fig.figure, f) & np.isfinite(d)
         if mask.sum() < 16:
             continue
-        search = dataclasses.replace(fig.search, max_size=max_size / 2**k, window=None)
+        # The window, frame and lattices were the full image's (one program for all its
+        # figures): the binned image's are its own.
+        search = dataclasses.replace(fig.search, max_size=max_size / 2**k, window=None, frame=None, lattices=None)
         rec = recover(d, cam, search=search, refine=RefineSettings.none(), figure=mask)
         out.append(rec.parts)
     return out
@@ -785,15 +787,21 @@ def learn(name: str, views, *, database, levels: int = 2, progress=None, **recov
 
     Returns the database, written and recalibrated.
     """
-    from ._recover import recover_scene
+    from ._recover import Recovery, SceneRecovery, recover_scene
 
     check_name(name)
     if not (isinstance(levels, (int, np.integer)) and 1 <= levels <= 4):
         raise ValueError(f"levels: got {levels!r}, expected an integer in [1, 4]")
-    db = database if isinstance(database, ModelDatabase) else ModelDatabase(database)
     views = list(views)
     if not views:
         raise ValueError("views: got none, expected at least one (depth, camera) pair or recovery")
+    for k, view in enumerate(views):  # each checked before any work
+        if not (isinstance(view, tuple) and len(view) == 2 or isinstance(view, (Recovery, SceneRecovery))):
+            raise TypeError(
+                f"views[{k}]: got {type(view).__name__}, expected a (depth, camera) pair or a recovery "
+                "(sqparts.recover_scene's or sqparts.recover's)"
+            )
+    db = database if isinstance(database, ModelDatabase) else ModelDatabase(database)
     for k, view in enumerate(views):
         if isinstance(view, tuple):
             depth, camera = view

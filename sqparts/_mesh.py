@@ -236,7 +236,10 @@ def part_colors(n: int) -> np.ndarray:
 
 
 def _parts_list(parts: Part) -> list[Part]:
-    return [parts] if parts.batch_shape == () else [parts[i] for i in range(len(parts))]
+    from ._render import _as_scene
+
+    scene = _as_scene(parts)  # a Part, single or batched, of at least one part
+    return [parts] if parts.batch_shape == () else [scene[i] for i in range(len(scene))]
 
 
 def part_names(parts: Part, names=None) -> list[str]:

@@ -332,6 +332,8 @@ def _as_scene(parts) -> Part:
         return jax.tree_util.tree_map(lambda x: x[None], parts)
     if len(parts.batch_shape) != 1:
         raise ValueError(f"parts: got batch shape {parts.batch_shape}, expected one batch axis")
+    if parts.batch_shape[0] == 0:
+        raise ValueError("parts: got 0 parts, expected at least one")
     return parts
 
 

@@ -1240,6 +1240,17 @@ def test_results_are_immutable(files):
     assert data["figures"][0]["timings_s"] == dict(scene.figures[0].timings)
     one = json.loads(json.dumps(rec.scene_dict()))
     assert one["timings_s"] == dict(rec.timings) and one["parts"][0]["pixels"] == rec.part_stats[0]["pixels"]
+    # They pickle and deep-copy (read-only mappings were MappingProxyType, which do not):
+    # a process pool or a Dask worker returns them.
+    import copy
+    import pickle
+
+    for result in (rec, scene):
+        for back in (pickle.loads(pickle.dumps(result)), copy.deepcopy(result)):
+            assert back.summary() == result.summary() and dict(back.timings) == dict(result.timings)
+            np.testing.assert_array_equal(back.parts.to_vector(), result.parts.to_vector())
+            with pytest.raises(TypeError):
+                back.timings["total"] = 0.0  # type: ignore[index]
 
 
 def test_python_api_arguments_are_checked_by_name(files, tmp_path):
@@ -1280,6 +1291,21 @@ def test_python_api_arguments_are_checked_by_name(files, tmp_path):
         )
     )
     assert [(r["output"], r["status"]) for r in records] == [("x", "ok")]
+    # Session 62's fuzzing: an image where a path goes said "File name too long"; an
+    # image where a view goes, "'numpy.ndarray' object has no attribute 'parts'"; no
+    # parts, numpy's "attempt to get argmin of an empty sequence"; a list of parts,
+    # "'list' object has no attribute 'batch_shape'".
+    with pytest.raises(TypeError, match=r"^input: got ndarray, expected a path"):
+        list(sqparts.recover_many([depth], out=tmp_path / "arr", camera=files / "cam.json"))
+    with pytest.raises(TypeError, match=r"^views\[0\]: got ndarray, expected a \(depth, camera\) pair or a recovery"):
+        sqparts.learn("x", [depth], database=tmp_path / "db2")
+    none = sqparts.Part.from_vector(np.zeros((0, 14), np.float32))
+    for call in (lambda: sqparts.render_range_image(none, camera), lambda: sqparts.scene_mesh(none)):
+        with pytest.raises(ValueError, match=r"^parts: got 0 parts, expected at least one"):
+            call()
+    with pytest.raises(TypeError, match=r"^parts: got list, expected a Part"):
+        sqparts.scene_mesh([sqparts.Part(size=[1.0, 1.0, 1.0])])
+    assert not (tmp_path / "arr").exists() and not (tmp_path / "db2").exists()
 
 
 def test_save_scene_writes_only_what_load_scene_reads(tmp_path):

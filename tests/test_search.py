@@ -745,3 +745,19 @@ def test_coarse_to_fine_orientation_finds_a_part_between_the_grid_orientations(p
     assert sqparts.fit_region(data, dataclasses.replace(st, top_k=2), centre).ratio == no_neighbours.ratio
     with pytest.raises(ValueError, match=r"refine_orientations: got -1, expected an integer >= 0"):
         sqparts.SearchSettings(refine_orientations=-1)
+
+
+def test_learning_a_view_searches_its_coarser_levels_on_their_own_lattices():
+    """The figure's search after ``recover_scene`` carries the image's pruning lattices
+    (one program for its figures); the coarser levels of a learnt view reused it with
+    their own, wider window, which those lattices cannot hold: ``learn`` raised
+    "lattices: got (8,), expected one of at least 12 points"."""
+    from sqparts._database import view_from_recovery
+
+    depth = np.asarray(sqparts.render_range_image(TRUTH, CAM))
+    search = sqparts.SearchSettings(grid=SMALL, max_size=0.03, stride=2)
+    rec = sqparts.recover_scene(depth, CAM, search=search, refine=sqparts.RefineSettings.none())
+    (figure,) = rec.figures
+    assert figure.search.lattices is not None  # the case: lattices set for the image
+    view = view_from_recovery(rec, levels=2)
+    assert len(view.variants) >= 2 and all(len(v.parts) for v in view.variants)
