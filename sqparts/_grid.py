@@ -23,6 +23,8 @@ from __future__ import annotations
 
 import dataclasses
 import math
+import types
+from collections.abc import Mapping
 
 import numpy as np
 
@@ -149,33 +151,35 @@ class Grid:
         return len(self.axis_directions()) * len(self.rolls()) * len(self.shapes())
 
 
-PRESETS = {
-    "coarse": Grid(
-        lengths=(0.3, 0.6, 1.0),
-        ratios1=(1.0, 0.55, 0.3),
-        ratios2=(1.0, 0.55),
-        squareness1=(0.4, 1.0),
-        squareness2=(0.4, 1.0),
-        axis_step=45.0,
-        roll_step=45.0,
-        bends=(0.0,),
-    ),
-    "default": Grid(),
-    "fine": Grid(
-        lengths=(0.2, 0.35, 0.6, 1.0),
-        ratios1=(1.0, 0.7, 0.45, 0.25),
-        ratios2=(1.0, 0.6),
-        squareness1=(0.25, 0.6, 1.0),
-        squareness2=(0.25, 0.6, 1.0),
-        axis_step=22.5,
-        roll_step=22.5,
-        bends=(-0.3, 0.0, 0.3),
-    ),
-}
+PRESETS = types.MappingProxyType(
+    {
+        "coarse": Grid(
+            lengths=(0.3, 0.6, 1.0),
+            ratios1=(1.0, 0.55, 0.3),
+            ratios2=(1.0, 0.55),
+            squareness1=(0.4, 1.0),
+            squareness2=(0.4, 1.0),
+            axis_step=45.0,
+            roll_step=45.0,
+            bends=(0.0,),
+        ),
+        "default": Grid(),
+        "fine": Grid(
+            lengths=(0.2, 0.35, 0.6, 1.0),
+            ratios1=(1.0, 0.7, 0.45, 0.25),
+            ratios2=(1.0, 0.6),
+            squareness1=(0.25, 0.6, 1.0),
+            squareness2=(0.25, 0.6, 1.0),
+            axis_step=22.5,
+            roll_step=22.5,
+            bends=(-0.3, 0.0, 0.3),
+        ),
+    }
+)
 """Named grids: ``coarse`` (~3 k hypotheses), ``default`` (~2^16, the paper's), ``fine``."""
 
 
-def lookup_preset(value, kind: type, presets: dict, argument: str):
+def lookup_preset(value, kind: type, presets: Mapping, argument: str):
     """``value`` itself if it is a ``kind`` (a settings class), else the preset of that
     name in ``presets``; any other value is refused in the one message style."""
     if isinstance(value, kind):

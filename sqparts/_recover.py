@@ -17,6 +17,7 @@ from __future__ import annotations
 
 import dataclasses
 import time
+import types
 from collections.abc import Mapping, Sequence
 from typing import TYPE_CHECKING
 
@@ -430,11 +431,13 @@ class SceneSettings:
             raise ValueError(f"max_border_fraction: got {self.max_border_fraction!r}, expected a number in [0, 1]")
 
 
-SCENE_PRESETS = {
-    "real": SceneSettings(),
-    "prettified": SceneSettings(prettify=True),
-    "synthetic": SceneSettings(resolution=None, clean=False, figure_ground=False),
-}
+SCENE_PRESETS = types.MappingProxyType(
+    {
+        "real": SceneSettings(),
+        "prettified": SceneSettings(prettify=True),
+        "synthetic": SceneSettings(resolution=None, clean=False, figure_ground=False),
+    }
+)
 """Named scene settings: ``"real"`` (recover_scene's default: binned to ~160 pixels,
 cleaned, figure/ground), ``"prettified"`` (the same, then prettified), ``"synthetic"``
 (a clean render: full resolution, no clean-up, the whole image one figure)."""

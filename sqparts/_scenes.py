@@ -7,6 +7,7 @@ it and a short description. Units are metres, camera frame OpenCV (y down, z for
 from __future__ import annotations
 
 import dataclasses
+import types
 
 import numpy as np
 
@@ -227,18 +228,20 @@ def gate(
     )
 
 
-HUMAN_POSES = {
-    # name: (right arm, left arm, right leg, left leg), each limb (upper, lower) as
-    # (abduction, swing) in degrees: abduction away from the body in the frontal plane,
-    # swing towards the camera; 0, 0 hangs straight down.
-    "standing": (((8, 0), (6, 0)), ((8, 0), (6, 0)), ((2, 0), (2, 0)), ((2, 0), (2, 0))),
-    "arms up": (((160, 0), (170, 0)), ((160, 0), (170, 0)), ((3, 0), (3, 0)), ((3, 0), (3, 0))),
-    "t-pose": (((90, 0), (90, 0)), ((90, 0), (90, 0)), ((6, 0), (6, 0)), ((6, 0), (6, 0))),
-    "walking": (((5, -25), (5, 0)), ((5, 25), (5, 50)), ((2, 28), (2, 0)), ((2, -22), (2, -45))),
-    "waving": (((130, 0), (170, 0)), ((8, 0), (6, 0)), ((2, 0), (2, 0)), ((2, 0), (2, 0))),
-    "pointing": (((8, 0), (6, 0)), ((50, 0), (0, 90)), ((2, 0), (2, 0)), ((2, 0), (2, 0))),
-    "straddle": (((30, 0), (20, 0)), ((30, 0), (20, 0)), ((25, 0), (5, 0)), ((25, 0), (5, 0))),
-}
+HUMAN_POSES = types.MappingProxyType(
+    {
+        # name: (right arm, left arm, right leg, left leg), each limb (upper, lower) as
+        # (abduction, swing) in degrees: abduction away from the body in the frontal plane,
+        # swing towards the camera; 0, 0 hangs straight down.
+        "standing": (((8, 0), (6, 0)), ((8, 0), (6, 0)), ((2, 0), (2, 0)), ((2, 0), (2, 0))),
+        "arms up": (((160, 0), (170, 0)), ((160, 0), (170, 0)), ((3, 0), (3, 0)), ((3, 0), (3, 0))),
+        "t-pose": (((90, 0), (90, 0)), ((90, 0), (90, 0)), ((6, 0), (6, 0)), ((6, 0), (6, 0))),
+        "walking": (((5, -25), (5, 0)), ((5, 25), (5, 50)), ((2, 28), (2, 0)), ((2, -22), (2, -45))),
+        "waving": (((130, 0), (170, 0)), ((8, 0), (6, 0)), ((2, 0), (2, 0)), ((2, 0), (2, 0))),
+        "pointing": (((8, 0), (6, 0)), ((50, 0), (0, 90)), ((2, 0), (2, 0)), ((2, 0), (2, 0))),
+        "straddle": (((30, 0), (20, 0)), ((30, 0), (20, 0)), ((25, 0), (5, 0)), ((25, 0), (5, 0))),
+    }
+)
 """Joint angles of :func:`posed_human`'s poses (configuration stability, section 1)."""
 
 
@@ -306,7 +309,9 @@ def posed_human(pose: str = "standing", resolution: int = 128) -> BuiltinScene:
     )
 
 
-BUILTIN_SCENES = {"human": human, "chair": chair, "castings": castings, "gate": gate, "thin-chair": thin_chair}
+BUILTIN_SCENES = types.MappingProxyType(
+    {"human": human, "chair": chair, "castings": castings, "gate": gate, "thin-chair": thin_chair}
+)
 
 
 def builtin_scene(name: str, **kwargs) -> BuiltinScene:

@@ -31,6 +31,7 @@ from __future__ import annotations
 import dataclasses
 import functools
 import math
+import types
 
 import equinox as eqx
 import jax
@@ -243,19 +244,21 @@ def largest_frame(window: int, pad: int) -> int:
     return int(window) // 2 + int(pad)
 
 
-SEARCH_PRESETS = {
-    "fast": SearchSettings(),
-    "paper": SearchSettings(grid="default"),
-    "region": SearchSettings(
-        grid="default",
-        top_k=4,
-        polish_steps=20,
-        polish_rounds=6,
-        polish_candidates=24,
-        restarts=3,
-        refine_orientations=16,
-    ),
-}
+SEARCH_PRESETS = types.MappingProxyType(
+    {
+        "fast": SearchSettings(),
+        "paper": SearchSettings(grid="default"),
+        "region": SearchSettings(
+            grid="default",
+            top_k=4,
+            polish_steps=20,
+            polish_rounds=6,
+            polish_candidates=24,
+            restarts=3,
+            refine_orientations=16,
+        ),
+    }
+)
 """Named search settings. ``"fast"`` (recovery's default): the coarse grid (3 168
 hypotheses), the few best starts per region polished lightly and without restarts, since
 selection and joint refinement follow. ``"paper"``: the same on the paper's ~2^16 grid

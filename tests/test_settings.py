@@ -23,6 +23,11 @@ def depth():
 
 def test_presets_by_name_and_object():
     assert sqparts.search_preset("fast") is sqparts.SEARCH_PRESETS["fast"]
+    # The tables are read-only: one assignment changed every later recovery's "fast".
+    tables = (sqparts.SEARCH_PRESETS, sqparts.SCENE_PRESETS, sqparts.PRESETS, sqparts.BUILTIN_SCENES)
+    for table in (*tables, sqparts.HUMAN_POSES):
+        with pytest.raises(TypeError):
+            table["fast"] = "garbage"  # type: ignore[index]
     own = sqparts.SearchSettings(grid="default", top_k=2)
     assert sqparts.search_preset(own) is own
     # A grid given by name is the preset Grid; the presets differ where their docs say.
