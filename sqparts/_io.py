@@ -702,14 +702,9 @@ def _sensor_frame(points: np.ndarray, viewpoint) -> np.ndarray:
         )
     if np.array_equal(v, [0, 0, 0, 1, 0, 0, 0]):
         return points
-    w, x, y, z = v[3:] / norm
-    rotation = np.array(
-        [
-            [1 - 2 * (y * y + z * z), 2 * (x * y - w * z), 2 * (x * z + w * y)],
-            [2 * (x * y + w * z), 1 - 2 * (x * x + z * z), 2 * (y * z - w * x)],
-            [2 * (x * z - w * y), 2 * (y * z + w * x), 1 - 2 * (x * x + y * y)],
-        ]
-    )
+    from scipy.spatial.transform import Rotation
+
+    rotation = Rotation.from_quat([*v[4:], v[3]]).as_matrix()  # scipy's quaternions are scalar-last
     return (points - v[:3]) @ rotation
 
 

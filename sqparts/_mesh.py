@@ -110,22 +110,23 @@ def _angles(part: Part, resolution: int) -> tuple[np.ndarray, np.ndarray]:
     ) - np.pi
 
 
-def check_mesh_size(parts, resolution, *, limit: int = MAX_MESH_TRIANGLES) -> list:
+def check_mesh_size(parts, resolution, *, union: bool = False) -> list:
     """``resolution`` checked (an integer >= 4) and the triangles of single ``parts``'
-    meshes at it counted, before any is made: at most ``limit``.
+    meshes at it counted, before any is made: at most :data:`MAX_MESH_TRIANGLES`, or
+    :data:`MAX_UNION_TRIANGLES` for their ``union``.
     Returns each part's (latitudes, longitudes) (:func:`_angles`)."""
     if not isinstance(resolution, (int, np.integer)) or isinstance(resolution, bool) or resolution < 4:
         raise ValueError(f"resolution: got {resolution!r}, expected an integer >= 4")
     # At least 2(r - 2) + 1 latitudes and 4(r - 1) longitudes each: an absurd resolution is
     # refused before its angles are made.
+    limit = MAX_UNION_TRIANGLES if union else MAX_MESH_TRIANGLES
     least = len(parts) * 2 * (2 * int(resolution) - 3) * 4 * (int(resolution) - 1)
     angles = [] if least > limit else [_angles(p, int(resolution)) for p in parts]
     triangles = sum(2 * len(eta) * len(omega) for eta, omega in angles) if angles else least
     if triangles > limit:
-        union = " for their union" if limit == MAX_UNION_TRIANGLES else ""
         raise ValueError(
             f"resolution: got {resolution!r}, which gives {len(parts)} part(s) {'at least ' * (triangles == least)}"
-            f"{triangles} triangles, expected at most {limit}{union} (a lower resolution)"
+            f"{triangles} triangles, expected at most {limit}{' for their union' * union} (a lower resolution)"
         )
     return angles
 
@@ -149,7 +150,7 @@ def scene_mesh(parts: Part, *, resolution: int = 48, union: bool = False) -> tri
 
     each = _parts_list(parts)
     if union and len(each) > 1:
-        check_mesh_size(each, resolution, limit=MAX_UNION_TRIANGLES)
+        check_mesh_size(each, resolution, union=True)
         meshes = [part_mesh(p, resolution=resolution) for p in each]
         return trimesh.boolean.union(meshes, engine="manifold")  # pyright: ignore[reportReturnType]  # trimesh annotates Geometry; manifold gives a Trimesh
     return trimesh.Trimesh(*scene_surface(parts, resolution=resolution), process=False)

@@ -252,17 +252,24 @@ class CleanedRange:
         )
 
 
+def check_depth_range(depth_range) -> tuple[float, float]:
+    """``depth_range`` as (near, far) floats, finite (settings are written to
+    ``parts.json``), with 0 <= near < far."""
+    try:
+        near, far = (float(x) for x in depth_range)
+    except (TypeError, ValueError):
+        near = far = np.nan
+    if not (0 <= near < far < np.inf):
+        raise ValueError(f"depth_range: got {depth_range!r}, expected (near, far), finite, with 0 <= near < far")
+    return near, far
+
+
 def crop_depth_range(depth, depth_range: tuple[float, float] | None) -> np.ndarray:
     """Drop returns outside ``depth_range`` (near, far; the paper's "cube of data")."""
     d = np.asarray(depth)
     if depth_range is None:
         return d
-    try:
-        near, far = (float(x) for x in depth_range)
-    except (TypeError, ValueError):
-        raise ValueError(f"depth_range: got {depth_range!r}, expected (near, far)") from None
-    if not (0 <= near < far < np.inf):
-        raise ValueError(f"depth_range: got {depth_range!r}, expected (near, far), finite, with 0 <= near < far")
+    near, far = check_depth_range(depth_range)
     with np.errstate(invalid="ignore"):
         return np.where((d >= near) & (d <= far), d, np.nan).astype(d.dtype)
 

@@ -378,7 +378,7 @@ class SceneSettings:
     max_bits: float = 56.0
 
     def __post_init__(self):
-        from ._preprocess import check_holes, check_positive
+        from ._preprocess import check_depth_range, check_holes, check_positive
 
         check_holes(self.holes)
         for name, integer in (
@@ -400,15 +400,7 @@ class SceneSettings:
             if not isinstance(getattr(self, name), bool):
                 raise ValueError(f"{name}: got {getattr(self, name)!r}, expected True or False")
         if self.depth_range is not None:
-            try:
-                near, far = (float(x) for x in self.depth_range)
-            except (TypeError, ValueError):
-                near = far = np.nan
-            if not (0 <= near < far < np.inf):  # finite: a settings object is written to parts.json
-                raise ValueError(
-                    f"depth_range: got {self.depth_range!r}, expected (near, far), finite, with 0 <= near < far"
-                )
-            object.__setattr__(self, "depth_range", (near, far))
+            object.__setattr__(self, "depth_range", check_depth_range(self.depth_range))
         if self.up is not None:
             try:
                 up = tuple(float(x) for x in self.up)
