@@ -20,6 +20,7 @@ return.
 from __future__ import annotations
 
 import dataclasses
+import functools
 import math
 from typing import TYPE_CHECKING
 
@@ -79,6 +80,20 @@ def _array(x):
     return (x, jnp) if isinstance(x, jax.Array) else (np.asarray(x), np)
 
 
+def _pixel_grid(window, xp=jnp, stride=1):
+    """Pixel centres (u, v) of the window (row0, col0, rows, cols), float32 arrays of
+    ``xp`` (jax.numpy or numpy); with ``stride``, the window's ``rows`` × ``cols`` pixels
+    at every stride-th row and column from stride // 2."""
+    row0, col0, rows, cols = window
+    every = isinstance(stride, (int, np.integer)) and stride == 1  # a traced stride is a lattice
+
+    def pixels(n):
+        return xp.arange(n, dtype=xp.float32) if every else (stride // 2 + stride * xp.arange(n)).astype(xp.float32)
+
+    v, u = row0 + pixels(rows), col0 + pixels(cols)
+    return xp.meshgrid(u, v, indexing="xy")
+
+
 @dataclasses.dataclass(frozen=True)
 class _Camera:
     width: int
@@ -91,30 +106,33 @@ class _Camera:
         cx: float
         cy: float
 
-    def _rays(self, uu, vv) -> tuple[Float[Array, "h w 3"], Float[Array, "h w 3"]]:
-        """Origins and directions of the rays through pixel centres ``uu``, ``vv``: host
-        (numpy) arrays for host input, JAX arrays for JAX input (as :func:`_array`)."""
+    def ray_params(self) -> np.ndarray:
+        """The (4,) float32 numbers the model's rays are computed from
+        (:meth:`_rays_of`): what a compiled program takes of the camera
+        (:class:`CompiledCamera`)."""
         raise NotImplementedError
+
+    @staticmethod
+    def _rays_of(params, uu, vv) -> tuple[Float[Array, "h w 3"], Float[Array, "h w 3"]]:
+        """Origins and directions of the rays through pixel centres ``uu``, ``vv`` of a
+        camera with :meth:`ray_params` ``params``: host (numpy) arrays for host input,
+        JAX arrays for JAX input (as :func:`_array`)."""
+        raise NotImplementedError
+
+    def _rays(self, uu, vv) -> tuple[Float[Array, "h w 3"], Float[Array, "h w 3"]]:
+        return self._rays_of(self.ray_params(), uu, vv)
+
+    def compiled(self) -> CompiledCamera:
+        """This camera as compiled programs take it (:class:`CompiledCamera`)."""
+        return CompiledCamera(type(self), self.ray_params())
 
     def _scaled_fields(self, f: int) -> dict:
         """The model-specific fields of :meth:`downsampled` (``cx``, ``cy`` excluded)."""
         raise NotImplementedError
 
     def _pixel_grid(self, window, xp=jnp, stride=1):
-        """Pixel centres (u, v) of the window (row0, col0, rows, cols) or the full image,
-        float32 arrays of ``xp`` (jax.numpy or numpy); with ``stride``, the window's
-        ``rows`` × ``cols`` pixels at every stride-th row and column from stride // 2."""
-        if window is None:
-            row0, col0, rows, cols = 0, 0, self.height, self.width
-        else:
-            row0, col0, rows, cols = window
-        every = isinstance(stride, (int, np.integer)) and stride == 1  # a traced stride is a lattice
-
-        def pixels(n):
-            return xp.arange(n, dtype=xp.float32) if every else (stride // 2 + stride * xp.arange(n)).astype(xp.float32)
-
-        v, u = row0 + pixels(rows), col0 + pixels(cols)
-        return xp.meshgrid(u, v, indexing="xy")
+        """:func:`_pixel_grid` of ``window``, or of the full image (``window`` None)."""
+        return _pixel_grid((0, 0, self.height, self.width) if window is None else window, xp, stride)
 
     def rays(self, window=None, *, stride=1) -> tuple[Float[Array, "h w 3"], Float[Array, "h w 3"]]:
         """Ray origins and directions for every pixel, or for ``window``.
@@ -217,11 +235,16 @@ class PinholeCamera(_Camera):
                     f"with {c} {centre!r} (rays within {MAX_RAY_ANGLE} degrees of the optical axis)"
                 )
 
-    def _rays(self, uu, vv):
+    def ray_params(self):
+        # The reciprocals of the focal lengths, rounded once on the host: the host's and
+        # the compiled programs' rays are bit for bit the same.
+        return np.array([self.cx, self.cy, 1.0 / self.fx, 1.0 / self.fy], np.float32)
+
+    @staticmethod
+    def _rays_of(params, uu, vv):
         uu, xp = _array(uu)
-        # Times the reciprocal, as XLA computes a division by a constant: the host's rays
-        # are bit for bit those of the compiled programs.
-        d = xp.stack([(uu - self.cx) * (1.0 / self.fx), (vv - self.cy) * (1.0 / self.fy), xp.ones_like(uu)], -1)
+        cx, cy, rx, ry = (params[i] for i in range(4))
+        d = xp.stack([(uu - cx) * rx, (vv - cy) * ry, xp.ones_like(uu)], -1)
         return xp.zeros_like(d), d
 
     def pixel_size_at(self, depth):
@@ -259,10 +282,14 @@ class OrthographicCamera(_Camera):
         for name in ("cx", "cy"):
             object.__setattr__(self, name, _check_finite(name, getattr(self, name)))
 
-    def _rays(self, uu, vv):
+    def ray_params(self):
+        return np.array([self.cx, self.cy, self.pixel_size, 0.0], np.float32)
+
+    @staticmethod
+    def _rays_of(params, uu, vv):
         uu, xp = _array(uu)
-        s = self.pixel_size
-        o = xp.stack([(uu - self.cx) * s, (vv - self.cy) * s, xp.zeros_like(uu)], -1)
+        cx, cy, s = (params[i] for i in range(3))
+        o = xp.stack([(uu - cx) * s, (vv - cy) * s, xp.zeros_like(uu)], -1)
         d = xp.broadcast_to(xp.asarray([0.0, 0.0, 1.0], xp.float32), o.shape)
         return o, d
 
@@ -323,10 +350,15 @@ class ScannerCamera(_Camera):
                 f"{np.degrees(half_el):.1f} degrees, expected a field of view under 180 degrees"
             )
 
-    def _rays(self, uu, vv):
+    def ray_params(self):
+        return np.array([self.cx, self.cy, self.azimuth_step, self.elevation_step], np.float32)
+
+    @staticmethod
+    def _rays_of(params, uu, vv):
         uu, xp = _array(uu)
-        az = (uu - self.cx) * self.azimuth_step
-        el = (vv - self.cy) * self.elevation_step
+        cx, cy, az_step, el_step = (params[i] for i in range(4))
+        az = (uu - cx) * az_step
+        el = (vv - cy) * el_step
         d = xp.stack([xp.sin(az) * xp.cos(el), xp.sin(el), xp.cos(az) * xp.cos(el)], -1)
         return xp.zeros_like(d), d
 
@@ -459,25 +491,56 @@ def _camera_of_model(model: str, data: dict) -> Camera:
     )
 
 
-# --- compiled rays of a camera, shared by images of other sizes --------------------------
+# --- a camera and an image as compiled programs take them ------------------------------
+
+
+@functools.partial(jax.tree_util.register_dataclass, data_fields=["params"], meta_fields=["model"])
+@dataclasses.dataclass(frozen=True)
+class CompiledCamera:
+    """A camera as the compiled stages take it: its model (the class) is part of the
+    program, its intrinsics (``params``, :meth:`~PinholeCamera.ray_params`) are an
+    argument, and its image size plays no part. So every camera of one model, whatever
+    its intrinsics and image size, shares the programs; the rays are the camera's bit for
+    bit (the same float32 arithmetic on the same float32 numbers)."""
+
+    model: type
+    params: Float[Array, "4"] | np.ndarray
+
+    def rays(self, window, *, stride=1) -> tuple[Float[Array, "h w 3"], Float[Array, "h w 3"]]:
+        """:meth:`PinholeCamera.rays` of ``window`` (row0, col0, rows, cols; ``rows`` and
+        ``cols`` Python ints, the rest may be traced)."""
+        uu, vv = _pixel_grid(window, jnp, stride)
+        return self.model._rays_of(self.params, uu, vv)
+
 
 IMAGE_BUCKET = 32
-"""Compiled programs see images padded to a multiple of this many rows and columns (and
-the camera of the padded image, :func:`bucket_camera`), so images of other sizes with
-the same intrinsics share them."""
-
-
-def image_bucket(n: int) -> int:
-    return -(-int(n) // IMAGE_BUCKET) * IMAGE_BUCKET
+"""Rows and columns of the image a part's tiles are laid out in
+(:func:`~sqparts._encoding.render_layers`) are a multiple of this (:func:`bucket_camera`)."""
 
 
 def bucket_camera(camera: Camera) -> Camera:
-    """``camera`` for an image padded at the bottom and right to a multiple of
-    ``IMAGE_BUCKET`` pixels: a pixel's ray does not depend on the image size, so the
-    compiled stages, which take the camera as a static argument, are shared by images
-    of other sizes whose rays agree (a crop's camera keeps its cx, cy only if the crop
-    starts at the top left)."""
-    return dataclasses.replace(camera, width=image_bucket(camera.width), height=image_bucket(camera.height))
+    """``camera`` for its image padded at the bottom and right to a multiple of
+    ``IMAGE_BUCKET`` pixels: the same rays at every pixel of the image."""
+
+    def up(n):
+        return -(-int(n) // IMAGE_BUCKET) * IMAGE_BUCKET
+
+    return dataclasses.replace(camera, width=up(camera.width), height=up(camera.height))
+
+
+IMAGE_SIDE = 320
+"""Rows and columns of the smallest array the compiled stages see an image in
+(:func:`image_bucket`): every image :func:`~sqparts.recover_scene` bins to about 160
+pixels (:func:`~sqparts._preprocess.auto_factor`) fits it."""
+
+
+def image_bucket(n: int) -> int:
+    """Rows (or columns) of the array an image of ``n`` rows (columns) is padded into, at
+    the bottom (right), for the compiled stages: :data:`IMAGE_SIDE` times the least power
+    of two that holds it. Their programs take the image's array, so images of any size
+    up to 320 x 320 share them; a search computes on windows of it, so the padding costs
+    no work."""
+    return IMAGE_SIDE << (-(-int(n) // IMAGE_SIDE) - 1).bit_length()
 
 
 def camera_rays(camera: _Camera) -> tuple[np.ndarray, np.ndarray]:

@@ -10,18 +10,20 @@ import math
 import jax
 import numpy as np
 
-from ._camera import Camera, bucket_camera, check_range_image, image_bucket
+from ._camera import Camera, CompiledCamera, check_range_image, image_bucket
 from ._encoding import Encoding, encoding_for
 
 
 @dataclasses.dataclass(frozen=True)
 class RangeData:
     """A range image prepared for search: NaN-padded depth and figure mask, camera and
-    encoding. Only its arrays enter compiled code (σ and λ as runtime scalars), so a new
-    image never triggers a recompile."""
+    encoding. Only its arrays (padded to :func:`~sqparts._camera.image_bucket` sizes), σ
+    and λ (runtime scalars) and the camera's intrinsics (:class:`CompiledCamera`) enter
+    compiled code, so a new image of a size, camera and window seen before compiles
+    nothing."""
 
     depth: jax.Array  # (Hb + 2 pad, Wb + 2 pad) float32, NaN = no return; Hb, Wb: H, W
-    figure: jax.Array  # same shape, bool        # rounded up to IMAGE_BUCKET (NaN, False)
+    figure: jax.Array  # same shape, bool        # rounded up by image_bucket (NaN, False)
     pad: int
     camera: Camera
     encoding: Encoding
@@ -33,9 +35,9 @@ class RangeData:
         return (self.depth, self.figure, np.float32(enc.sigma), np.float32(enc.commission_weight))
 
     @property
-    def compiled_camera(self) -> Camera:
-        """The camera the compiled stages see (:func:`bucket_camera`)."""
-        return bucket_camera(self.camera)
+    def compiled_camera(self) -> CompiledCamera:
+        """The camera the compiled stages see: its model and intrinsics, not its image size."""
+        return self.camera.compiled()
 
     @property
     def image(self) -> np.ndarray:

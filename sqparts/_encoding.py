@@ -365,10 +365,11 @@ TILE_BATCH = 64
 """Tiles per compiled call of :func:`render_layers` (64 tiles: 16 384 rays)."""
 
 
-@persistent_jit(static_argnames=("camera", "newton_steps"))
+@persistent_jit(static_argnames=("newton_steps",))
 def _render_tiles(parts, corners, camera, newton_steps=DEFAULT_NEWTON_STEPS):
     """Part i rendered in the ``TILE`` x ``TILE`` tile of the image whose top left pixel
-    is ``corners[i]`` (row, col): the same rays as those pixels of the whole image."""
+    is ``corners[i]`` (row, col): the same rays as those pixels of the whole image
+    (``camera`` a :class:`~sqparts._camera.CompiledCamera`)."""
 
     def one(part, corner):
         o, d = camera.rays((corner[0], corner[1], TILE, TILE))
@@ -467,10 +468,11 @@ def _rendered_tiles(v: np.ndarray, owner: np.ndarray, count: int, camera, big) -
     corners = pad_rows(np.stack([row, col], 1).astype(np.int32) * TILE, m)
     rows_t, cols_t = big.height // TILE, big.width // TILE
     tiles = np.empty((m, TILE, TILE), np.float32)
+    compiled = camera.compiled()
 
     def batch(j):
         b = slice(j, j + TILE_BATCH)
-        tiles[b] = np.asarray(_render_tiles(parts_of_tiles[b], corners[b], big))
+        tiles[b] = np.asarray(_render_tiles(parts_of_tiles[b], corners[b], compiled))
 
     concurrently(batch, range(0, m, TILE_BATCH))
     tiles = tiles[: len(part)]  # the rest is padding

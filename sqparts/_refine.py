@@ -511,7 +511,7 @@ _CROP = 32
 _RANDOM_TRIALS = 35
 
 
-@persistent_jit(static_argnames=("camera",))
+@persistent_jit
 def _crop_trials(start, u, first, steps, seed, step, corner, rest, measured, figure, sigma, camera):
     """The part with unconstrained vector ``u`` (when ``first``: that of the 14-vector
     ``start``, converted here rather than in a program of its own) and 63 neighbours (each

@@ -337,10 +337,9 @@ def _as_scene(parts) -> Part:
     return parts
 
 
-@functools.partial(jax.jit, static_argnames=("camera", "window_shape", "newton_steps"))
+@functools.partial(jax.jit, static_argnames=("window_shape", "newton_steps"))
 def _render_scene(parts, camera, corner, window_shape, newton_steps):
-    window = None if window_shape is None else (corner[0], corner[1], *window_shape)
-    origins, directions = camera.rays(window)
+    origins, directions = camera.rays((corner[0], corner[1], *window_shape))
     t, hit, index = cast_scene(parts, origins, directions, newton_steps)
     return jnp.where(hit, t, jnp.nan).astype(jnp.float32), index
 
@@ -374,7 +373,7 @@ def render_range_image(
     newton_steps = _check_newton_steps(newton_steps)
     scene = _as_scene(parts)
     if window is None:
-        corner, shape = jnp.zeros(2, jnp.float32), None
+        corner, shape = np.zeros(2, np.float32), (camera.height, camera.width)
     else:
         corner, shape = _check_window(window)
         row0, col0 = (int(v) for v in window[:2])
@@ -383,13 +382,13 @@ def render_range_image(
                 f"window: got {tuple(int(v) for v in window)}, expected (row0, col0, rows, cols) inside the "
                 f"{camera.width}x{camera.height} image (camera.cropped's rule)"
             )
-    depth, labels = _render_scene(scene, camera, corner, shape, newton_steps)
+    depth, labels = _render_scene(scene, camera.compiled(), corner, shape, newton_steps)
     return (depth, labels.astype(jnp.int32)) if return_labels else depth
 
 
-@functools.partial(jax.jit, static_argnames=("camera", "batch_size", "newton_steps"))
-def _render_batch(parts, camera, batch_size, newton_steps):
-    origins, directions = camera.rays()
+@functools.partial(jax.jit, static_argnames=("shape", "batch_size", "newton_steps"))
+def _render_batch(parts, camera, shape, batch_size, newton_steps):
+    origins, directions = camera.rays((0, 0, *shape))
     t, hit = cast_batch(parts, origins, directions, batch_size=batch_size, newton_steps=newton_steps)
     return jnp.where(hit, t, jnp.nan).astype(jnp.float32)
 
@@ -407,7 +406,7 @@ def render_each(
     scene = _as_scene(parts)
     if not isinstance(batch_size, int) or batch_size <= 0:
         raise ValueError(f"batch_size: got {batch_size!r}, expected a positive integer")
-    return _render_batch(scene, camera, batch_size, newton_steps)
+    return _render_batch(scene, camera.compiled(), (camera.height, camera.width), batch_size, newton_steps)
 
 
 def depth_to_numpy(depth) -> np.ndarray:

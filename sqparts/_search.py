@@ -462,7 +462,7 @@ def _map_regions(fn, region, starts, replicated, out_shape):
     )(starts, region, *replicated)
 
 
-@persistent_jit(static_argnames=("camera", "pad", "lattices", "batches", "newton_steps"))
+@persistent_jit(static_argnames=("pad", "lattices", "batches", "newton_steps"))
 def _score_hypotheses(
     arrays,
     table,
@@ -812,7 +812,7 @@ def _restart_starts(part: Part, levels: int) -> Part:
     return host_parts(np.concatenate(starts))
 
 
-@persistent_jit(static_argnames=("camera", "pad", "frame", "newton_steps"))
+@persistent_jit(static_argnames=("pad", "frame", "newton_steps"))
 def _score_candidates(
     arrays,
     vectors,

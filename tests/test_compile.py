@@ -278,12 +278,14 @@ TRACED_BOUND, EXPORTED_BOUND = 10, 6
 KW = dict(search=sqparts.SearchSettings(max_size=0.14, window=48), refine=sqparts.RefineSettings(rounds=1))
 
 
+ONE_PART = sqparts.Part(
+    size=[0.05, 0.07, 0.11], squareness=[0.6, 1.0], position=[0.0, 0.0, 1.2], orientation=[0.3, 0.2, 0.0]
+)
+
+
 @pytest.fixture(scope="module")
 def one_part():
-    part = sqparts.Part(
-        size=[0.05, 0.07, 0.11], squareness=[0.6, 1.0], position=[0.0, 0.0, 1.2], orientation=[0.3, 0.2, 0.0]
-    )
-    return np.asarray(sqparts.render_range_image(part, CAM))
+    return np.asarray(sqparts.render_range_image(ONE_PART, CAM))
 
 
 def test_recovery_programs_bounded_and_shared_within_a_bucket(one_part):
@@ -300,6 +302,17 @@ def test_recovery_programs_bounded_and_shared_within_a_bucket(one_part):
         rec2 = sqparts.recover(cropped, cam, **KW)
     assert second["n"] == 0
     np.testing.assert_allclose(rec2.parts.to_vector(), rec.parts.to_vector(), rtol=1e-4, atol=1e-5)
+    # Another camera (focal lengths, principal point, image size): its intrinsics are
+    # an argument of the programs, not part of them, so it builds none either, and the
+    # part comes back as it is.
+    other = sqparts.PinholeCamera(64, 56, 204.0, 196.0, 30.2, 27.9)
+    seen = np.asarray(sqparts.render_range_image(ONE_PART, other))
+    with count_programs() as third:
+        rec3 = sqparts.recover(seen, other, **KW)
+    assert third["n"] == 0
+    assert len(rec3.parts) == 1
+    np.testing.assert_allclose(np.sort(np.asarray(rec3.parts.size).ravel()), np.sort(ONE_PART.size), rtol=0.1)
+    np.testing.assert_allclose(np.asarray(rec3.parts.position).ravel(), ONE_PART.position, atol=0.01)
 
 
 def test_a_scenes_figures_share_the_programs_of_one():
@@ -372,6 +385,12 @@ def test_host_rays_and_points_compile_nothing_and_agree_with_the_compiled_rays(c
         points = camera.points(depth)
     assert host["n"] == 0
     traced = [np.asarray(a) for a in jax.jit(lambda: camera.rays())()]
+    # As the compiled stages take it: the intrinsics an argument, the same rays.
+    window = (0, 0, camera.height, camera.width)
+    compiled = camera.compiled()
+    argument = [np.asarray(a) for a in jax.jit(lambda c: c.rays(window))(compiled)]
+    for got, want in zip(argument, traced):
+        np.testing.assert_array_equal(got, want)
     assert origins.dtype == directions.dtype == np.float32 and points.dtype == np.float64
     exact = not isinstance(camera, sqparts.ScannerCamera)
     for got, want in zip((origins, directions), traced):
