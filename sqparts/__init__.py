@@ -107,6 +107,7 @@ _EXPORTS = {
         "select_tabu",
     ),
     "_refine": (
+        "AbsorbParts",
         "DropParts",
         "FillGaps",
         "GrowParts",

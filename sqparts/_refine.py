@@ -442,6 +442,59 @@ class DropParts(Move):
         return [[Edit((int(i),)) for i in which]]
 
 
+@dataclasses.dataclass(frozen=True, kw_only=True)
+class AbsorbParts(Move):
+    """A part dropped while the parts beside it grow over its pixels (``rounds`` rounds
+    of region growing, ``grow`` pixels and ``steps`` solver steps each,
+    :func:`_grow_inputs`), tried for the ``tries`` parts that explain fewest pixels: a
+    member that the search cut in two, its piece taken back by the rest of it (the end
+    of a bar, the corner of an L), where dropping the piece alone would leave its pixels
+    unexplained."""
+
+    name: ClassVar[str] = "absorb"
+    passes: int = MAX_PASSES
+    tries: int = 3
+    rounds: int = 3
+    grow: int = 4
+    steps: int = 20
+
+    def propose(self, vectors, cost, data, costs, step):
+        n = len(vectors)
+        if n <= 1:
+            return [[]]
+        own = np.array([(cost.labels == i)[cost.explained_mask].sum() for i in range(n)])
+        adjacent = _adjacent_parts(cost.labels, n)
+        trials = []
+        for i in [int(i) for i in np.argsort(own, kind="stable")[: self.tries] if adjacent[i].any()]:
+            beside = tuple(int(j) for j in np.flatnonzero(adjacent[i]))
+            trials.append(Edit((i, *beside), vectors[list(beside)]))
+        for _ in range(self.rounds if trials else 0):
+            scores = edit_costs(cost, trials := render_edits(trials, data.camera), data, costs)
+            inputs = [
+                _grow_inputs(
+                    host_parts(e.apply(vectors, e.add)),
+                    data,
+                    c,
+                    np.arange(n - len(e.remove), n - len(e.remove) + len(e.add)),  # the grown parts come last
+                    grow=self.grow,
+                )
+                for e, c in zip(trials, scores)
+            ]
+            new = np.split(_grow(data, inputs, steps=self.steps), np.cumsum([len(e.add) for e in trials])[:-1])
+            trials = [Edit(e.remove, v) for e, v in zip(trials, new)]
+        return [trials]
+
+
+def _adjacent_parts(labels: np.ndarray, n: int) -> np.ndarray:
+    """(n, n) bool: parts whose visible pixels (``labels``, -1 = none) lie within two
+    pixels of each other's."""
+    from scipy.ndimage import binary_dilation
+
+    grown = [binary_dilation(labels == i, iterations=2) for i in range(n)]
+    adjacent = np.array([[i != j and (grown[i] & (labels == j)).any() for j in range(n)] for i in range(n)])
+    return adjacent | adjacent.T
+
+
 def _coordinate_neighbours(vectors: np.ndarray, pixels: np.ndarray, scale: float) -> np.ndarray:
     """Each of the parts ``vectors`` (n, 14) with one parameter a step up and a step down
     (at ``scale`` times): the position a pixel (``pixels``, (n,): a pixel's width at each
@@ -818,16 +871,14 @@ class MergeParts(Move):
     tries: int = 3
 
     def propose(self, vectors, cost, data, costs, step):
-        from scipy.ndimage import binary_dilation, distance_transform_edt
+        from scipy.ndimage import distance_transform_edt
 
         n = len(vectors)
         if n == 0:
             return [[]]
         pts, idx = figure_points(data)
         rays, ray_index = background_rays(data)
-        grown = [binary_dilation(cost.labels == i, iterations=2) for i in range(n)]
-        adjacent = np.array([[i != j and (grown[i] & (cost.labels == j)).any() for j in range(n)] for i in range(n)])
-        adjacent |= adjacent.T
+        adjacent = _adjacent_parts(cost.labels, n)
         inits, weights, ray_weights, members = [], [], [], []
         # Each figure pixel no part explains goes to the part whose visible pixels are
         # nearest: the pixels a part (or a group) summarising its parts answers for.
@@ -1004,10 +1055,12 @@ class RefineSettings:
     (:class:`SplitParts`), ``fill`` (:class:`FillGaps`: the blobs still unexplained
     searched again at their own scale, for small parts: hands, feet), dropping parts that
     do not pay (:class:`DropParts`), ``merge`` (:class:`MergeParts`, each merge
-    followed by growing and dropping again, until merging no longer lowers E), and
-    last the paper's final optimisation of every parameter on E itself
-    (:class:`SettleParts`, once per step scale in ``settle``, :data:`SETTLE_SCALES` by
-    default; () = none), each kept only when E falls. ``RefineSettings.none()``: no
+    followed by growing and dropping again, until merging no longer lowers E), the
+    paper's final optimisation of every parameter on E itself (:class:`SettleParts`,
+    once per step scale in ``settle``, :data:`SETTLE_SCALES` by default; () = none), and
+    last ``absorb`` (:class:`AbsorbParts`: a small part dropped while its neighbours grow
+    over its pixels; the settling again if that lowered E), each kept only when E falls:
+    absorbing last, after settling, can only shorten the description the rest gives. ``RefineSettings.none()``: no
     refinement."""
 
     rounds: int = 2
@@ -1015,6 +1068,7 @@ class RefineSettings:
     split: bool = True
     fill: bool = True
     merge: bool = True
+    absorb: bool = True
     settle: tuple[float, ...] = SETTLE_SCALES
 
     def __post_init__(self):
@@ -1023,7 +1077,7 @@ class RefineSettings:
             raise ValueError(f"rounds: got {r!r}, expected an integer in [0, {MAX_REFINE_ROUNDS}]")
         if isinstance(self.steps, bool) or not isinstance(self.steps, (int, np.integer)) or not 1 <= self.steps <= 1000:
             raise ValueError(f"steps: got {self.steps!r}, expected an integer in [1, 1000]")
-        for name in ("split", "fill", "merge"):
+        for name in ("split", "fill", "merge", "absorb"):
             if not isinstance(getattr(self, name), bool):
                 raise ValueError(f"{name}: got {getattr(self, name)!r}, expected True or False")
         scales = self.settle
@@ -1035,11 +1089,11 @@ class RefineSettings:
 
     @classmethod
     def none(cls) -> RefineSettings:
-        return cls(rounds=0, split=False, fill=False, merge=False, settle=())
+        return cls(rounds=0, split=False, fill=False, merge=False, absorb=False, settle=())
 
     @property
     def active(self) -> bool:
-        return self.rounds > 0 or self.split or self.fill or self.merge or bool(self.settle)
+        return self.rounds > 0 or self.split or self.fill or self.merge or self.absorb or bool(self.settle)
 
     def moves(self, search=None) -> tuple:
         """The moves these settings ask for, in order; ``search`` (the first search's
@@ -1053,7 +1107,10 @@ class RefineSettings:
         if self.merge:
             again = (GrowParts(passes=MERGE_POLISH_ROUNDS, steps=self.steps), DropParts())
             moves.append(OnGain(MergeParts(passes=1, steps=self.steps), then=again, repeat=MAX_PASSES))
-        moves.extend(SettleParts(scale=s) for s in self.settle)
+        settle = tuple(SettleParts(scale=s) for s in self.settle)
+        moves.extend(settle)
+        if self.absorb:  # last: it only ever shortens the settled description
+            moves.append(OnGain(AbsorbParts(steps=self.steps), then=settle))
         return tuple(moves)
 
     def refine(self, parts: Part, data: RangeData, costs: Costs, search=None):

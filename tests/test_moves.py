@@ -71,6 +71,29 @@ def test_drop_parts_alone_drops_the_stray_part(image):
     assert cost.total == _cost(TRUTH, data, costs).total
 
 
+def test_absorb_parts_alone_gives_a_cut_members_piece_back():
+    # A bar the search cut in two (the bar shortened, its end a part of its own): dropping
+    # the piece alone (DropParts) loses its pixels; dropping it while the bar grows over
+    # them gives the bar back whole, the truth's E.
+    bar = sqparts.Part(
+        size=[0.04, 0.04, 0.15], squareness=[0.3, 1.0], position=[0.0, 0.0, 2.0], orientation=[0.0, np.pi / 2, 0.0]
+    )
+    data = sqparts.prepare(np.asarray(sqparts.render_range_image(bar, CAM)), CAM)
+    costs = sqparts.Costs.from_encoding(data.encoding, int(data.figure_mask.sum()))
+    truth = part_vectors(bar)
+    cut, piece = truth.copy(), truth.copy()
+    cut[0, [0, 8]] = [-0.03, 0.12]  # from -0.15 to 0.09 along x
+    piece[0, [0, 8]] = [0.12, 0.03]  # from 0.09 to 0.15
+    start = sqparts.Part.from_vector(np.concatenate([cut, piece]))
+    exact = _cost(truth, data, costs).total
+    _, alone, _ = sqparts.refine_moves(start, data, costs, [sqparts.DropParts()])
+    assert alone.total > exact + 100
+    parts, cost, history = sqparts.refine_moves(start, data, costs, [sqparts.AbsorbParts()])
+    assert [s for s, _ in history] == ["initial", "absorb"] and len(parts.size) == 1
+    assert cost.total == pytest.approx(exact, abs=1.0)
+    np.testing.assert_allclose(part_vectors(parts)[0, [0, 8]], [0.0, 0.15], atol=0.003)
+
+
 def test_grow_parts_alone_pulls_shifted_parts_back(image):
     data, costs = image
     start = TRUTH + SHIFT / 4
@@ -198,9 +221,11 @@ def test_move_settings_are_checked():
     with pytest.raises(ValueError, match=r"repeat: got 0, expected an integer in \[1, 1000\]"):
         sqparts.OnGain(sqparts.DropParts(), repeat=0)
     moves = sqparts.RefineSettings(rounds=2, split=False, fill=True, merge=True).moves(search=None)
-    assert [type(m).__name__ for m in moves] == ["GrowParts", "DropParts", "OnGain"] + ["SettleParts"] * 3
-    assert [m.scale for m in moves[-3:]] == [1.0, 0.5, 0.25]  # the steps halved, twice
-    scales = sqparts.RefineSettings(settle=[1, 0.5]).moves(search=None)[-2:]
+    assert [type(m).__name__ for m in moves] == ["GrowParts", "DropParts", "OnGain"] + ["SettleParts"] * 3 + ["OnGain"]
+    assert [m.scale for m in moves[-4:-1]] == [1.0, 0.5, 0.25]  # the steps halved, twice
+    assert type(moves[-1].move).__name__ == "AbsorbParts" and moves[-1].then == moves[-4:-1]  # settled again
+    assert [type(m).__name__ for m in sqparts.RefineSettings(absorb=False).moves(search=None)][-1] == "SettleParts"
+    scales = sqparts.RefineSettings(settle=[1, 0.5], absorb=False).moves(search=None)[-2:]
     assert [type(m).__name__ for m in scales] == ["SettleParts"] * 2 and [m.scale for m in scales] == [1.0, 0.5]
     assert not sqparts.RefineSettings.none().active and sqparts.RefineSettings.none().settle == ()
     assert sqparts.RefineSettings(settle=[1, np.float32(0.5)]).settle == (1.0, 0.5)
