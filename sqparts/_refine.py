@@ -33,7 +33,10 @@ E. The moves, in :meth:`RefineSettings.moves`'s order:
   again, drops those the merge made redundant, and merges again, until merging no
   longer lowers E: the descent runs to its fixed point;
 - :class:`SettleParts`: the paper's final optimisation (section 3.5): each part's
-  parameters stepped one at a time, all parts rendered together, a step kept if E falls.
+  parameters stepped one at a time, all parts rendered together, a step kept if E falls;
+- :class:`AbsorbParts`: a small part dropped while the parts beside it grow over its
+  pixels (a bar the search cut in two at a joint taken back whole), then settled again:
+  last, so that it can only shorten the description the other moves give.
 """
 
 from __future__ import annotations
