@@ -495,7 +495,7 @@ def _camera_of_model(model: str, data: dict) -> Camera:
 
 
 @functools.partial(jax.tree_util.register_dataclass, data_fields=["params"], meta_fields=["model"])
-@dataclasses.dataclass(frozen=True)
+@dataclasses.dataclass(frozen=True, eq=False)  # its params an array: compared by identity
 class CompiledCamera:
     """A camera as the compiled stages take it: its model (the class) is part of the
     program, its intrinsics (``params``, :meth:`~PinholeCamera.ray_params`) are an
@@ -530,17 +530,18 @@ def bucket_camera(camera: Camera) -> Camera:
 
 IMAGE_SIDE = 320
 """Rows and columns of the smallest array the compiled stages see an image in
-(:func:`image_bucket`): every image :func:`~sqparts.recover_scene` bins to about 160
-pixels (:func:`~sqparts._preprocess.auto_factor`) fits it."""
+(:func:`image_bucket`): an image :func:`~sqparts.recover_scene` bins to its default
+resolution (a longest side of 160-319 pixels, :func:`~sqparts._preprocess.auto_factor`)
+fits it."""
 
 
 def image_bucket(n: int) -> int:
     """Rows (or columns) of the array an image of ``n`` rows (columns) is padded into, at
-    the bottom (right), for the compiled stages: :data:`IMAGE_SIDE` times the least power
-    of two that holds it. Their programs take the image's array, so images of any size
-    up to 320 x 320 share them; a search computes on windows of it, so the padding costs
-    no work."""
-    return IMAGE_SIDE << (-(-int(n) // IMAGE_SIDE) - 1).bit_length()
+    the bottom (right), for the compiled stages: the least multiple of
+    :data:`IMAGE_SIDE` that holds it. Their programs take the image's array, so images
+    of any size up to 320 x 320 share them; a search computes on windows of it, so the
+    padding costs no work."""
+    return IMAGE_SIDE * max(1, -(-int(n) // IMAGE_SIDE))
 
 
 def camera_rays(camera: _Camera) -> tuple[np.ndarray, np.ndarray]:

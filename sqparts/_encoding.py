@@ -437,7 +437,7 @@ def render_layers(vectors, camera) -> np.ndarray:
     def render(todo):
         return _rendered_tiles(vectors[todo], np.arange(len(todo)), len(todo), camera, big)
 
-    return _LAYERS.rows([RowMemo.key(big, v) for v in vectors], out, render)
+    return _LAYERS.rows([RowMemo.key(camera, v) for v in vectors], out, render)
 
 
 def render_nearest(vectors, owner, count: int, camera) -> np.ndarray:

@@ -1030,6 +1030,7 @@ def refine_parts(
     split: bool = True,
     merge: bool = True,
     settle: tuple[float, ...] = SETTLE_SCALES,
+    absorb: bool = True,
     search=None,
 ):
     """Joint refinement with :class:`RefineSettings`' moves: ``rounds`` passes of
@@ -1038,10 +1039,11 @@ def refine_parts(
     :class:`~sqparts.SearchSettings`, is given), :class:`DropParts` and
     :class:`MergeParts` (when ``merge``; then growing and dropping again if a merge was
     made, and merging again, until a merge no longer lowers E), then :class:`SettleParts`
-    once per step scale in ``settle`` (() = none). Returns (parts, final cost, history of
-    E after each stage)."""
+    once per step scale in ``settle`` (() = none), then :class:`AbsorbParts` (when
+    ``absorb``; settled again if it lowered E). Returns (parts, final cost, history of E
+    after each stage)."""
     settings = RefineSettings(
-        rounds=rounds, steps=steps, split=split, fill=search is not None, merge=merge, settle=settle
+        rounds=rounds, steps=steps, split=split, fill=search is not None, merge=merge, settle=settle, absorb=absorb
     )
     return refine_moves(parts, data, costs, settings.moves(search))
 
@@ -1071,8 +1073,8 @@ class RefineSettings:
     split: bool = True
     fill: bool = True
     merge: bool = True
-    absorb: bool = True
     settle: tuple[float, ...] = SETTLE_SCALES
+    absorb: bool = True
 
     def __post_init__(self):
         r = self.rounds
@@ -1092,7 +1094,7 @@ class RefineSettings:
 
     @classmethod
     def none(cls) -> RefineSettings:
-        return cls(rounds=0, split=False, fill=False, merge=False, absorb=False, settle=())
+        return cls(rounds=0, split=False, fill=False, merge=False, settle=(), absorb=False)
 
     @property
     def active(self) -> bool:

@@ -294,7 +294,7 @@ def test_recovery_programs_bounded_and_shared_within_a_bucket(one_part):
     assert len(rec.parts) >= 1
     assert first["n"] <= TRACED_BOUND
     # The same view cropped at the bottom right: another image size, the same rays, the
-    # same bucket (48 and 40 x 44 both round up to 64).
+    # same bucket (48 and 40 x 44 both pad to 320).
     cropped = one_part[:40, :44]
     cam = sqparts.PinholeCamera(44, 40, 180.0, 180.0, 23.5, 23.5)
     assert np.isfinite(cropped).sum() == np.isfinite(one_part).sum()  # the part is all in view
