@@ -114,6 +114,25 @@ def _grow_inputs(parts: Part, data: RangeData, cost: EncodingCost, which, *, tol
     return vec, np.stack(weights), np.stack(ray_weights)
 
 
+def _grown_edits(edits, vectors, cost: EncodingCost, data: RangeData, costs: Costs, *, rounds, steps, grow=2):
+    """``edits`` of the parts with (n, 14) ``vectors`` and joint cost ``cost`` (none in
+    place: each one's new parts come after the others) with their new parts grown over
+    the image as each edit leaves it: ``rounds`` rounds of region growing
+    (:func:`_grow_inputs`, ``grow`` pixels; :func:`_grow`, ``steps`` solver steps), all
+    edits' parts in one batch a round."""
+    for _ in range(rounds if edits else 0):
+        scores = edit_costs(cost, edits := render_edits(edits, data.camera), data, costs)
+        inputs = []
+        for e, c in zip(edits, scores):
+            m = len(vectors) - len(e.remove) + len(e.add)  # parts after the edit, its new ones last
+            inputs.append(
+                _grow_inputs(host_parts(e.apply(vectors, e.add)), data, c, np.arange(m - len(e.add), m), grow=grow)
+            )
+        new = np.split(_grow(data, inputs, steps=steps), np.cumsum([len(e.add) for e in edits])[:-1])
+        edits = [Edit(e.remove, v) for e, v in zip(edits, new)]
+    return edits
+
+
 def _grow(data: RangeData, inputs, *, steps: int) -> np.ndarray:
     """Fit every part of a list of :func:`_grow_inputs` results in one batch; returns
     their (Σk, 14) fitted vectors."""
@@ -232,16 +251,7 @@ class SplitParts(Move):
             halves[:, 8] = v[8] / 2
             halves[:, 11:14] = 0.0
             trials.append(Edit((i,), halves))
-        n = len(vectors) + 1  # the halves are the last two parts of a trial
-        for _ in range(self.rounds if trials else 0):
-            scores = edit_costs(cost, trials := render_edits(trials, data.camera), data, costs)
-            inputs = [
-                _grow_inputs(host_parts(e.apply(vectors, e.add)), data, c, [n - 2, n - 1])
-                for e, c in zip(trials, scores)
-            ]
-            new = _grow(data, inputs, steps=self.steps)
-            trials = [Edit(e.remove, new[2 * k : 2 * k + 2]) for k, e in enumerate(trials)]
-        return [trials]
+        return [_grown_edits(trials, vectors, cost, data, costs, rounds=self.rounds, steps=self.steps)]
 
 
 def omitted_blobs(omitted: np.ndarray) -> tuple[np.ndarray, int]:
@@ -471,21 +481,7 @@ class AbsorbParts(Move):
         for i in [int(i) for i in np.argsort(own, kind="stable")[: self.tries] if adjacent[i].any()]:
             beside = tuple(int(j) for j in np.flatnonzero(adjacent[i]))
             trials.append(Edit((i, *beside), vectors[list(beside)]))
-        for _ in range(self.rounds if trials else 0):
-            scores = edit_costs(cost, trials := render_edits(trials, data.camera), data, costs)
-            inputs = [
-                _grow_inputs(
-                    host_parts(e.apply(vectors, e.add)),
-                    data,
-                    c,
-                    np.arange(n - len(e.remove), n - len(e.remove) + len(e.add)),  # the grown parts come last
-                    grow=self.grow,
-                )
-                for e, c in zip(trials, scores)
-            ]
-            new = np.split(_grow(data, inputs, steps=self.steps), np.cumsum([len(e.add) for e in trials])[:-1])
-            trials = [Edit(e.remove, v) for e, v in zip(trials, new)]
-        return [trials]
+        return [_grown_edits(trials, vectors, cost, data, costs, rounds=self.rounds, steps=self.steps, grow=self.grow)]
 
 
 def _adjacent_parts(labels: np.ndarray, n: int) -> np.ndarray:
