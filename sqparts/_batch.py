@@ -531,7 +531,7 @@ def run_batch(plan: BatchPlan, *, client=None, progress: bool = False):
         total=len(plan.tasks),
         desc="inputs",
         unit="input",
-        disable=not progress or not plan.tasks,
+        disable=True if not progress or not plan.tasks else None,  # None: on a terminal only
         leave=False,
         dynamic_ncols=True,
     )

@@ -219,7 +219,8 @@ def _progress(args, desc: str, unit: str):
         return None
     from tqdm import tqdm
 
-    return lambda it: tqdm(it, desc=desc, unit=unit, leave=False)
+    # On a terminal only (disable=None): a log file gets no carriage-return frames.
+    return lambda it: tqdm(it, desc=desc, unit=unit, leave=False, disable=None)
 
 
 def _is_batch(args) -> bool:
