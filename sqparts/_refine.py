@@ -447,7 +447,7 @@ class DropParts(Move):
         n = len(vectors)
         if n <= 1:
             return [[]]
-        own = np.array([(cost.labels == i)[cost.explained_mask].sum() for i in range(n)])
+        own = _explained_by_each(cost, n)
         gain = own * (costs.omission - costs.explained)
         which = np.flatnonzero(gain < 2 * costs.part + costs.commission * cost.commission)
         if len(which) == n:  # one part stays: the one that explains most
@@ -475,13 +475,18 @@ class AbsorbParts(Move):
         n = len(vectors)
         if n <= 1:
             return [[]]
-        own = np.array([(cost.labels == i)[cost.explained_mask].sum() for i in range(n)])
+        own = _explained_by_each(cost, n)
         adjacent = _adjacent_parts(cost.labels, n)
         trials = []
         for i in [int(i) for i in np.argsort(own, kind="stable")[: self.tries] if adjacent[i].any()]:
             beside = tuple(int(j) for j in np.flatnonzero(adjacent[i]))
             trials.append(Edit((i, *beside), vectors[list(beside)]))
         return [_grown_edits(trials, vectors, cost, data, costs, rounds=self.rounds, steps=self.steps, grow=self.grow)]
+
+
+def _explained_by_each(cost: EncodingCost, n: int) -> np.ndarray:
+    """(n,) explained pixels each of the ``n`` parts of ``cost`` shows."""
+    return np.array([(cost.labels == i)[cost.explained_mask].sum() for i in range(n)])
 
 
 def _adjacent_parts(labels: np.ndarray, n: int) -> np.ndarray:
