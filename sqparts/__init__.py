@@ -117,6 +117,7 @@ _EXPORTS = {
         "RefineSettings",
         "SettleParts",
         "SplitParts",
+        "StraightenParts",
         "accept_edits",
         "refine_moves",
         "refine_parts",

@@ -107,14 +107,16 @@ def _levenberg_marquardt():
     return optx.LevenbergMarquardt(rtol=1e-6, atol=1e-8, linear_solver=lx.Normal(lx.Cholesky()))
 
 
-def polish_part(part: Part, points, weights, *, rays=None, steps: int = 20) -> Part:
+def polish_part(part: Part, points, weights, *, rays=None, steps: int = 20, free=None) -> Part:
     """Levenberg-Marquardt (optimistix) on the weighted radial distances
     (:func:`~sqparts.surface_distance`) of ``points`` from the part's surface.
 
     ``rays`` = (origins, directions, weights[, far]), optional: rays off the figure,
     which the part must miss (up to ``far``, default: the whole ray); each adds its
     weighted penetration (:func:`ray_penetration`) so the part cannot swell past the
-    silhouette while hugging the visible points.
+    silhouette while hugging the visible points. ``free``, optional (14,) bool: the
+    numbers of :meth:`~sqparts.Part.to_vector` the solve may move (default: all); the
+    rest keep the part's values (e.g. bend and taper held at zero: :data:`RIGID`).
     Runs a fixed number of steps and never raises; returns the input if the solve produced
     non-finite values or the weights cover fewer than 8 points.
 
@@ -128,9 +130,10 @@ def polish_part(part: Part, points, weights, *, rays=None, steps: int = 20) -> P
     part = _scaled(part, 1 / unit)
     points = points / unit
     u0 = to_unconstrained(part)
+    free = jnp.ones(u0.shape, bool) if free is None else jnp.asarray(free, bool)
 
     def residuals(u, _):
-        p = from_unconstrained(u)
+        p = from_unconstrained(jnp.where(free, u, u0))
         r = w * jax.vmap(lambda x: surface_distance(p, x))(points)
         if rays is not None:
             o, d, wr, *far = rays
@@ -144,7 +147,7 @@ def polish_part(part: Part, points, weights, *, rays=None, steps: int = 20) -> P
 
     sol = optx.least_squares(residuals, _levenberg_marquardt(), u0, max_steps=steps, throw=False)
     ok = jnp.all(jnp.isfinite(sol.value)) & (jnp.sum(w > 0) >= 8)
-    return _scaled(from_unconstrained(jnp.where(ok, sol.value, u0)), unit)
+    return _scaled(from_unconstrained(jnp.where(ok & free, sol.value, u0)), unit)
 
 
 UNIT_RANGE = (0.125, 64.0)
@@ -183,14 +186,19 @@ rounds of region growing and the refinement's moves take 20 each, so one program
 serves both."""
 
 
+RIGID = np.arange(14) < 11
+"""``free`` for :func:`polish_part` that holds bend and taper (the last three of the
+14 numbers) where they are: a fit without (or with fixed) deformations."""
+
+
 @persistent_jit(static_argnames=("steps",))
-def _polish_bucket(parts, points, weights, origins, directions, ray_weights, steps):
-    def one(p, x, w, o, d, wr):
-        return polish_part(p, x, w, rays=(o, d, wr), steps=steps)
+def _polish_bucket(parts, points, weights, origins, directions, ray_weights, free, steps):
+    def one(p, x, w, o, d, wr, f):
+        return polish_part(p, x, w, rays=(o, d, wr), steps=steps, free=f)
 
     # One part after another (lax.map), not vmap: vmapping optimistix's while loop
     # traces and compiles 2.5x longer (17.9 s against 7.5 s on the CPU) and is no faster.
-    return jax.lax.map(lambda args: one(*args), (parts, points, weights, origins, directions, ray_weights))
+    return jax.lax.map(lambda args: one(*args), (parts, points, weights, origins, directions, ray_weights, free))
 
 
 def _gather(weights: np.ndarray, size: int, seed: int = 0) -> tuple[np.ndarray, np.ndarray]:
@@ -213,10 +221,11 @@ _POLISHED = RowMemo(16 << 20)
 """Polished part vectors by their inputs (see :class:`~sqparts._compile.RowMemo`)."""
 
 
-def polish_parts(parts: Part, points, weights, steps: int, rays, ray_weights) -> Part:
+def polish_parts(parts: Part, points, weights, steps: int, rays, ray_weights, free=None) -> Part:
     """Each part polished on its own points (non-zero ``weights[i]`` over ``points``,
     at most ``_POINTS`` of them) while missing its background rays (non-zero
-    ``ray_weights[i]`` over ``rays`` = (origins, directions), at most ``_RAYS``);
+    ``ray_weights[i]`` over ``rays`` = (origins, directions), at most ``_RAYS``), moving
+    the numbers ``free[i]`` lets it (:func:`polish_part`; (n, 14) or (14,) bool, default all);
     ``PART_BUCKET`` parts and :data:`POLISH_CALL_STEPS` solver steps per compiled call, so
     one compilation serves any number of parts, any image and any ``steps`` (rounded up to
     a multiple of :data:`POLISH_CALL_STEPS`; each call starts the solver afresh from where
@@ -230,17 +239,18 @@ def polish_parts(parts: Part, points, weights, steps: int, rays, ray_weights) ->
     if len(rays[0]) == 0:  # no background in view: nothing to miss
         rays = (np.zeros((1, 3), np.float32), np.array([[0.0, 0.0, 1.0]], np.float32))
     o, d = (np.asarray(a, np.float32)[ri] for a in rays)
+    free = np.broadcast_to(np.ones(14, bool) if free is None else np.asarray(free, bool), (n, 14))
     calls = -(-steps // POLISH_CALL_STEPS)
-    keys = [RowMemo.key(calls, vectors[i], x[i], pw[i], o[i], d[i], rw[i]) for i in range(n)]
+    keys = [RowMemo.key(calls, vectors[i], x[i], pw[i], o[i], d[i], rw[i], free[i]) for i in range(n)]
 
     def polish(todo):
         def bucket(group):
             rows = np.asarray(todo)[group]
             row = pad_vectors(vectors[rows], PART_BUCKET)
-            xs, pws, os_, ds, rws = (pad_rows(a[rows], PART_BUCKET) for a in (x, pw, o, d, rw))
+            xs, pws, os_, ds, rws, fs = (pad_rows(a[rows], PART_BUCKET) for a in (x, pw, o, d, rw, free))
             ds[rws == 0] = (0.0, 0.0, 1.0)  # padding rays stay finite
             for _ in range(calls):  # host arrays in: one program for every call
-                row = part_vectors(_polish_bucket(host_parts(row), xs, pws, os_, ds, rws, steps=POLISH_CALL_STEPS))
+                row = part_vectors(_polish_bucket(host_parts(row), xs, pws, os_, ds, rws, fs, steps=POLISH_CALL_STEPS))
             return row[: len(rows)]
 
         # Each part's fit does not depend on what shares its call: the parts are spread

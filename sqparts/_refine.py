@@ -32,6 +32,9 @@ E. The moves, in :meth:`RefineSettings.moves`'s order:
   moments (a flat box for a laptop seen as patches); :class:`OnGain` then grows the parts
   again, drops those the merge made redundant, and merges again, until merging no
   longer lowers E: the descent runs to its fixed point;
+- :class:`StraightenParts`: each bent or tapered part fitted again with bend and taper
+  held at zero (a noisy surface's least-squares fit buys a little residual with a
+  deformation that moves the part's rim; E may prefer the straight part);
 - :class:`SettleParts`: the paper's final optimisation (section 3.5): each part's
   parameters stepped one at a time, all parts rendered together, a step kept if E falls;
 - :class:`AbsorbParts`: a small part dropped while the parts beside it grow over its
@@ -68,6 +71,7 @@ from ._encoding import (
 )
 from ._part import BEND_RANGE, SQUARENESS_RANGE, TAPER_RANGE, Part, from_unconstrained, to_unconstrained
 from ._polish import (
+    RIGID,
     background_rays,
     figure_points,
     polish_parts,
@@ -114,32 +118,34 @@ def _grow_inputs(parts: Part, data: RangeData, cost: EncodingCost, which, *, tol
     return vec, np.stack(weights), np.stack(ray_weights)
 
 
-def _grown_edits(edits, vectors, cost: EncodingCost, data: RangeData, costs: Costs, *, rounds, steps, grow=2):
-    """``edits`` of the parts with (n, 14) ``vectors`` and joint cost ``cost`` (none in
-    place: each one's new parts come after the others) with their new parts grown over
+def _grown_edits(
+    edits, vectors, cost: EncodingCost, data: RangeData, costs: Costs, *, rounds, steps, grow=2, free=None
+):
+    """``edits`` of the parts with (n, 14) ``vectors`` and joint cost ``cost`` with their
+    new parts (in the removed parts' places for a one-for-one edit, else last) grown over
     the image as each edit leaves it: ``rounds`` rounds of region growing
-    (:func:`_grow_inputs`, ``grow`` pixels; :func:`_grow`, ``steps`` solver steps), all
-    edits' parts in one batch a round."""
+    (:func:`_grow_inputs`, ``grow`` pixels; :func:`_grow`, ``steps`` solver steps,
+    moving the numbers ``free`` lets them), all edits' parts in one batch a round."""
     for _ in range(rounds if edits else 0):
         scores = edit_costs(cost, edits := render_edits(edits, data.camera), data, costs)
         inputs = []
         for e, c in zip(edits, scores):
-            m = len(vectors) - len(e.remove) + len(e.add)  # parts after the edit, its new ones last
-            inputs.append(
-                _grow_inputs(host_parts(e.apply(vectors, e.add)), data, c, np.arange(m - len(e.add), m), grow=grow)
-            )
-        new = np.split(_grow(data, inputs, steps=steps), np.cumsum([len(e.add) for e in edits])[:-1])
+            m = len(vectors) - len(e.remove) + len(e.add)  # parts after the edit
+            placed = list(e.remove) if len(e.remove) == len(e.add) else np.arange(m - len(e.add), m)
+            inputs.append(_grow_inputs(host_parts(e.apply(vectors, e.add)), data, c, placed, grow=grow))
+        new = np.split(_grow(data, inputs, steps=steps, free=free), np.cumsum([len(e.add) for e in edits])[:-1])
         edits = [Edit(e.remove, v) for e, v in zip(edits, new)]
     return edits
 
 
-def _grow(data: RangeData, inputs, *, steps: int) -> np.ndarray:
-    """Fit every part of a list of :func:`_grow_inputs` results in one batch; returns
-    their (Σk, 14) fitted vectors."""
+def _grow(data: RangeData, inputs, *, steps: int, free=None) -> np.ndarray:
+    """Fit every part of a list of :func:`_grow_inputs` results in one batch (moving the
+    numbers ``free`` lets them, :func:`~sqparts._polish.polish_parts`); returns their
+    (Σk, 14) fitted vectors."""
     vec, weights, ray_weights = (np.concatenate(a) for a in zip(*inputs))
     pts, _ = figure_points(data)
     rays, _ = background_rays(data)
-    return part_vectors(polish_parts(host_parts(vec), pts, weights, steps, rays, ray_weights))
+    return part_vectors(polish_parts(host_parts(vec), pts, weights, steps, rays, ray_weights, free))
 
 
 def accept_edits(vectors: np.ndarray, cost: EncodingCost, edits, data: RangeData, costs: Costs):
@@ -220,6 +226,26 @@ class GrowParts(Move):
         inputs = _grow_inputs(host_parts(vectors), data, cost, np.arange(n), tolerance=self.tolerance, grow=self.grow)
         new = _grow(data, [inputs], steps=self.steps)
         return [[Edit((i,), new[i : i + 1]) for i in range(n)]]
+
+
+@dataclasses.dataclass(frozen=True, kw_only=True)
+class StraightenParts(Move):
+    """Each deformed part (bend or taper not zero) fitted again without its deformation:
+    bend and taper set to zero and held there (:data:`~sqparts._polish.RIGID`) through
+    ``rounds`` rounds of region growing (``steps`` solver steps each) from its pixels.
+    Least squares on a noisy surface buys a little residual with a bend or taper that
+    moves the part's rim; E, which counts pixels, can prefer the straight part, and no
+    step of :class:`SettleParts` reaches it from the bent one, since its pose and size
+    move with it."""
+
+    name: ClassVar[str] = "straighten"
+    rounds: int = 2
+    steps: int = 20
+
+    def propose(self, vectors, cost, data, costs, step):
+        straight = np.where(RIGID, vectors, 0.0).astype(np.float32)
+        trials = [Edit((int(i),), straight[i : i + 1]) for i in np.flatnonzero((vectors != straight).any(1))]
+        return [_grown_edits(trials, vectors, cost, data, costs, rounds=self.rounds, steps=self.steps, free=RIGID)]
 
 
 @dataclasses.dataclass(frozen=True, kw_only=True)
@@ -1061,8 +1087,10 @@ class RefineSettings:
     (:class:`SplitParts`), ``fill`` (:class:`FillGaps`: the blobs still unexplained
     searched again at their own scale, for small parts: hands, feet), dropping parts that
     do not pay (:class:`DropParts`), ``merge`` (:class:`MergeParts`, each merge
-    followed by growing and dropping again, until merging no longer lowers E), the
-    paper's final optimisation of every parameter on E itself (:class:`SettleParts`,
+    followed by growing and dropping again, until merging no longer lowers E),
+    ``straighten`` (:class:`StraightenParts`: bent or tapered parts fitted again
+    without their deformation), the paper's final optimisation of every parameter on E
+    itself (:class:`SettleParts`,
     once per step scale in ``settle``, :data:`SETTLE_SCALES` by default; () = none), and
     last ``absorb`` (:class:`AbsorbParts`: a small part dropped while its neighbours grow
     over its pixels; the settling again if that lowered E), each kept only when E falls:
@@ -1074,6 +1102,7 @@ class RefineSettings:
     split: bool = True
     fill: bool = True
     merge: bool = True
+    straighten: bool = True
     settle: tuple[float, ...] = SETTLE_SCALES
     absorb: bool = True
 
@@ -1083,7 +1112,7 @@ class RefineSettings:
             raise ValueError(f"rounds: got {r!r}, expected an integer in [0, {MAX_REFINE_ROUNDS}]")
         if isinstance(self.steps, bool) or not isinstance(self.steps, (int, np.integer)) or not 1 <= self.steps <= 1000:
             raise ValueError(f"steps: got {self.steps!r}, expected an integer in [1, 1000]")
-        for name in ("split", "fill", "merge", "absorb"):
+        for name in ("split", "fill", "merge", "straighten", "absorb"):
             if not isinstance(getattr(self, name), bool):
                 raise ValueError(f"{name}: got {getattr(self, name)!r}, expected True or False")
         scales = self.settle
@@ -1095,11 +1124,19 @@ class RefineSettings:
 
     @classmethod
     def none(cls) -> RefineSettings:
-        return cls(rounds=0, split=False, fill=False, merge=False, settle=(), absorb=False)
+        return cls(rounds=0, split=False, fill=False, merge=False, straighten=False, settle=(), absorb=False)
 
     @property
     def active(self) -> bool:
-        return self.rounds > 0 or self.split or self.fill or self.merge or self.absorb or bool(self.settle)
+        return (
+            self.rounds > 0
+            or self.split
+            or self.fill
+            or self.merge
+            or self.straighten
+            or self.absorb
+            or bool(self.settle)
+        )
 
     def moves(self, search=None) -> tuple:
         """The moves these settings ask for, in order; ``search`` (the first search's
@@ -1113,6 +1150,8 @@ class RefineSettings:
         if self.merge:
             again = (GrowParts(passes=MERGE_POLISH_ROUNDS, steps=self.steps), DropParts())
             moves.append(OnGain(MergeParts(passes=1, steps=self.steps), then=again, repeat=MAX_PASSES))
+        if self.straighten:
+            moves.append(StraightenParts(steps=self.steps))
         settle = tuple(SettleParts(scale=s) for s in self.settle)
         moves.extend(settle)
         if self.absorb:  # last: it only ever shortens the settled description

@@ -94,6 +94,50 @@ def test_absorb_parts_alone_gives_a_cut_members_piece_back():
     np.testing.assert_allclose(part_vectors(parts)[0, [0, 8]], [0.0, 0.15], atol=0.003)
 
 
+def test_straighten_parts_alone_takes_a_noisy_fits_bend_off():
+    # A straight part seen with sensor noise, fitted bent (bend and taper buying a little
+    # residual, the pose and size moved with them): refitted with bend and taper held at
+    # zero, it comes back to the truth's pose and size, and E falls.
+    truth = sqparts.Part(
+        size=[0.05, 0.04, 0.1], squareness=[1.0, 1.0], position=[0.0, 0.0, 1.2], orientation=[0.3, -0.5, 0.4]
+    )
+    depth = np.asarray(sqparts.render_range_image(truth, CAM))
+    depth = depth + np.random.default_rng(5).normal(0.0, 0.002, depth.shape).astype(np.float32)
+    data = sqparts.prepare(depth, CAM)
+    costs = sqparts.Costs.from_encoding(data.encoding, int(data.figure_mask.sum()))
+    bent = part_vectors(truth).copy()
+    bent[0, [2, 8, 11, 12, 13]] = [1.19, 0.09, -0.1, -0.25, 0.05]  # 1 cm nearer, 10% shorter, bent, tapered
+    start = _cost(bent, data, costs)
+    parts, cost, history = sqparts.refine_moves(
+        sqparts.Part.from_vector(bent), data, costs, [sqparts.StraightenParts()]
+    )
+    assert [s for s, _ in history] == ["initial", "straighten"] and cost.total < start.total
+    out = part_vectors(parts)[0]
+    np.testing.assert_array_equal(out[11:], 0.0)  # held at zero, not merely small
+    np.testing.assert_allclose(out[:3], part_vectors(truth)[0, :3], atol=1.2 / CAM.fx)  # within a pixel
+    np.testing.assert_allclose(out[6:9], [0.05, 0.04, 0.1], rtol=0.05)
+    assert cost.total <= _cost(part_vectors(truth), data, costs).total + 8 * costs.omission
+    # A straight part is not proposed again.
+    again, same, _ = sqparts.refine_moves(parts, data, costs, [sqparts.StraightenParts()])
+    assert same.total == cost.total and np.array_equal(part_vectors(again), part_vectors(parts))
+
+
+def test_polishing_moves_only_the_free_numbers():
+    from sqparts._polish import RIGID, figure_points, polish_parts
+
+    depth = np.asarray(sqparts.render_range_image(SCENE, CAM))
+    data = sqparts.prepare(depth, CAM)
+    pts, _ = figure_points(data)
+    start = TRUTH + np.r_[0.004, -0.003, 0.01, np.zeros(8), 0.1, -0.1, 0.1].astype(np.float32)
+    weights = np.ones((2, len(pts)), np.float32)
+    no_rays = ((np.zeros((1, 3), np.float32), np.array([[0.0, 0.0, 1.0]], np.float32)), np.zeros((2, 1), np.float32))
+    free = part_vectors(polish_parts(sqparts.Part.from_vector(start), pts, weights, 20, *no_rays))  # all: default
+    rigid = part_vectors(polish_parts(sqparts.Part.from_vector(start), pts, weights, 20, *no_rays, RIGID))
+    assert np.abs(free[:, 11:] - start[:, 11:]).max() > 1e-3  # free: the deformations move
+    np.testing.assert_allclose(rigid[:, 11:], start[:, 11:], atol=1e-6)  # held: they stay
+    assert np.abs(rigid[:, :3] - start[:, :3]).max() > 1e-4  # while the pose moves
+
+
 def test_grow_parts_alone_pulls_shifted_parts_back(image):
     data, costs = image
     start = TRUTH + SHIFT / 4
@@ -221,8 +265,11 @@ def test_move_settings_are_checked():
     with pytest.raises(ValueError, match=r"repeat: got 0, expected an integer in \[1, 1000\]"):
         sqparts.OnGain(sqparts.DropParts(), repeat=0)
     moves = sqparts.RefineSettings(rounds=2, split=False, fill=True, merge=True).moves(search=None)
-    assert [type(m).__name__ for m in moves] == ["GrowParts", "DropParts", "OnGain"] + ["SettleParts"] * 3 + ["OnGain"]
+    assert [type(m).__name__ for m in moves] == (
+        ["GrowParts", "DropParts", "OnGain", "StraightenParts"] + ["SettleParts"] * 3 + ["OnGain"]
+    )
     assert [m.scale for m in moves[-4:-1]] == [1.0, 0.5, 0.25]  # the steps halved, twice
+    assert "StraightenParts" not in [type(m).__name__ for m in sqparts.RefineSettings(straighten=False).moves()]
     assert type(moves[-1].move).__name__ == "AbsorbParts" and moves[-1].then == moves[-4:-1]  # settled again
     assert [type(m).__name__ for m in sqparts.RefineSettings(absorb=False).moves(search=None)][-1] == "SettleParts"
     scales = sqparts.RefineSettings(settle=[1, 0.5], absorb=False).moves(search=None)[-2:]
