@@ -388,14 +388,23 @@ def missing_returns(depth, camera: Camera, figure, *, holes: str = "auto", tear:
 def pruning_stride(figure, least_pixels: float, *, largest: int = 4) -> int:
     """The largest pruning stride (every stride-th row and column scored first, at most
     ``largest``) that still sees every member of ``figure`` able to pay for a part: the
-    largest s such that the figure's pixels outside its opening by an s × s square (the
-    members thinner than s pixels, which an s-lattice can miss altogether) number fewer
-    than ``least_pixels`` (the pixels a part needs to pay for its κ0 bits). A member s
-    pixels across always has a pixel on the lattice, whatever its position."""
+    largest s such that fewer than ``least_pixels`` (the pixels a part needs to pay for
+    its κ0 bits) of the figure's pixels go unseen by an s-lattice. A pixel is seen when,
+    wherever the lattice lies, one of its points falls on the figure within s - 1 rows
+    and columns of it: the figure's pixels in that box hold all s² residues of (row,
+    column) modulo s. A member s pixels across always is seen (an s × s square holds
+    every residue), and so is a slanted bar narrower than that (a bar 3.6 pixels across
+    at 45° meets every 4-lattice), or a pixel the sensor's ragged edge sticks out; a bar
+    of fewer rows than s along the rows is not: some offsets of the lattice miss it."""
     fig = np.asarray(figure, bool)
+    rows, cols = np.indices(fig.shape)
     for s in range(int(largest), 1, -1):
-        kept = np.asarray(ndimage.binary_opening(fig, structure=np.ones((s, s), bool)), bool)
-        if (fig & ~kept).sum() < least_pixels:
+        box = np.ones((2 * s - 1, 2 * s - 1), bool)
+        seen = fig.copy()
+        for residue in range(s * s):
+            on = fig & (rows % s == residue // s) & (cols % s == residue % s)
+            seen &= np.asarray(ndimage.binary_dilation(on, structure=box), bool)
+        if (fig & ~seen).sum() < least_pixels:
             return s
     return 1
 

@@ -193,3 +193,24 @@ def test_pruning_stride_sees_every_member(width, stride):
     short = box(20, 44, 4, 28)
     short[30 : 30 + width, 28:31] = True  # 3 pixels long: fewer than a part needs
     assert pruning_stride(short, least_pixels=4 * width) == 4
+
+
+@pytest.mark.parametrize("across, stride", [(2.2, 3), (3.7, 4)])
+def test_pruning_stride_sees_a_slanted_bar_every_lattice_meets(across, stride):
+    """A bar at 45° off a blob, ``across`` pixels wide: its pixels lie on 3 (or 5)
+    diagonals, so row - column takes every residue modulo 3 (or 4) along it and every
+    3-lattice (4-lattice) has points on it, though no 3 x 3 (4 x 4 for the wider)
+    square fits inside it; the narrower one misses some offsets of a 4-lattice. Checked
+    by brute force over every offset of the chosen lattice: points on the bar all along
+    it."""
+    from sqparts._preprocess import pruning_stride
+
+    rows, cols = np.indices((64, 64))
+    bar = (np.abs(rows - cols) <= across / np.sqrt(2.0)) & (rows >= 14) & (rows < 56)
+    fig = box(4, 16, 4, 16) | bar
+    assert pruning_stride(fig, least_pixels=20) == stride
+    for r0 in range(stride):
+        for c0 in range(stride):
+            hit = bar & (rows % stride == r0) & (cols % stride == c0)
+            along = np.unique(rows[hit])
+            assert along.min() <= 14 + stride and along.max() >= 55 - stride and np.diff(along).max() <= stride
