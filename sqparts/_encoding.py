@@ -596,11 +596,17 @@ class Edit:
             raise ValueError(f"add: got shape {add.shape}, expected (k, 14) part vectors")
         object.__setattr__(self, "add", add.reshape(-1, 14))
 
+    @property
+    def in_place(self) -> bool:
+        """A one-for-one replacement (parts removed and added alike): its new parts take
+        the removed parts' places."""
+        return len(self.remove) == len(self.add) and bool(self.remove)
+
     def apply(self, rows: np.ndarray, new: np.ndarray) -> np.ndarray:
         """``rows`` (one per current part: vectors or depth layers) with the edit made,
-        ``new`` the added parts' rows."""
+        ``new`` the added parts' rows (as many as ``add``)."""
         remove = list(self.remove)
-        if len(remove) == len(new) and remove:
+        if self.in_place:
             out = rows.copy()
             out[remove] = new
             return out

@@ -187,6 +187,7 @@ serves both."""
 
 
 RIGID = np.arange(14) < 11
+RIGID.setflags(write=False)
 """``free`` for :func:`polish_part` that holds bend and taper (the last three of the
 14 numbers) where they are: a fit without (or with fixed) deformations."""
 
@@ -239,7 +240,8 @@ def polish_parts(parts: Part, points, weights, steps: int, rays, ray_weights, fr
     if len(rays[0]) == 0:  # no background in view: nothing to miss
         rays = (np.zeros((1, 3), np.float32), np.array([[0.0, 0.0, 1.0]], np.float32))
     o, d = (np.asarray(a, np.float32)[ri] for a in rays)
-    free = np.broadcast_to(np.ones(14, bool) if free is None else np.asarray(free, bool), (n, 14))
+    free = np.ones(14, bool) if free is None else np.asarray(free, bool)
+    free = np.broadcast_to(free if free.ndim == 1 else free[:n], (n, 14))
     calls = -(-steps // POLISH_CALL_STEPS)
     keys = [RowMemo.key(calls, vectors[i], x[i], pw[i], o[i], d[i], rw[i], free[i]) for i in range(n)]
 

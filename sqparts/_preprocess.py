@@ -390,20 +390,22 @@ def pruning_stride(figure, least_pixels: float, *, largest: int = 4) -> int:
     ``largest``) that still sees every member of ``figure`` able to pay for a part: the
     largest s such that fewer than ``least_pixels`` (the pixels a part needs to pay for
     its κ0 bits) of the figure's pixels go unseen by an s-lattice. A pixel is seen when,
-    wherever the lattice lies, one of its points falls on the figure within s - 1 rows
-    and columns of it: the figure's pixels in that box hold all s² residues of (row,
-    column) modulo s. A member s pixels across always is seen (an s × s square holds
-    every residue), and so is a slanted bar narrower than that (a bar 3.6 pixels across
-    at 45° meets every 4-lattice), or a pixel the sensor's ragged edge sticks out; a bar
-    of fewer rows than s along the rows is not: some offsets of the lattice miss it."""
+    wherever the lattice lies, one of its points falls on the figure within s - 1 steps
+    of it through the figure (8-connected): the figure's pixels that near hold all s²
+    residues of (row, column) modulo s. A member s pixels across is always seen (an s ×
+    s square holds every residue), and so is a slanted bar narrower than that (a bar
+    3.6 pixels across at 45° meets every 4-lattice) and the staircase edge of a slanted
+    outline, which an opening by the square would trim; a bar of fewer rows than s
+    along the rows is not (some offsets of the lattice miss it), nor is a thin member
+    beside a wider one across the background."""
     fig = np.asarray(figure, bool)
     rows, cols = np.indices(fig.shape)
+    step = np.ones((3, 3), bool)
     for s in range(int(largest), 1, -1):
-        box = np.ones((2 * s - 1, 2 * s - 1), bool)
         seen = fig.copy()
         for residue in range(s * s):
             on = fig & (rows % s == residue // s) & (cols % s == residue % s)
-            seen &= np.asarray(ndimage.binary_dilation(on, structure=box), bool)
+            seen &= np.asarray(ndimage.binary_dilation(on, structure=step, iterations=s - 1, mask=fig), bool)
         if (fig & ~seen).sum() < least_pixels:
             return s
     return 1

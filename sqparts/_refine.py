@@ -131,7 +131,7 @@ def _grown_edits(
         inputs = []
         for e, c in zip(edits, scores):
             m = len(vectors) - len(e.remove) + len(e.add)  # parts after the edit
-            placed = list(e.remove) if len(e.remove) == len(e.add) else np.arange(m - len(e.add), m)
+            placed = list(e.remove) if e.in_place else np.arange(m - len(e.add), m)
             inputs.append(_grow_inputs(host_parts(e.apply(vectors, e.add)), data, c, placed, grow=grow))
         new = np.split(_grow(data, inputs, steps=steps, free=free), np.cumsum([len(e.add) for e in edits])[:-1])
         edits = [Edit(e.remove, v) for e, v in zip(edits, new)]
@@ -169,9 +169,8 @@ def accept_edits(vectors: np.ndarray, cost: EncodingCost, edits, data: RangeData
         if c.total >= cost.total - 1e-9:
             continue
         vectors, cost = now.apply(vectors, e.add), c
-        in_place = len(e.remove) == len(e.add)
         where[list(e.remove)] = -1
-        if not in_place and e.remove:
+        if not e.in_place and e.remove:
             alive = where >= 0
             where[alive] -= np.searchsorted(np.sort(now.remove), where[alive])
     return vectors, cost
@@ -244,7 +243,7 @@ class StraightenParts(Move):
 
     def propose(self, vectors, cost, data, costs, step):
         straight = np.where(RIGID, vectors, 0.0).astype(np.float32)
-        trials = [Edit((int(i),), straight[i : i + 1]) for i in np.flatnonzero((vectors != straight).any(1))]
+        trials = [Edit((int(i),), straight[i : i + 1]) for i in np.flatnonzero((vectors[:, ~RIGID] != 0).any(1))]
         return [_grown_edits(trials, vectors, cost, data, costs, rounds=self.rounds, steps=self.steps, free=RIGID)]
 
 
@@ -1056,6 +1055,7 @@ def refine_parts(
     steps: int = 20,
     split: bool = True,
     merge: bool = True,
+    straighten: bool = True,
     settle: tuple[float, ...] = SETTLE_SCALES,
     absorb: bool = True,
     search=None,
@@ -1065,12 +1065,20 @@ def refine_parts(
     ``split``), :class:`FillGaps` (when ``search``, the first search's
     :class:`~sqparts.SearchSettings`, is given), :class:`DropParts` and
     :class:`MergeParts` (when ``merge``; then growing and dropping again if a merge was
-    made, and merging again, until a merge no longer lowers E), then :class:`SettleParts`
-    once per step scale in ``settle`` (() = none), then :class:`AbsorbParts` (when
+    made, and merging again, until a merge no longer lowers E), :class:`StraightenParts`
+    (when ``straighten``), then :class:`SettleParts` once per step scale in ``settle``
+    (() = none), then :class:`AbsorbParts` (when
     ``absorb``; settled again if it lowered E). Returns (parts, final cost, history of E
     after each stage)."""
     settings = RefineSettings(
-        rounds=rounds, steps=steps, split=split, fill=search is not None, merge=merge, settle=settle, absorb=absorb
+        rounds=rounds,
+        steps=steps,
+        split=split,
+        fill=search is not None,
+        merge=merge,
+        straighten=straighten,
+        settle=settle,
+        absorb=absorb,
     )
     return refine_moves(parts, data, costs, settings.moves(search))
 

@@ -214,3 +214,14 @@ def test_pruning_stride_sees_a_slanted_bar_every_lattice_meets(across, stride):
             hit = bar & (rows % stride == r0) & (cols % stride == c0)
             along = np.unique(rows[hit])
             assert along.min() <= 14 + stride and along.max() >= 55 - stride and np.diff(along).max() <= stride
+
+
+def test_pruning_stride_does_not_see_a_bar_through_the_background():
+    """A bar one pixel across, parallel to a blob's edge two pixels away: the blob's
+    pixels near it hold every residue of a 4-lattice, but most offsets of any lattice
+    wider than 1 put no point on the bar itself."""
+    from sqparts._preprocess import pruning_stride
+
+    fig = box(10, 50, 10, 40)
+    fig[10:50, 42] = True  # the gap: columns 40 and 41
+    assert pruning_stride(fig, least_pixels=20) == 1

@@ -95,9 +95,9 @@ def test_absorb_parts_alone_gives_a_cut_members_piece_back():
 
 
 def test_straighten_parts_alone_takes_a_noisy_fits_bend_off():
-    # A straight part seen with sensor noise, fitted bent (bend and taper buying a little
-    # residual, the pose and size moved with them): refitted with bend and taper held at
-    # zero, it comes back to the truth's pose and size, and E falls.
+    # A straight part seen with sensor noise, started bent as a least-squares fit can
+    # leave it (bend and taper, the pose and size moved with them): refitted with bend
+    # and taper held at zero, it comes back to the truth's pose and size, and E falls.
     truth = sqparts.Part(
         size=[0.05, 0.04, 0.1], squareness=[1.0, 1.0], position=[0.0, 0.0, 1.2], orientation=[0.3, -0.5, 0.4]
     )
