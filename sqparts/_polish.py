@@ -187,9 +187,9 @@ serves both."""
 
 
 RIGID = np.arange(14) < 11
-RIGID.setflags(write=False)
 """``free`` for :func:`polish_part` that holds bend and taper (the last three of the
 14 numbers) where they are: a fit without (or with fixed) deformations."""
+RIGID.setflags(write=False)
 
 
 @persistent_jit(static_argnames=("steps",))
