@@ -39,7 +39,10 @@ E. The moves, in :meth:`RefineSettings.moves`'s order:
   parameters stepped one at a time, all parts rendered together, a step kept if E falls;
 - :class:`AbsorbParts`: a small part dropped while the parts beside it grow over its
   pixels (a bar the search cut in two at a joint taken back whole), then settled again:
-  last, so that it can only shorten the description the other moves give.
+  after settling, so that it can only shorten the description the other moves give;
+- :class:`MergeParts` once more, last, for the same reason: settled parts may merge
+  where they did not before (a body split under a lid's overhang, whose lid settling
+  moved; an L's arm cut in two), then grown, dropped and settled again if it gains.
 """
 
 from __future__ import annotations
@@ -1101,9 +1104,10 @@ class RefineSettings:
     itself (:class:`SettleParts`,
     once per step scale in ``settle``, :data:`SETTLE_SCALES` by default; () = none), and
     last ``absorb`` (:class:`AbsorbParts`: a small part dropped while its neighbours grow
-    over its pixels; the settling again if that lowered E), each kept only when E falls:
-    absorbing last, after settling, can only shorten the description the rest gives. ``RefineSettings.none()``: no
-    refinement."""
+    over its pixels; the settling again if that lowered E), and last ``merge`` once more
+    (settled parts may merge where they did not before; then grown, dropped and settled
+    again), each kept only when E falls: these two, after settling, can only shorten the
+    description the rest gives. ``RefineSettings.none()``: no refinement."""
 
     rounds: int = 2
     steps: int = 20
@@ -1155,15 +1159,17 @@ class RefineSettings:
         if self.fill and search is not None:
             moves.append(FillGaps(search=search, steps=self.steps))
         moves.append(DropParts())
+        again = (GrowParts(passes=MERGE_POLISH_ROUNDS, steps=self.steps), DropParts())
         if self.merge:
-            again = (GrowParts(passes=MERGE_POLISH_ROUNDS, steps=self.steps), DropParts())
             moves.append(OnGain(MergeParts(passes=1, steps=self.steps), then=again, repeat=MAX_PASSES))
         if self.straighten:
             moves.append(StraightenParts(steps=self.steps))
         settle = tuple(SettleParts(scale=s) for s in self.settle)
         moves.extend(settle)
-        if self.absorb:  # last: it only ever shortens the settled description
+        if self.absorb:  # after settling: it only ever shortens the settled description
             moves.append(OnGain(AbsorbParts(steps=self.steps), then=settle))
+        if self.merge:  # last, likewise: the parts as settled may merge where they did not before
+            moves.append(OnGain(MergeParts(passes=1, steps=self.steps), then=again + settle))
         return tuple(moves)
 
     def refine(self, parts: Part, data: RangeData, costs: Costs, search=None):

@@ -266,13 +266,24 @@ def test_move_settings_are_checked():
         sqparts.OnGain(sqparts.DropParts(), repeat=0)
     moves = sqparts.RefineSettings(rounds=2, split=False, fill=True, merge=True).moves(search=None)
     assert [type(m).__name__ for m in moves] == (
-        ["GrowParts", "DropParts", "OnGain", "StraightenParts"] + ["SettleParts"] * 3 + ["OnGain"]
+        ["GrowParts", "DropParts", "OnGain", "StraightenParts"] + ["SettleParts"] * 3 + ["OnGain"] * 2
     )
-    assert [m.scale for m in moves[-4:-1]] == [1.0, 0.5, 0.25]  # the steps halved, twice
+    assert [m.scale for m in moves[-5:-2]] == [1.0, 0.5, 0.25]  # the steps halved, twice
     assert "StraightenParts" not in [type(m).__name__ for m in sqparts.RefineSettings(straighten=False).moves()]
-    assert type(moves[-1].move).__name__ == "AbsorbParts" and moves[-1].then == moves[-4:-1]  # settled again
-    assert [type(m).__name__ for m in sqparts.RefineSettings(absorb=False).moves(search=None)][-1] == "SettleParts"
-    scales = sqparts.RefineSettings(settle=[1, 0.5], absorb=False).moves(search=None)[-2:]
+    assert type(moves[-2].move).__name__ == "AbsorbParts" and moves[-2].then == moves[-5:-2]  # settled again
+    # Merging once more, last: the settled parts grown, dropped and settled again on a gain.
+    merges = [m for m in moves if isinstance(m, sqparts.OnGain) and type(m.move).__name__ == "MergeParts"]
+    assert merges == [moves[2], moves[-1]] and moves[2].then == moves[-1].then[:2]
+    assert moves[-1].repeat == 1 and moves[-1].then[2:] == moves[-5:-2]
+    assert [type(m).__name__ for m in moves[-1].then[:2]] == ["GrowParts", "DropParts"]
+    assert [type(m).__name__ for m in sqparts.RefineSettings(merge=False).moves()][-1] == "OnGain"
+    assert not any(
+        isinstance(m, sqparts.OnGain) and type(m.move).__name__ == "MergeParts"
+        for m in sqparts.RefineSettings(merge=False).moves()
+    )
+    last = sqparts.RefineSettings(absorb=False, merge=False).moves(search=None)
+    assert [type(m).__name__ for m in last][-1] == "SettleParts"
+    scales = sqparts.RefineSettings(settle=[1, 0.5], absorb=False, merge=False).moves(search=None)[-2:]
     assert [type(m).__name__ for m in scales] == ["SettleParts"] * 2 and [m.scale for m in scales] == [1.0, 0.5]
     assert not sqparts.RefineSettings.none().active and sqparts.RefineSettings.none().settle == ()
     assert sqparts.RefineSettings(settle=[1, np.float32(0.5)]).settle == (1.0, 0.5)
