@@ -1071,8 +1071,9 @@ def refine_parts(
     made, and merging again, until a merge no longer lowers E), :class:`StraightenParts`
     (when ``straighten``), then :class:`SettleParts` once per step scale in ``settle``
     (() = none), then :class:`AbsorbParts` (when
-    ``absorb``; settled again if it lowered E). Returns (parts, final cost, history of E
-    after each stage)."""
+    ``absorb``; settled again if it lowered E), and last :class:`MergeParts` once more
+    (when ``merge``; grown, dropped and settled again if it lowered E). Returns (parts,
+    final cost, history of E after each stage)."""
     settings = RefineSettings(
         rounds=rounds,
         steps=steps,
@@ -1102,8 +1103,8 @@ class RefineSettings:
     ``straighten`` (:class:`StraightenParts`: bent or tapered parts fitted again
     without their deformation), the paper's final optimisation of every parameter on E
     itself (:class:`SettleParts`,
-    once per step scale in ``settle``, :data:`SETTLE_SCALES` by default; () = none), and
-    last ``absorb`` (:class:`AbsorbParts`: a small part dropped while its neighbours grow
+    once per step scale in ``settle``, :data:`SETTLE_SCALES` by default; () = none),
+    ``absorb`` (:class:`AbsorbParts`: a small part dropped while its neighbours grow
     over its pixels; the settling again if that lowered E), and last ``merge`` once more
     (settled parts may merge where they did not before; then grown, dropped and settled
     again), each kept only when E falls: these two, after settling, can only shorten the
