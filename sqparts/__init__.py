@@ -115,6 +115,7 @@ _EXPORTS = {
         "Move",
         "OnGain",
         "RefineSettings",
+        "SettleFaces",
         "SettleParts",
         "SplitParts",
         "StraightenParts",

@@ -40,9 +40,12 @@ E. The moves, in :meth:`RefineSettings.moves`'s order:
 - :class:`AbsorbParts`: a small part dropped while the parts beside it grow over its
   pixels (a bar the search cut in two at a joint taken back whole), then settled again:
   after settling, so that it can only shorten the description the other moves give;
-- :class:`MergeParts` once more, last, for the same reason: settled parts may merge
-  where they did not before (a body split under a lid's overhang, whose lid settling
-  moved; an L's arm cut in two), then grown, dropped and settled again if it gains.
+- :class:`MergeParts` once more, for the same reason: settled parts may merge where
+  they did not before (a body split under a lid's overhang, whose lid settling moved;
+  an L's arm cut in two), then grown, dropped and settled again if it gains;
+- :class:`SettleFaces`, last of all: settling with one face of a part moved at a time
+  (a semi-axis and the centre together), which the one-parameter steps cannot do where
+  each alone raises E.
 """
 
 from __future__ import annotations
@@ -592,6 +595,38 @@ class SettleParts(Move):
         ]
 
 
+def _face_neighbours(vectors: np.ndarray, scale: float) -> np.ndarray:
+    """Each of the parts ``vectors`` (n, 14) with one face moved alone: for each of its
+    own axes, the semi-axis 5% (at ``scale`` times) up or down and the centre moved as
+    much along that axis one way or the other, so that one of the two faces it bounds
+    moves by 10% of the semi-axis and the other stays where it is. Returns (n, 12, 14)."""
+    from scipy.spatial.transform import Rotation
+
+    v = np.asarray(vectors, np.float64)
+    axes = Rotation.from_rotvec(v[:, 3:6]).as_matrix()  # columns: the part's axes in the camera frame
+    out = np.repeat(v[:, None], 12, axis=1)
+    for j, (k, grow, side) in enumerate([(k, g, s) for k in range(3) for g in (1, -1) for s in (1, -1)]):
+        step = 0.05 * scale * v[:, 6 + k]
+        out[:, j, 6 + k] += grow * step
+        out[:, j, 0:3] += (side * step)[:, None] * axes[:, :, k]
+    return out.astype(np.float32)
+
+
+@dataclasses.dataclass(frozen=True, kw_only=True)
+class SettleFaces(SettleParts):
+    """:class:`SettleParts` with one face of a part moved at a time
+    (:func:`_face_neighbours`) instead of one parameter: a semi-axis and the centre
+    stepped together, which one-parameter steps cannot do while each alone raises E (a
+    lid grown too thick over the body below it; a part's hidden back face, where noise
+    has swollen it in depth)."""
+
+    name: ClassVar[str] = "settle faces"
+
+    def propose(self, vectors, cost, data, costs, step):
+        trials = _face_neighbours(vectors, self.scale)
+        return [[Edit((i,), t[None]) for i in range(len(vectors)) for t in trials[i]]]
+
+
 _CROP = 32
 _RANDOM_TRIALS = 35
 
@@ -1061,6 +1096,7 @@ def refine_parts(
     straighten: bool = True,
     settle: tuple[float, ...] = SETTLE_SCALES,
     absorb: bool = True,
+    faces: bool = True,
     search=None,
 ):
     """Joint refinement with :class:`RefineSettings`' moves: ``rounds`` passes of
@@ -1071,9 +1107,10 @@ def refine_parts(
     made, and merging again, until a merge no longer lowers E), :class:`StraightenParts`
     (when ``straighten``), then :class:`SettleParts` once per step scale in ``settle``
     (() = none), then :class:`AbsorbParts` (when
-    ``absorb``; settled again if it lowered E), and last :class:`MergeParts` once more
-    (when ``merge``; grown, dropped and settled again if it lowered E). Returns (parts,
-    final cost, history of E after each stage)."""
+    ``absorb``; settled again if it lowered E), :class:`MergeParts` once more (when
+    ``merge``; grown, dropped and settled again if it lowered E), and last
+    :class:`SettleFaces` (when ``faces``). Returns (parts, final cost, history of E after
+    each stage)."""
     settings = RefineSettings(
         rounds=rounds,
         steps=steps,
@@ -1083,6 +1120,7 @@ def refine_parts(
         straighten=straighten,
         settle=settle,
         absorb=absorb,
+        faces=faces,
     )
     return refine_moves(parts, data, costs, settings.moves(search))
 
@@ -1105,10 +1143,11 @@ class RefineSettings:
     itself (:class:`SettleParts`,
     once per step scale in ``settle``, :data:`SETTLE_SCALES` by default; () = none),
     ``absorb`` (:class:`AbsorbParts`: a small part dropped while its neighbours grow
-    over its pixels; the settling again if that lowered E), and last ``merge`` once more
+    over its pixels; the settling again if that lowered E), ``merge`` once more
     (settled parts may merge where they did not before; then grown, dropped and settled
-    again), each kept only when E falls: these two, after settling, can only shorten the
-    description the rest gives. ``RefineSettings.none()``: no refinement."""
+    again), and last ``faces`` (:class:`SettleFaces`: settling with one face of a part
+    moved at a time), each kept only when E falls: these three, after settling, can only
+    shorten the description the rest gives. ``RefineSettings.none()``: no refinement."""
 
     rounds: int = 2
     steps: int = 20
@@ -1118,6 +1157,7 @@ class RefineSettings:
     straighten: bool = True
     settle: tuple[float, ...] = SETTLE_SCALES
     absorb: bool = True
+    faces: bool = True
 
     def __post_init__(self):
         r = self.rounds
@@ -1125,7 +1165,7 @@ class RefineSettings:
             raise ValueError(f"rounds: got {r!r}, expected an integer in [0, {MAX_REFINE_ROUNDS}]")
         if isinstance(self.steps, bool) or not isinstance(self.steps, (int, np.integer)) or not 1 <= self.steps <= 1000:
             raise ValueError(f"steps: got {self.steps!r}, expected an integer in [1, 1000]")
-        for name in ("split", "fill", "merge", "straighten", "absorb"):
+        for name in ("split", "fill", "merge", "straighten", "absorb", "faces"):
             if not isinstance(getattr(self, name), bool):
                 raise ValueError(f"{name}: got {getattr(self, name)!r}, expected True or False")
         scales = self.settle
@@ -1137,7 +1177,9 @@ class RefineSettings:
 
     @classmethod
     def none(cls) -> RefineSettings:
-        return cls(rounds=0, split=False, fill=False, merge=False, straighten=False, settle=(), absorb=False)
+        return cls(
+            rounds=0, split=False, fill=False, merge=False, straighten=False, settle=(), absorb=False, faces=False
+        )
 
     @property
     def active(self) -> bool:
@@ -1148,6 +1190,7 @@ class RefineSettings:
             or self.merge
             or self.straighten
             or self.absorb
+            or self.faces
             or bool(self.settle)
         )
 
@@ -1171,6 +1214,8 @@ class RefineSettings:
             moves.append(OnGain(AbsorbParts(steps=self.steps), then=settle))
         if self.merge:  # last, likewise: the parts as settled may merge where they did not before
             moves.append(OnGain(MergeParts(passes=1, steps=self.steps), then=again + settle))
+        if self.faces:  # last of all, likewise
+            moves.append(SettleFaces())
         return tuple(moves)
 
     def refine(self, parts: Part, data: RangeData, costs: Costs, search=None):
