@@ -43,9 +43,9 @@ E. The moves, in :meth:`RefineSettings.moves`'s order:
 - :class:`MergeParts` once more, for the same reason: settled parts may merge where
   they did not before (a body split under a lid's overhang, whose lid settling moved;
   an L's arm cut in two), then grown, dropped and settled again if it gains;
-- :class:`SettleFaces`, last of all: settling with one face of a part moved at a time
-  (a semi-axis and the centre together), which the one-parameter steps cannot do where
-  each alone raises E.
+- :class:`SettleFaces`, last of all, once per step scale of settling: settling with one
+  face of a part moved at a time (a semi-axis and the centre together), which the
+  one-parameter steps cannot do where each alone raises E.
 """
 
 from __future__ import annotations
@@ -623,6 +623,8 @@ class SettleFaces(SettleParts):
     name: ClassVar[str] = "settle faces"
 
     def propose(self, vectors, cost, data, costs, step):
+        if len(vectors) == 0:
+            return [[]]
         trials = _face_neighbours(vectors, self.scale)
         return [[Edit((i,), t[None]) for i in range(len(vectors)) for t in trials[i]]]
 
@@ -1109,7 +1111,7 @@ def refine_parts(
     (() = none), then :class:`AbsorbParts` (when
     ``absorb``; settled again if it lowered E), :class:`MergeParts` once more (when
     ``merge``; grown, dropped and settled again if it lowered E), and last
-    :class:`SettleFaces` (when ``faces``). Returns (parts, final cost, history of E after
+    :class:`SettleFaces` once per step scale in ``settle`` (when ``faces``). Returns (parts, final cost, history of E after
     each stage)."""
     settings = RefineSettings(
         rounds=rounds,
@@ -1146,7 +1148,7 @@ class RefineSettings:
     over its pixels; the settling again if that lowered E), ``merge`` once more
     (settled parts may merge where they did not before; then grown, dropped and settled
     again), and last ``faces`` (:class:`SettleFaces`: settling with one face of a part
-    moved at a time), each kept only when E falls: these three, after settling, can only
+    moved at a time, once per step scale in ``settle``), each kept only when E falls: these three, after settling, can only
     shorten the description the rest gives. ``RefineSettings.none()``: no refinement."""
 
     rounds: int = 2
@@ -1190,7 +1192,6 @@ class RefineSettings:
             or self.merge
             or self.straighten
             or self.absorb
-            or self.faces
             or bool(self.settle)
         )
 
@@ -1212,10 +1213,10 @@ class RefineSettings:
         moves.extend(settle)
         if self.absorb:  # after settling: it only ever shortens the settled description
             moves.append(OnGain(AbsorbParts(steps=self.steps), then=settle))
-        if self.merge:  # last, likewise: the parts as settled may merge where they did not before
+        if self.merge:  # after settling, likewise: the parts as settled may merge where they did not before
             moves.append(OnGain(MergeParts(passes=1, steps=self.steps), then=again + settle))
         if self.faces:  # last of all, likewise
-            moves.append(SettleFaces())
+            moves.extend(SettleFaces(scale=s) for s in self.settle)
         return tuple(moves)
 
     def refine(self, parts: Part, data: RangeData, costs: Costs, search=None):

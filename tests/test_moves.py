@@ -267,10 +267,14 @@ def test_move_settings_are_checked():
         sqparts.OnGain(sqparts.DropParts(), repeat=0)
     moves = sqparts.RefineSettings(rounds=2, split=False, fill=True, merge=True).moves(search=None)
     assert [type(m).__name__ for m in moves] == (
-        ["GrowParts", "DropParts", "OnGain", "StraightenParts"] + ["SettleParts"] * 3 + ["OnGain"] * 2 + ["SettleFaces"]
+        ["GrowParts", "DropParts", "OnGain", "StraightenParts"]
+        + ["SettleParts"] * 3
+        + ["OnGain"] * 2
+        + ["SettleFaces"] * 3
     )
-    assert moves[-1] == sqparts.SettleFaces(scale=1.0)  # last of all: faces settled
-    moves = moves[:-1]
+    assert [m.scale for m in moves[-3:]] == [1.0, 0.5, 0.25]  # last of all: faces settled at each step scale
+    assert [m.scale for m in sqparts.RefineSettings(settle=(2.0,)).moves()[-1:]] == [2.0]
+    moves = moves[:-3]
     assert [m.scale for m in moves[-5:-2]] == [1.0, 0.5, 0.25]  # the steps halved, twice
     assert "StraightenParts" not in [type(m).__name__ for m in sqparts.RefineSettings(straighten=False).moves()]
     assert type(moves[-2].move).__name__ == "AbsorbParts" and moves[-2].then == moves[-5:-2]  # settled again
@@ -367,3 +371,4 @@ def test_settle_faces_alone_takes_a_thickened_part_back():
     # the truth's 1 668): a face moves with a semi-axis and the centre together.
     one_at_a_time = sqparts.refine_moves(sqparts.Part.from_vector(start[None]), data, costs, [sqparts.SettleParts()])
     assert cost.total < one_at_a_time[1].total
+    assert sqparts.SettleFaces().propose(np.zeros((0, 14), np.float32), cost, data, costs, 0) == [[]]
