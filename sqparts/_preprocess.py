@@ -402,9 +402,9 @@ def pruning_stride(figure, least_pixels: float, *, largest: int = 4) -> int:
     rows, cols = np.indices(fig.shape)
     step = np.ones((3, 3), bool)
     for s in range(int(largest), 1, -1):
-        seen = fig.copy()
+        seen, row_res, col_res = fig.copy(), rows % s, cols % s
         for residue in range(s * s):
-            on = fig & (rows % s == residue // s) & (cols % s == residue % s)
+            on = fig & (row_res == residue // s) & (col_res == residue % s)
             seen &= np.asarray(ndimage.binary_dilation(on, structure=step, iterations=s - 1, mask=fig), bool)
         if (fig & ~seen).sum() < least_pixels:
             return s

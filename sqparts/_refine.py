@@ -1101,18 +1101,10 @@ def refine_parts(
     faces: bool = True,
     search=None,
 ):
-    """Joint refinement with :class:`RefineSettings`' moves: ``rounds`` passes of
-    :class:`GrowParts` (``steps`` solver steps each), then :class:`SplitParts` (when
-    ``split``), :class:`FillGaps` (when ``search``, the first search's
-    :class:`~sqparts.SearchSettings`, is given), :class:`DropParts` and
-    :class:`MergeParts` (when ``merge``; then growing and dropping again if a merge was
-    made, and merging again, until a merge no longer lowers E), :class:`StraightenParts`
-    (when ``straighten``), then :class:`SettleParts` once per step scale in ``settle``
-    (() = none), then :class:`AbsorbParts` (when
-    ``absorb``; settled again if it lowered E), :class:`MergeParts` once more (when
-    ``merge``; grown, dropped and settled again if it lowered E), and last
-    :class:`SettleFaces` once per step scale in ``settle`` (when ``faces``). Returns (parts, final cost, history of E after
-    each stage)."""
+    """Joint refinement with :class:`RefineSettings`' moves, in the order its docstring
+    gives (the keywords are its fields; ``fill`` when ``search``, the first search's
+    :class:`~sqparts.SearchSettings`, is given). Returns (parts, final cost, history of E
+    after each stage)."""
     settings = RefineSettings(
         rounds=rounds,
         steps=steps,
@@ -1148,8 +1140,9 @@ class RefineSettings:
     over its pixels; the settling again if that lowered E), ``merge`` once more
     (settled parts may merge where they did not before; then grown, dropped and settled
     again), and last ``faces`` (:class:`SettleFaces`: settling with one face of a part
-    moved at a time, once per step scale in ``settle``), each kept only when E falls: these three, after settling, can only
-    shorten the description the rest gives. ``RefineSettings.none()``: no refinement."""
+    moved at a time, once per step scale in ``settle``), each kept only when E falls:
+    these three, after settling, can only shorten the description the rest gives.
+    ``RefineSettings.none()``: no refinement."""
 
     rounds: int = 2
     steps: int = 20

@@ -6,7 +6,7 @@ from typing import ClassVar
 
 import numpy as np
 import pytest
-from test_recover import CAM, SCENE  # two parts side by side, 64 x 64
+from test_recover import CAM, SCENE, _render_one  # two parts side by side, 64 x 64
 
 import sqparts
 from sqparts._encoding import part_vectors
@@ -345,13 +345,10 @@ def test_settle_faces_alone_takes_a_thickened_part_back():
     # of the semi-axis, the opposite face where it belongs: settling by faces brings E
     # most of the way back to the truth's and the faces back toward their places,
     # moving size and centre only. References: the known part, its faces and its E.
-    cam = sqparts.PinholeCamera(64, 64, 280.0, 280.0, 31.5, 31.5)
     truth = sqparts.Part(
         size=[0.1, 0.05, 0.12], squareness=[0.2, 0.2], position=[0.0, 0.0, 2.0], orientation=[0.5, -0.4, 0.2]
     )
-    depth = np.asarray(sqparts.render_range_image(sqparts.stack_parts([truth]), cam))
-    data = sqparts.prepare(depth, cam)
-    costs = sqparts.Costs.from_encoding(data.encoding, int(data.figure_mask.sum()))
+    _, data, costs = _render_one(truth, CAM)
     v = np.asarray(truth.to_vector(), np.float32)
     axis = np.asarray(sqparts.rotation_matrix(v[3:6]))[:, 1]
     start = v.copy()
