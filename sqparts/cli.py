@@ -802,12 +802,15 @@ def _unraisable(hook):
     """Python swallows an exception raised where it cannot propagate (a garbage-collector
     callback, ``__del__``; JAX's GC callback runs often). When that swallows an
     :class:`Interrupted`, the signal is delivered again 10 ms later (SIGALRM), in
-    whatever ordinary frame runs then."""
+    whatever ordinary frame runs then. Once a signal has arrived the run is stopping, and
+    what such code raises next is the interruption's echo (Dask's GC callback, stopped
+    between its start and stop phases, fails an assertion at the stop): it is dropped,
+    not printed as a traceback."""
 
     def handle(unraisable):
         if isinstance(unraisable.exc_value, Interrupted):
             signal.setitimer(signal.ITIMER_REAL, 0.01)
-        else:
+        elif _signal_state["pending"] is None:
             hook(unraisable)
 
     return handle

@@ -204,6 +204,47 @@ def test_a_signal_between_writes_leaves_nothing(files, capsys, monkeypatch, sign
     assert {s: signal.getsignal(s) for s in before} == before  # handlers restored
 
 
+def test_a_signal_inside_a_gc_callback_stops_the_run_without_a_traceback(monkeypatch):
+    # Dask's client times garbage collection with a callback: "start" sets a timer and
+    # "stop" asserts that it is set. A signal during "start" is swallowed by the collector
+    # (and delivered again); the "stop" that follows then fails its assertion. Seen in CI
+    # as a traceback after Ctrl-C of a `--jobs 2` batch.
+    import gc
+
+    printed = []
+    monkeypatch.setattr("sys.unraisablehook", printed.append)  # what Python would print
+    started = []
+
+    def timer(phase, info):
+        if phase == "start":
+            os.kill(os.getpid(), signal.SIGINT)  # the handler runs in this callback
+            started.append(phase)
+        else:
+            assert started, "stop without a start"
+
+    with pytest.raises(cli.Interrupted), cli._signals_stop_the_run():
+        gc.callbacks.append(timer)
+        try:
+            gc.collect()
+        finally:
+            gc.callbacks.remove(timer)
+        time.sleep(1.0)  # the signal, delivered again, lands here
+        raise AssertionError("the signal did not stop the run")
+    assert not started and printed == []
+
+    # Without a signal, what such a callback raises is printed as before.
+    def broken(phase, info):
+        assert phase == "start", "a broken callback"
+
+    with cli._signals_stop_the_run():
+        gc.callbacks.append(broken)
+        try:
+            gc.collect()
+        finally:
+            gc.callbacks.remove(broken)
+    assert [type(u.exc_value) for u in printed] == [AssertionError]
+
+
 def test_demo_with_a_bad_resolution_leaves_no_folder(tmp_path, capsys):
     out = tmp_path / "demo"
     assert "--resolution: got '0'" in cli_error(capsys, ["demo", "--resolution", "0", "--out", str(out)])
