@@ -125,13 +125,18 @@ def _grow_inputs(parts: Part, data: RangeData, cost: EncodingCost, which, *, tol
 
 
 def _grown_edits(
-    edits, vectors, cost: EncodingCost, data: RangeData, costs: Costs, *, rounds, steps, grow=2, free=None
+    edits, vectors, cost: EncodingCost, data: RangeData, costs: Costs, *, rounds, steps, grow=2, free=None, every=False
 ):
     """``edits`` of the parts with (n, 14) ``vectors`` and joint cost ``cost`` with their
     new parts (in the removed parts' places for a one-for-one edit, else last) grown over
     the image as each edit leaves it: ``rounds`` rounds of region growing
     (:func:`_grow_inputs`, ``grow`` pixels; :func:`_grow`, ``steps`` solver steps,
-    moving the numbers ``free`` lets them), all edits' parts in one batch a round."""
+    moving the numbers ``free`` lets them), all edits' parts in one batch a round.
+    With ``every``, every round's edits are returned (rounds x edits), not the last
+    round's: growing does not always lower E round after round (two parts that grow into
+    a corner both take its pixels, and the next round's supports follow them), and the
+    accept rule then picks the round."""
+    out = []
     for _ in range(rounds if edits else 0):
         scores = edit_costs(cost, edits := render_edits(edits, data.camera), data, costs)
         inputs = []
@@ -141,7 +146,8 @@ def _grown_edits(
             inputs.append(_grow_inputs(host_parts(e.apply(vectors, e.add)), data, c, placed, grow=grow))
         new = np.split(_grow(data, inputs, steps=steps, free=free), np.cumsum([len(e.add) for e in edits])[:-1])
         edits = [Edit(e.remove, v) for e, v in zip(edits, new)]
-    return edits
+        out += edits
+    return out if every else edits
 
 
 def _grow(data: RangeData, inputs, *, steps: int, free=None) -> np.ndarray:
@@ -493,7 +499,8 @@ class AbsorbParts(Move):
     :func:`_grow_inputs`), tried for the ``tries`` parts that explain fewest pixels: a
     member that the search cut in two, its piece taken back by the rest of it (the end
     of a bar, the corner of an L), where dropping the piece alone would leave its pixels
-    unexplained."""
+    unexplained. Each round's result is an edit (an L's corner piece pays after one
+    round; after three, both bars have grown into the corner)."""
 
     name: ClassVar[str] = "absorb"
     passes: int = MAX_PASSES
@@ -512,7 +519,11 @@ class AbsorbParts(Move):
         for i in [int(i) for i in np.argsort(own, kind="stable")[: self.tries] if adjacent[i].any()]:
             beside = tuple(int(j) for j in np.flatnonzero(adjacent[i]))
             trials.append(Edit((i, *beside), vectors[list(beside)]))
-        return [_grown_edits(trials, vectors, cost, data, costs, rounds=self.rounds, steps=self.steps, grow=self.grow)]
+        return [
+            _grown_edits(
+                trials, vectors, cost, data, costs, rounds=self.rounds, steps=self.steps, grow=self.grow, every=True
+            )
+        ]
 
 
 def _explained_by_each(cost: EncodingCost, n: int) -> np.ndarray:

@@ -6,6 +6,7 @@ from typing import ClassVar
 
 import numpy as np
 import pytest
+from scipy.spatial.transform import Rotation
 from test_recover import CAM, SCENE, _render_one  # two parts side by side, 64 x 64
 
 import sqparts
@@ -93,6 +94,52 @@ def test_absorb_parts_alone_gives_a_cut_members_piece_back():
     assert [s for s, _ in history] == ["initial", "absorb"] and len(parts.size) == 1
     assert cost.total == pytest.approx(exact, abs=1.0)
     np.testing.assert_allclose(part_vectors(parts)[0, [0, 8]], [0.0, 0.15], atol=0.003)
+
+
+def test_absorb_parts_gives_an_ls_corner_piece_back_at_the_round_that_pays():
+    # An L of two bars seen from above and aside (orthographic, 120 x 80) as the search and
+    # refinement left it before: the upright bar cut above the corner, the corner a part
+    # of its own, the other bar short of it. Absorbing the corner piece pays after one
+    # round of growing; more rounds grow both bars into the corner and cost more than the
+    # three parts. The accept rule picks the round: two parts, near the truth's E.
+    camera = sqparts.OrthographicCamera(width=120, height=80, pixel_size=0.18 / 19, cx=59.5, cy=39.5)
+    rot = [[0.5125, -0.8587, 0.0], [-0.2710, -0.1618, -0.9489], [0.8148, 0.4863, -0.3156]]
+    upright = sqparts.Part(
+        size=[0.04, 0.04, 0.2],
+        squareness=[0.2, 0.2],
+        position=[0.0, -0.1518, 0.9495],
+        orientation=Rotation.from_matrix(rot).as_rotvec(),
+    )
+    across = sqparts.Part(
+        size=[0.16, 0.04, 0.04],
+        squareness=[0.2, 0.2],
+        position=[0.0615, -0.0325, 1.0978],
+        orientation=Rotation.from_matrix(np.array(rot) @ [[1, 0, 0], [0, 0, -1], [0, 1, 0]]).as_rotvec(),
+    )
+    truth = np.concatenate([part_vectors(upright), part_vectors(across)])
+    depth = np.asarray(sqparts.render_range_image(sqparts.Part.from_vector(truth), camera))
+    returns = np.isfinite(depth)
+    data = sqparts.prepare(depth, camera, figure=returns | sqparts.missing_returns(depth, camera, returns))
+    costs = sqparts.Costs.from_encoding(data.encoding, int(data.figure_mask.sum()))
+    start = np.array(  # across, upright cut above the corner, the corner
+        [
+            [0.073, -0.038, 1.116, -1.708, -1.868, 0.206, 0.041, 0.041, 0.164, 0.366, 0.233, -0.003, -0.048, 0.014],
+            [-0.002, -0.207, 0.94, -0.219, 1.706, 2.384, 0.059, 0.062, 0.145, 0.264, 1.751, 0.001, -0.168, 0.015],
+            [0.007, -0.048, 0.995, -1.15, 0.245, 0.395, 0.04, 0.053, 0.091, 0.29, 0.248, 0.016, 0.021, 0.112],
+        ],
+        np.float32,
+    )
+    exact = _cost(truth, data, costs).total
+    three = _cost(start, data, costs)
+    assert len(np.unique(three.labels[three.labels >= 0])) == 3 and three.total > exact + 40
+    parts, cost, _ = sqparts.refine_moves(sqparts.Part.from_vector(start), data, costs, [sqparts.AbsorbParts()])
+    assert len(parts.size) == 2 and cost.total <= exact + 10 * costs.omission  # a few pixels short of it
+    # The corner piece's trials, round by round: the last round alone (all that was
+    # proposed before) costs more than the three parts.
+    move = sqparts.AbsorbParts()
+    edits = [e for e in move.propose(start, three, data, costs, 0)[0] if e.remove[0] == 2]
+    totals = sqparts.edit_totals(three, edits, data, costs)
+    assert len(edits) == move.rounds and totals.min() < three.total < totals[-1]
 
 
 def test_straighten_parts_alone_takes_a_noisy_fits_bend_off():
