@@ -492,6 +492,27 @@ class DropParts(Move):
         return [[Edit((int(i),)) for i in which]]
 
 
+def _stretched_over(vector: np.ndarray, points: np.ndarray) -> np.ndarray:
+    """The part with 14-vector ``vector`` with its face toward ``points`` (m, 3) moved out
+    to their farthest, the opposite face held: the face on the axis along which the
+    points' mean lies farthest out in semi-axes. Unchanged if no point lies beyond it."""
+    from scipy.spatial.transform import Rotation
+
+    v = np.asarray(vector, np.float64).copy()
+    if len(points) == 0:
+        return v.astype(np.float32)
+    axes = Rotation.from_rotvec(v[3:6]).as_matrix()  # columns: the part's axes in the camera frame
+    local = (np.asarray(points, np.float64) - v[0:3]) @ axes
+    mean = local.mean(0)
+    k = int(np.argmax(np.abs(mean) / v[6:9]))
+    side = 1.0 if mean[k] >= 0 else -1.0
+    far, semi = float((side * local[:, k]).max()), v[6 + k]
+    if far > semi:
+        v[6 + k] = (semi + far) / 2
+        v[0:3] += side * (far - semi) / 2 * axes[:, k]
+    return v.astype(np.float32)
+
+
 @dataclasses.dataclass(frozen=True, kw_only=True)
 class AbsorbParts(Move):
     """A part dropped while the parts beside it grow over its pixels (``rounds`` rounds
@@ -499,8 +520,11 @@ class AbsorbParts(Move):
     :func:`_grow_inputs`), tried for the ``tries`` parts that explain fewest pixels: a
     member that the search cut in two, its piece taken back by the rest of it (the end
     of a bar, the corner of an L), where dropping the piece alone would leave its pixels
-    unexplained. Each round's result is an edit (an L's corner piece pays after one
-    round; after three, both bars have grown into the corner)."""
+    unexplained. Each part beside the piece is tried growing over it as it is, and
+    stretched over it first (:func:`_stretched_over`), alone and all together: growing
+    takes a few pixels a round, and a bar cut short of an L's corner lies farther from
+    it. Each round's result is an edit (one corner piece pays after one round; after
+    three, both bars have grown into the corner)."""
 
     name: ClassVar[str] = "absorb"
     passes: int = MAX_PASSES
@@ -515,10 +539,16 @@ class AbsorbParts(Move):
             return [[]]
         own = _explained_by_each(cost, n)
         adjacent = _adjacent_parts(cost.labels, n)
+        pts, idx = figure_points(data)
+        shown = np.where(cost.explained_mask, cost.labels, -1).reshape(-1)[idx]
         trials = []
         for i in [int(i) for i in np.argsort(own, kind="stable")[: self.tries] if adjacent[i].any()]:
             beside = tuple(int(j) for j in np.flatnonzero(adjacent[i]))
+            stretched = np.stack([_stretched_over(vectors[j], pts[shown == i]) for j in beside])
             trials.append(Edit((i, *beside), vectors[list(beside)]))
+            trials += [Edit((i, j), v[None]) for j, v in zip(beside, stretched)]
+            if len(beside) > 1:
+                trials.append(Edit((i, *beside), stretched))
         return [
             _grown_edits(
                 trials, vectors, cost, data, costs, rounds=self.rounds, steps=self.steps, grow=self.grow, every=True

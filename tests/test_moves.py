@@ -11,7 +11,7 @@ from test_recover import CAM, SCENE, _render_one  # two parts side by side, 64 x
 
 import sqparts
 from sqparts._encoding import part_vectors
-from sqparts._refine import _face_neighbours
+from sqparts._refine import _face_neighbours, _grown_edits, _stretched_over
 
 TRUTH = part_vectors(SCENE)
 SHIFT = np.r_[0.02, 0.01, 0.0, np.zeros(11)].astype(np.float32)
@@ -134,12 +134,32 @@ def test_absorb_parts_gives_an_ls_corner_piece_back_at_the_round_that_pays():
     assert len(np.unique(three.labels[three.labels >= 0])) == 3 and three.total > exact + 40
     parts, cost, _ = sqparts.refine_moves(sqparts.Part.from_vector(start), data, costs, [sqparts.AbsorbParts()])
     assert len(parts.size) == 2 and cost.total <= exact + 10 * costs.omission  # a few pixels short of it
-    # The corner piece's trials, round by round: the last round alone (all that was
-    # proposed before) costs more than the three parts.
+    # The corner piece absorbed by both bars as they are, round by round: the last round
+    # alone (all that was proposed before) costs more than the three parts.
     move = sqparts.AbsorbParts()
-    edits = [e for e in move.propose(start, three, data, costs, 0)[0] if e.remove[0] == 2]
+    trial = sqparts.Edit((2, 0, 1), start[:2])
+    edits = _grown_edits(
+        [trial], start, three, data, costs, rounds=move.rounds, steps=move.steps, grow=move.grow, every=True
+    )
     totals = sqparts.edit_totals(three, edits, data, costs)
     assert len(edits) == move.rounds and totals.min() < three.total < totals[-1]
+
+
+def test_stretched_over_moves_the_face_toward_the_points_to_the_farthest():
+    # A bar along its own z, turned; points beyond its +z end (and some beside it): its
+    # +z face moves out to the farthest point's z, its -z face stays.
+    rot = Rotation.from_rotvec([0.3, -0.7, 0.2])
+    bar = np.r_[0.1, -0.05, 2.0, rot.as_rotvec(), 0.03, 0.04, 0.2, 0.5, 0.5, 0, 0, 0].astype(np.float32)
+    rng = np.random.default_rng(0)
+    local = np.c_[rng.uniform(-0.03, 0.03, 50), rng.uniform(-0.04, 0.04, 50), rng.uniform(0.15, 0.31, 50)]
+    out = _stretched_over(bar, bar[:3] + rot.apply(local))
+    axis = rot.as_matrix()[:, 2]
+    ends = lambda v: (np.dot(v[:3] - bar[:3], axis) - v[8], np.dot(v[:3] - bar[:3], axis) + v[8])  # noqa: E731
+    np.testing.assert_allclose(ends(out), [-0.2, local[:, 2].max()], atol=1e-5)
+    np.testing.assert_allclose(np.cross(out[:3] - bar[:3], axis), 0.0, atol=1e-6)  # moved along z only
+    np.testing.assert_array_equal(np.delete(out, [0, 1, 2, 8]), np.delete(bar, [0, 1, 2, 8]))
+    # No point beyond the face: the part as it was.
+    np.testing.assert_array_equal(_stretched_over(bar, bar[:3] + rot.apply(local * [1, 1, 0.5])), bar)
 
 
 def test_straighten_parts_alone_takes_a_noisy_fits_bend_off():
