@@ -970,8 +970,10 @@ class MergeParts(Move):
     parts with the most bits to win back (unexplained and commission pixels they answer
     for) get the same starts from their own pixels: one part's description replaced by a
     shorter one (a polish that settled on the wrong squareness or depth, a straight fit
-    of a bent part). All are fitted by batched LM calls of ``steps`` steps to their
-    parts' explained pixels (the moment starts, farther from their answer, twice over);
+    of a bent part), and again from their explained pixels alone (the unexplained pixels
+    beside a thin plate seen edge-on, fitted bent, pull its starts bent again). All are
+    fitted by batched LM calls of ``steps`` steps to the pixels their starts came from
+    (the moment starts, farther from their answer, twice over);
     every start, as it is and fitted, is an edit (the radial distances that the fits
     minimise thicken a thin plate, and lengthen a bar whose ends meet other parts)."""
 
@@ -1029,6 +1031,9 @@ class MergeParts(Move):
         singles = [(int(i),) for i in np.argsort(-gain, kind="stable")[: self.tries] if step == 0 and gain[i] > 0]
         for group in _part_groups(adjacent) + singles:
             add(group, lambda w: _moment_candidates(pts[w > 0], data.encoding.sigma), whole=True)
+        for group in singles:  # and from its explained pixels alone, where it answers for others
+            if np.isin(owner, group).any():
+                add(group, lambda w: _moment_candidates(pts[w > 0], data.encoding.sigma))
         if not inits:
             return [[]]
         w_all, wr_all, start = np.stack(weights), np.stack(ray_weights), np.stack(inits)

@@ -145,6 +145,44 @@ def test_absorb_parts_gives_an_ls_corner_piece_back_at_the_round_that_pays():
     assert len(edits) == move.rounds and totals.min() < three.total < totals[-1]
 
 
+def test_merge_parts_refits_a_bent_seat_from_its_own_pixels():
+    # A chair seen from above and aside (orthographic, 140 x 120), its seat (a thin
+    # plate, nearly edge-on) as refinement left it before: bent, tapered and rounded,
+    # with a rim of pixels beside it unexplained. Summarised from its pixels and those it
+    # answers for, the seat comes back bent; from its explained pixels alone, flat, and
+    # the chair at the truth's E.
+    seat, back = [0.2807, -0.93841, -0.14363], [1.71501, -0.87756, 0.64458]
+    truth = np.array(
+        [
+            [0.0, 0.0, 1.8, *seat, 0.2, 0.02, 0.2, 0.15, 0.15, 0, 0, 0],
+            [-0.14599, -0.26051, 1.82869, *seat, 0.2, 0.22, 0.02, 0.15, 0.15, 0, 0, 0],
+            [0.03843, 0.28091, 1.63934, *back, 0.02, 0.02, 0.2, 0.2, 0.2, 0, 0, 0],
+            [0.23733, 0.19843, 1.90247, *back, 0.02, 0.02, 0.2, 0.2, 0.2, 0, 0, 0],
+        ],
+        np.float32,
+    )
+    camera = sqparts.OrthographicCamera(width=140, height=120, pixel_size=0.46 / 33, cx=69.5, cy=59.5)
+    depth = np.asarray(sqparts.render_range_image(sqparts.Part.from_vector(truth), camera))
+    returns = np.isfinite(depth)
+    data = sqparts.prepare(depth, camera, figure=returns | sqparts.missing_returns(depth, camera, returns))
+    costs = sqparts.Costs.from_encoding(data.encoding, int(data.figure_mask.sum()))
+    start = truth.copy()
+    start[0] = [0.031, 0.01, 1.828, 0.193, 0.944, 0.176, 0.194, 0.038, 0.256, 0.457, 0.732, -0.146, -0.977, 0.512]
+    exact, bent = _cost(truth, data, costs).total, _cost(start, data, costs)
+    assert bent.total > exact + 100
+    move = sqparts.MergeParts(passes=1)
+    parts, cost, _ = sqparts.refine_moves(sqparts.Part.from_vector(start), data, costs, [move])
+    assert len(parts.size) == 4 and cost.total <= exact + 4 * costs.omission
+    out = part_vectors(parts)[0]
+    np.testing.assert_allclose(out[:3], truth[0, :3], atol=2 * camera.pixel_size)
+    assert abs(out[12]) < 0.2  # flat (it was bent by -0.98)
+    # The starts from the seat's pixels with those it answers for: none as short.
+    edits = [e for e in move.propose(start, bent, data, costs, 0)[0] if e.remove == (0,)]
+    totals = sqparts.edit_totals(bent, edits, data, costs)
+    assert len(edits) == 2 * 2 * 13  # as they are and fitted, from both sets of pixels
+    assert totals[:13].min() > cost.total + 50 and totals[26:39].min() > cost.total + 50
+
+
 def test_stretched_over_moves_the_face_toward_the_points_to_the_farthest():
     # A bar along its own z, turned; points beyond its +z end (and some beside it): its
     # +z face moves out to the farthest point's z, its -z face stays.
