@@ -119,6 +119,7 @@ _EXPORTS = {
         "SettleParts",
         "SplitParts",
         "StraightenParts",
+        "StretchParts",
         "accept_edits",
         "refine_moves",
         "refine_parts",

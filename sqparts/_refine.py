@@ -43,9 +43,12 @@ E. The moves, in :meth:`RefineSettings.moves`'s order:
 - :class:`MergeParts` once more, for the same reason: settled parts may merge where
   they did not before (a body split under a lid's overhang, whose lid settling moved;
   an L's arm cut in two), then grown, dropped and settled again if it gains;
-- :class:`SettleFaces`, last of all, once per step scale of settling: settling with one
-  face of a part moved at a time (a semi-axis and the centre together), which the
-  one-parameter steps cannot do where each alone raises E.
+- :class:`SettleFaces`, once per step scale of settling: settling with one face of a
+  part moved at a time (a semi-axis and the centre together), which the one-parameter
+  steps cannot do where each alone raises E;
+- :class:`StretchParts`, last of all: each part that answers for unexplained pixels
+  stretched over them and grown, then settled again (by parameters and by faces) if it
+  gains (a chair's back that stops short of the seat it meets).
 """
 
 from __future__ import annotations
@@ -556,6 +559,50 @@ class AbsorbParts(Move):
         ]
 
 
+@dataclasses.dataclass(frozen=True, kw_only=True)
+class StretchParts(Move):
+    """Each part that answers for unexplained pixels (:func:`_answered_for`) stretched
+    over them (:func:`_stretched_over`), then grown (``rounds`` rounds of region
+    growing, ``grow`` pixels and ``steps`` solver steps each); the stretched part and
+    each round's are edits. A part that stops short of its pixels (a chair's back above
+    the seat it meets, its lower edge a strip of unexplained pixels) is reached in one
+    jump, where growing takes a few pixels a round and settling a few percent of a
+    semi-axis a step, each while E falls."""
+
+    name: ClassVar[str] = "stretch"
+    passes: int = MAX_PASSES
+    rounds: int = 2
+    grow: int = 4
+    steps: int = 20
+
+    def propose(self, vectors, cost, data, costs, step):
+        pts, idx = figure_points(data)
+        owner = _answered_for(cost, data).reshape(-1)[idx]
+        trials = [
+            Edit((i,), _stretched_over(vectors[i], pts[owner == i])[None])
+            for i in range(len(vectors))
+            if (owner == i).any()
+        ]
+        return [
+            trials
+            + _grown_edits(
+                trials, vectors, cost, data, costs, rounds=self.rounds, steps=self.steps, grow=self.grow, every=True
+            )
+        ]
+
+
+def _answered_for(cost: EncodingCost, data: RangeData) -> np.ndarray:
+    """(H, W) int: for each figure pixel no part explains, the part whose visible pixels
+    are nearest (the part that answers for it); -1 elsewhere."""
+    from scipy.ndimage import distance_transform_edt
+
+    shown = cost.labels >= 0
+    if not shown.any():
+        return np.full(cost.labels.shape, -1)
+    near = np.asarray(distance_transform_edt(~shown, return_distances=False, return_indices=True))
+    return np.where(data.figure_mask & ~cost.explained_mask, cost.labels[near[0], near[1]], -1)
+
+
 def _explained_by_each(cost: EncodingCost, n: int) -> np.ndarray:
     """(n,) explained pixels each of the ``n`` parts of ``cost`` shows."""
     return np.array([(cost.labels == i)[cost.explained_mask].sum() for i in range(n)])
@@ -983,8 +1030,6 @@ class MergeParts(Move):
     tries: int = 3
 
     def propose(self, vectors, cost, data, costs, step):
-        from scipy.ndimage import distance_transform_edt
-
         n = len(vectors)
         if n == 0:
             return [[]]
@@ -992,14 +1037,7 @@ class MergeParts(Move):
         rays, ray_index = background_rays(data)
         adjacent = _adjacent_parts(cost.labels, n)
         inits, weights, ray_weights, members = [], [], [], []
-        # Each figure pixel no part explains goes to the part whose visible pixels are
-        # nearest: the pixels a part (or a group) summarising its parts answers for.
-        shown = cost.labels >= 0
-        if shown.any():
-            near = np.asarray(distance_transform_edt(~shown, return_distances=False, return_indices=True))
-            owner = np.where(data.figure_mask & ~cost.explained_mask, cost.labels[near[0], near[1]], -1)
-        else:
-            owner = np.full(cost.labels.shape, -1)
+        owner = _answered_for(cost, data)
 
         def add(group, starts, *, whole=False):
             union = np.isin(cost.labels, group) & cost.explained_mask
@@ -1145,6 +1183,7 @@ def refine_parts(
     settle: tuple[float, ...] = SETTLE_SCALES,
     absorb: bool = True,
     faces: bool = True,
+    stretch: bool = True,
     search=None,
 ):
     """Joint refinement with :class:`RefineSettings`' moves, in the order its docstring
@@ -1161,6 +1200,7 @@ def refine_parts(
         settle=settle,
         absorb=absorb,
         faces=faces,
+        stretch=stretch,
     )
     return refine_moves(parts, data, costs, settings.moves(search))
 
@@ -1185,9 +1225,11 @@ class RefineSettings:
     ``absorb`` (:class:`AbsorbParts`: a small part dropped while its neighbours grow
     over its pixels; the settling again if that lowered E), ``merge`` once more
     (settled parts may merge where they did not before; then grown, dropped and settled
-    again), and last ``faces`` (:class:`SettleFaces`: settling with one face of a part
-    moved at a time, once per step scale in ``settle``), each kept only when E falls:
-    these three, after settling, can only shorten the description the rest gives.
+    again), ``faces`` (:class:`SettleFaces`: settling with one face of a part moved at
+    a time, once per step scale in ``settle``), and last ``stretch``
+    (:class:`StretchParts`: parts stretched over the unexplained pixels they answer
+    for; then settled again, by parameters and by faces), each kept only when E falls:
+    these four, after settling, can only shorten the description the rest gives.
     ``RefineSettings.none()``: no refinement."""
 
     rounds: int = 2
@@ -1198,6 +1240,7 @@ class RefineSettings:
     straighten: bool = True
     settle: tuple[float, ...] = SETTLE_SCALES
     absorb: bool = True
+    stretch: bool = True
     faces: bool = True
 
     def __post_init__(self):
@@ -1206,7 +1249,7 @@ class RefineSettings:
             raise ValueError(f"rounds: got {r!r}, expected an integer in [0, {MAX_REFINE_ROUNDS}]")
         if isinstance(self.steps, bool) or not isinstance(self.steps, (int, np.integer)) or not 1 <= self.steps <= 1000:
             raise ValueError(f"steps: got {self.steps!r}, expected an integer in [1, 1000]")
-        for name in ("split", "fill", "merge", "straighten", "absorb", "faces"):
+        for name in ("split", "fill", "merge", "straighten", "absorb", "stretch", "faces"):
             if not isinstance(getattr(self, name), bool):
                 raise ValueError(f"{name}: got {getattr(self, name)!r}, expected True or False")
         scales = self.settle
@@ -1219,7 +1262,15 @@ class RefineSettings:
     @classmethod
     def none(cls) -> RefineSettings:
         return cls(
-            rounds=0, split=False, fill=False, merge=False, straighten=False, settle=(), absorb=False, faces=False
+            rounds=0,
+            split=False,
+            fill=False,
+            merge=False,
+            straighten=False,
+            settle=(),
+            absorb=False,
+            stretch=False,
+            faces=False,
         )
 
     @property
@@ -1231,6 +1282,7 @@ class RefineSettings:
             or self.merge
             or self.straighten
             or self.absorb
+            or self.stretch
             or bool(self.settle)
         )
 
@@ -1254,8 +1306,10 @@ class RefineSettings:
             moves.append(OnGain(AbsorbParts(steps=self.steps), then=settle))
         if self.merge:  # after settling, likewise: the parts as settled may merge where they did not before
             moves.append(OnGain(MergeParts(passes=1, steps=self.steps), then=again + settle))
-        if self.faces:  # last of all, likewise
-            moves.extend(SettleFaces(scale=s) for s in self.settle)
+        faces = tuple(SettleFaces(scale=s) for s in self.settle) if self.faces else ()
+        moves.extend(faces)  # likewise
+        if self.stretch:  # last of all, likewise
+            moves.append(OnGain(StretchParts(steps=self.steps), then=settle + faces))
         return tuple(moves)
 
     def refine(self, parts: Part, data: RangeData, costs: Costs, search=None):

@@ -200,6 +200,28 @@ def test_stretched_over_moves_the_face_toward_the_points_to_the_farthest():
     np.testing.assert_array_equal(_stretched_over(bar, bar[:3] + rot.apply(local * [1, 1, 0.5])), bar)
 
 
+def test_stretch_parts_alone_takes_a_part_to_the_pixels_it_stopped_short_of(image):
+    # The two parts side by side; the one lying across the view (its long axis along the
+    # image's y) is a third of its length, one face moved in and the other held, its
+    # pixels beyond unexplained. Growing takes a few pixels a round; stretched over
+    # them first, the part is whole.
+    data, costs = image
+    short = TRUTH.copy()
+    axis = Rotation.from_rotvec(TRUTH[1, 3:6]).as_matrix()[:, 2]
+    assert abs(axis[1]) > 0.99
+    cut = TRUTH[1, 8] * 2 / 3
+    short[1, 8] -= cut
+    short[1, 0:3] -= cut * axis
+    exact, start = _cost(TRUTH, data, costs).total, _cost(short, data, costs)
+    assert start.total > exact + 200 * costs.omission
+    _, grown, _ = sqparts.refine_moves(sqparts.Part.from_vector(short), data, costs, [sqparts.GrowParts(passes=3)])
+    assert grown.total > exact + 20 * costs.omission
+    parts, cost, history = sqparts.refine_moves(sqparts.Part.from_vector(short), data, costs, [sqparts.StretchParts()])
+    assert [s for s, _ in history] == ["initial", "stretch"]
+    assert cost.total <= exact + 4 * costs.omission
+    np.testing.assert_allclose(part_vectors(parts)[0], TRUTH[0])  # the whole part is left alone
+
+
 def test_straighten_parts_alone_takes_a_noisy_fits_bend_off():
     # A straight part seen with sensor noise, started bent as a least-squares fit can
     # leave it (bend and taper, the pose and size moved with them): refitted with bend
@@ -376,9 +398,14 @@ def test_move_settings_are_checked():
         + ["SettleParts"] * 3
         + ["OnGain"] * 2
         + ["SettleFaces"] * 3
+        + ["OnGain"]
     )
-    assert [m.scale for m in moves[-3:]] == [1.0, 0.5, 0.25]  # last of all: faces settled at each step scale
-    assert [m.scale for m in sqparts.RefineSettings(settle=(2.0,)).moves()[-1:]] == [2.0]
+    # Last of all: stretching, then settling and settling by faces again on a gain.
+    assert type(moves[-1].move).__name__ == "StretchParts" and moves[-1].then == moves[4:7] + moves[9:12]
+    assert sqparts.RefineSettings(faces=False).moves()[-1].then == moves[4:7]
+    moves = moves[:-1]
+    assert [m.scale for m in moves[-3:]] == [1.0, 0.5, 0.25]  # faces settled at each step scale
+    assert [m.scale for m in sqparts.RefineSettings(settle=(2.0,), stretch=False).moves()[-1:]] == [2.0]
     moves = moves[:-3]
     assert [m.scale for m in moves[-5:-2]] == [1.0, 0.5, 0.25]  # the steps halved, twice
     assert "StraightenParts" not in [type(m).__name__ for m in sqparts.RefineSettings(straighten=False).moves()]
@@ -388,15 +415,18 @@ def test_move_settings_are_checked():
     assert merges == [moves[2], moves[-1]] and moves[2].then == moves[-1].then[:2]
     assert moves[-1].repeat == 1 and moves[-1].then[2:] == moves[-5:-2]
     assert [type(m).__name__ for m in moves[-1].then[:2]] == ["GrowParts", "DropParts"]
-    no_merge = sqparts.RefineSettings(merge=False, faces=False).moves()
+    no_merge = sqparts.RefineSettings(merge=False, faces=False, stretch=False).moves()
     assert type(no_merge[-1].move).__name__ == "AbsorbParts"
     assert not any(isinstance(m, sqparts.OnGain) and type(m.move).__name__ == "MergeParts" for m in no_merge)
-    last = sqparts.RefineSettings(absorb=False, merge=False, faces=False).moves(search=None)
+    last = sqparts.RefineSettings(absorb=False, merge=False, faces=False, stretch=False).moves(search=None)
     assert [type(m).__name__ for m in last][-1] == "SettleParts"
-    scales = sqparts.RefineSettings(settle=[1, 0.5], absorb=False, merge=False, faces=False).moves(search=None)[-2:]
+    scales = sqparts.RefineSettings(settle=[1, 0.5], absorb=False, merge=False, faces=False, stretch=False).moves()[-2:]
     assert [type(m).__name__ for m in scales] == ["SettleParts"] * 2 and [m.scale for m in scales] == [1.0, 0.5]
     with pytest.raises(ValueError, match=r"faces: got 1, expected True or False"):
         sqparts.RefineSettings(faces=1)
+    with pytest.raises(ValueError, match=r"stretch: got 'no', expected True or False"):
+        sqparts.RefineSettings(stretch="no")
+    assert dataclasses.replace(sqparts.RefineSettings.none(), stretch=True).active
     assert not sqparts.RefineSettings.none().active and sqparts.RefineSettings.none().settle == ()
     assert sqparts.RefineSettings(settle=[1, np.float32(0.5)]).settle == (1.0, 0.5)
     for bad in ((0.0,), (-1.0,), (float("inf"),), (6.0,), (True,), "1", 1.0, (1.0,) * 9):
