@@ -42,7 +42,9 @@ E. The moves, in :meth:`RefineSettings.moves`'s order:
   after settling, so that it can only shorten the description the other moves give;
 - :class:`MergeParts` once more, for the same reason: settled parts may merge where
   they did not before (a body split under a lid's overhang, whose lid settling moved;
-  an L's arm cut in two), then grown, dropped and settled again if it gains;
+  an L's arm cut in two; single parts summarised from their explained pixels alone
+  too: a seat seen edge-on, fitted bent), then grown, dropped and settled again if it
+  gains;
 - :class:`SettleFaces`, once per step scale of settling: settling with one face of a
   part moved at a time (a semi-axis and the centre together), which the one-parameter
   steps cannot do where each alone raises E;
@@ -1017,10 +1019,10 @@ class MergeParts(Move):
     parts with the most bits to win back (unexplained and commission pixels they answer
     for) get the same starts from their own pixels: one part's description replaced by a
     shorter one (a polish that settled on the wrong squareness or depth, a straight fit
-    of a bent part), and again from their explained pixels alone (the unexplained pixels
-    beside a thin plate seen edge-on, fitted bent, pull its starts bent again). All are
-    fitted by batched LM calls of ``steps`` steps to the pixels their starts came from
-    (the moment starts, farther from their answer, twice over);
+    of a bent part); with ``alone``, again from their explained pixels alone (the
+    unexplained pixels beside a thin plate seen edge-on, fitted bent, pull its starts
+    bent again). All are fitted by batched LM calls of ``steps`` steps to the pixels
+    their starts came from (the moment starts, farther from their answer, twice over);
     every start, as it is and fitted, is an edit (the radial distances that the fits
     minimise thicken a thin plate, and lengthen a bar whose ends meet other parts)."""
 
@@ -1028,6 +1030,7 @@ class MergeParts(Move):
     passes: int = MAX_PASSES
     steps: int = 20
     tries: int = 3
+    alone: bool = False
 
     def propose(self, vectors, cost, data, costs, step):
         n = len(vectors)
@@ -1069,8 +1072,8 @@ class MergeParts(Move):
         singles = [(int(i),) for i in np.argsort(-gain, kind="stable")[: self.tries] if step == 0 and gain[i] > 0]
         for group in _part_groups(adjacent) + singles:
             add(group, lambda w: _moment_candidates(pts[w > 0], data.encoding.sigma), whole=True)
-        for group in singles:  # and from its explained pixels alone, where it answers for others
-            if np.isin(owner, group).any():
+        for group in singles if self.alone else []:  # and from its explained pixels alone
+            if np.isin(owner, group).any():  # (where it answers for others)
                 add(group, lambda w: _moment_candidates(pts[w > 0], data.encoding.sigma))
         if not inits:
             return [[]]
@@ -1224,8 +1227,8 @@ class RefineSettings:
     once per step scale in ``settle``, :data:`SETTLE_SCALES` by default; () = none),
     ``absorb`` (:class:`AbsorbParts`: a small part dropped while its neighbours grow
     over its pixels; the settling again if that lowered E), ``merge`` once more
-    (settled parts may merge where they did not before; then grown, dropped and settled
-    again), ``faces`` (:class:`SettleFaces`: settling with one face of a part moved at
+    (settled parts may merge where they did not before, and single parts are summarised
+    from their explained pixels alone too; then grown, dropped and settled again), ``faces`` (:class:`SettleFaces`: settling with one face of a part moved at
     a time, once per step scale in ``settle``), and last ``stretch``
     (:class:`StretchParts`: parts stretched over the unexplained pixels they answer
     for; then settled again, by parameters and by faces), each kept only when E falls:
@@ -1305,7 +1308,8 @@ class RefineSettings:
         if self.absorb:  # after settling: it only ever shortens the settled description
             moves.append(OnGain(AbsorbParts(steps=self.steps), then=settle))
         if self.merge:  # after settling, likewise: the parts as settled may merge where they did not before
-            moves.append(OnGain(MergeParts(passes=1, steps=self.steps), then=again + settle))
+            last = MergeParts(passes=1, steps=self.steps, alone=True)  # the single parts as settled, too
+            moves.append(OnGain(last, then=again + settle))
         faces = tuple(SettleFaces(scale=s) for s in self.settle) if self.faces else ()
         moves.extend(faces)  # likewise
         if self.stretch:  # last of all, likewise

@@ -170,17 +170,20 @@ def test_merge_parts_refits_a_bent_seat_from_its_own_pixels():
     start[0] = [0.031, 0.01, 1.828, 0.193, 0.944, 0.176, 0.194, 0.038, 0.256, 0.457, 0.732, -0.146, -0.977, 0.512]
     exact, bent = _cost(truth, data, costs).total, _cost(start, data, costs)
     assert bent.total > exact + 100
-    move = sqparts.MergeParts(passes=1)
+    move = sqparts.MergeParts(passes=1, alone=True)
     parts, cost, _ = sqparts.refine_moves(sqparts.Part.from_vector(start), data, costs, [move])
     assert len(parts.size) == 4 and cost.total <= exact + 4 * costs.omission
     out = part_vectors(parts)[0]
     np.testing.assert_allclose(out[:3], truth[0, :3], atol=2 * camera.pixel_size)
     assert abs(out[12]) < 0.2  # flat (it was bent by -0.98)
-    # The starts from the seat's pixels with those it answers for: none as short.
+    # The starts from the seat's pixels with those it answers for (all that MergeParts
+    # proposes without ``alone``): none as short.
     edits = [e for e in move.propose(start, bent, data, costs, 0)[0] if e.remove == (0,)]
     totals = sqparts.edit_totals(bent, edits, data, costs)
     assert len(edits) == 2 * 2 * 13  # as they are and fitted, from both sets of pixels
     assert totals[:13].min() > cost.total + 50 and totals[26:39].min() > cost.total + 50
+    plain = sqparts.MergeParts(passes=1).propose(start, bent, data, costs, 0)[0]
+    assert len([e for e in plain if e.remove == (0,)]) == 2 * 13
 
 
 def test_stretched_over_moves_the_face_toward_the_points_to_the_farthest():
@@ -414,6 +417,7 @@ def test_move_settings_are_checked():
     merges = [m for m in moves if isinstance(m, sqparts.OnGain) and type(m.move).__name__ == "MergeParts"]
     assert merges == [moves[2], moves[-1]] and moves[2].then == moves[-1].then[:2]
     assert moves[-1].repeat == 1 and moves[-1].then[2:] == moves[-5:-2]
+    assert moves[-1].move.alone and not moves[2].move.alone  # the single parts' own pixels: once settled
     assert [type(m).__name__ for m in moves[-1].then[:2]] == ["GrowParts", "DropParts"]
     no_merge = sqparts.RefineSettings(merge=False, faces=False, stretch=False).moves()
     assert type(no_merge[-1].move).__name__ == "AbsorbParts"
