@@ -1228,11 +1228,12 @@ class RefineSettings:
     ``absorb`` (:class:`AbsorbParts`: a small part dropped while its neighbours grow
     over its pixels; the settling again if that lowered E), ``merge`` once more
     (settled parts may merge where they did not before, and single parts are summarised
-    from their explained pixels alone too; then grown, dropped and settled again), ``faces`` (:class:`SettleFaces`: settling with one face of a part moved at
-    a time, once per step scale in ``settle``), and last ``stretch``
-    (:class:`StretchParts`: parts stretched over the unexplained pixels they answer
-    for; then settled again, by parameters and by faces), each kept only when E falls:
-    these four, after settling, can only shorten the description the rest gives.
+    from their explained pixels alone too; then grown, dropped and settled again),
+    ``faces`` (:class:`SettleFaces`: settling with one face of a part moved at a time,
+    once per step scale in ``settle``), and last ``stretch`` (:class:`StretchParts`:
+    parts stretched over the unexplained pixels they answer for; then settled again, by
+    parameters and by faces), each kept only when E falls: these four, after settling,
+    can only shorten the description the rest gives.
     ``RefineSettings.none()``: no refinement."""
 
     rounds: int = 2
@@ -1243,8 +1244,8 @@ class RefineSettings:
     straighten: bool = True
     settle: tuple[float, ...] = SETTLE_SCALES
     absorb: bool = True
-    stretch: bool = True
     faces: bool = True
+    stretch: bool = True
 
     def __post_init__(self):
         r = self.rounds
@@ -1252,7 +1253,7 @@ class RefineSettings:
             raise ValueError(f"rounds: got {r!r}, expected an integer in [0, {MAX_REFINE_ROUNDS}]")
         if isinstance(self.steps, bool) or not isinstance(self.steps, (int, np.integer)) or not 1 <= self.steps <= 1000:
             raise ValueError(f"steps: got {self.steps!r}, expected an integer in [1, 1000]")
-        for name in ("split", "fill", "merge", "straighten", "absorb", "stretch", "faces"):
+        for name in ("split", "fill", "merge", "straighten", "absorb", "faces", "stretch"):
             if not isinstance(getattr(self, name), bool):
                 raise ValueError(f"{name}: got {getattr(self, name)!r}, expected True or False")
         scales = self.settle
@@ -1272,8 +1273,8 @@ class RefineSettings:
             straighten=False,
             settle=(),
             absorb=False,
-            stretch=False,
             faces=False,
+            stretch=False,
         )
 
     @property
