@@ -108,8 +108,9 @@ def test_refinement_splits_a_part_that_spans_two():
     one = sqparts.stack_parts(
         [sqparts.Part(size=[0.06, 0.04, 0.18], squareness=[0.3, 0.3], position=[0.0, -0.06, 2.0], orientation=turn)]
     )
-    kept, kept_cost, _ = sqparts.refine_parts(one, data, costs, rounds=2, split=False, merge=False)
-    split, split_cost, history = sqparts.refine_parts(one, data, costs, rounds=2, split=True, merge=False)
+    kw = dict(rounds=2, merge=False, stretch=False)  # stretching alone takes the compromise part further
+    kept, kept_cost, _ = sqparts.refine_parts(one, data, costs, split=False, **kw)
+    split, split_cost, history = sqparts.refine_parts(one, data, costs, split=True, **kw)
     assert len(kept) == 1 and len(split) == 2 and dict(history)["split"] < dict(history)["polish 2"]
     explained = split_cost.explained_mask
     assert (explained & (truth == 0)).sum() >= 0.9 * (truth == 0).sum()
@@ -574,7 +575,7 @@ def test_refinement_summarises_a_plate_seen_as_patches():
             for sz in (-1, 1)
         ]
     )
-    kw = dict(rounds=1, split=False)
+    kw = dict(rounds=1, split=False, absorb=False, stretch=False)  # absorbing patches after stretching them: one too
     four, four_cost, _ = sqparts.refine_parts(patches, data, costs, merge=False, **kw)
     one, one_cost, _ = sqparts.refine_parts(patches, data, costs, merge=True, **kw)
     assert len(four) == 4 and len(one) == 1 and one_cost.total < four_cost.total
@@ -746,7 +747,7 @@ def test_refinement_redescribes_a_straight_fit_of_a_bent_tapered_part():
     straight = sqparts.Part(
         size=[0.05, 0.035, 0.15], squareness=[0.3, 0.3], position=[0.0, 0.0, 2.0], orientation=rotation_vector(rot)
     )
-    kw = dict(rounds=1, split=False)
+    kw = dict(rounds=1, split=False, stretch=False)  # the merge's re-description alone
     kept, kept_cost, _ = sqparts.refine_parts(straight, data, costs, merge=False, **kw)
     new, new_cost, _ = sqparts.refine_parts(straight, data, costs, merge=True, **kw)
     assert len(new) == 1 and new_cost.total < kept_cost.total
