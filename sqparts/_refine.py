@@ -141,9 +141,12 @@ def _grown_edits(
     round's: growing does not always lower E round after round (two parts that grow into
     a corner both take its pixels, and the next round's supports follow them), and the
     accept rule then picks the round."""
-    out = []
+    done = []  # each round's edits, rendered once (the accept rule reuses the layers)
     for _ in range(rounds if edits else 0):
-        scores = edit_costs(cost, edits := render_edits(edits, data.camera), data, costs)
+        edits = render_edits(edits, data.camera)
+        if done:
+            done[-1] = edits
+        scores = edit_costs(cost, edits, data, costs)
         inputs = []
         for e, c in zip(edits, scores):
             m = len(vectors) - len(e.remove) + len(e.add)  # parts after the edit
@@ -151,8 +154,8 @@ def _grown_edits(
             inputs.append(_grow_inputs(host_parts(e.apply(vectors, e.add)), data, c, placed, grow=grow))
         new = np.split(_grow(data, inputs, steps=steps, free=free), np.cumsum([len(e.add) for e in edits])[:-1])
         edits = [Edit(e.remove, v) for e, v in zip(edits, new)]
-        out += edits
-    return out if every else edits
+        done.append(edits)
+    return [e for batch in done for e in batch] if every else edits
 
 
 def _grow(data: RangeData, inputs, *, steps: int, free=None) -> np.ndarray:
@@ -580,11 +583,10 @@ class StretchParts(Move):
     def propose(self, vectors, cost, data, costs, step):
         pts, idx = figure_points(data)
         owner = _answered_for(cost, data).reshape(-1)[idx]
-        trials = [
-            Edit((i,), _stretched_over(vectors[i], pts[owner == i])[None])
-            for i in range(len(vectors))
-            if (owner == i).any()
-        ]
+        trials = render_edits(  # rendered once: growing starts from them, and they are edits too
+            [Edit((i,), _stretched_over(vectors[i], pts[owner == i])[None]) for i in np.unique(owner[owner >= 0])],
+            data.camera,
+        )
         return [
             trials
             + _grown_edits(
