@@ -193,6 +193,64 @@ def torn_components(depth, camera: Camera, mask=None, *, tear: float = DEFAULT_T
     return out
 
 
+def joined_pieces(pieces: np.ndarray, depth, camera: Camera) -> np.ndarray:
+    """Pieces of the rubber sheet (``pieces``: :func:`torn_components` labels) that one
+    object's own occlusions tore apart, joined again: two pieces that touch in the image
+    (4-neighbours) are one when the least depth jump between them is less than the 3-D
+    extent of the smaller of them (the diagonal of its points' bounding box): an arm in
+    front of the torso, a mug's handle before its body, a plate seen so nearly edge-on
+    that its surface tears. An object that stands farther behind another than its own
+    size stays apart. Returns the labels of the joined pieces (0, 1, ... by decreasing
+    size; -1 where ``pieces`` is)."""
+    pieces = np.asarray(pieces, np.int64)
+    n = int(pieces.max()) + 1 if pieces.size else 0
+    if n < 2:
+        return pieces
+    d = np.asarray(depth, np.float64)
+    pts = np.asarray(camera.points(np.asarray(depth, np.float32)), np.float64)
+    flat = pieces.reshape(-1)
+    inside = flat >= 0
+    lo = np.full((n, 3), np.inf)
+    hi = np.full((n, 3), -np.inf)
+    np.minimum.at(lo, flat[inside], pts.reshape(-1, 3)[inside])
+    np.maximum.at(hi, flat[inside], pts.reshape(-1, 3)[inside])
+    extent = np.linalg.norm(hi - lo, axis=1)
+    a_all, b_all, j_all = [], [], []
+    for sa, sb in (
+        ((slice(None), slice(0, -1)), (slice(None), slice(1, None))),
+        ((slice(0, -1), slice(None)), (slice(1, None), slice(None))),
+    ):
+        a, b = pieces[sa], pieces[sb]
+        m = (a >= 0) & (b >= 0) & (a != b)
+        a_all.append(np.minimum(a[m], b[m]))
+        b_all.append(np.maximum(a[m], b[m]))
+        j_all.append(np.abs(d[sa] - d[sb])[m])
+    a, b, jump = np.concatenate(a_all), np.concatenate(b_all), np.concatenate(j_all)
+    parent = np.arange(n)
+
+    def root(k):
+        while parent[k] != k:
+            parent[k] = parent[parent[k]]
+            k = parent[k]
+        return k
+
+    if len(a):
+        key = a * n + b
+        order = np.lexsort((jump, key))
+        first = np.ones(len(order), bool)
+        first[1:] = key[order][1:] != key[order][:-1]
+        for i, k, j in zip(a[order][first], b[order][first], jump[order][first]):  # each touching pair's least jump
+            if j < min(extent[i], extent[k]):
+                parent[root(i)] = root(k)
+    groups = np.array([root(k) for k in range(n)])
+    out = np.full(pieces.shape, -1, np.int64)
+    ids, counts = np.unique(groups[flat[inside]], return_counts=True)
+    rank = np.full(n, -1)
+    rank[ids[np.argsort(-counts, kind="stable")]] = np.arange(len(ids))
+    out.reshape(-1)[inside] = rank[groups[flat[inside]]]
+    return out
+
+
 def estimate_quantum(depth) -> float | None:
     """The depth step of quantised data (median gap between consecutive distinct depths
     when they are fewer than a quarter of the returns), or None for continuous data."""
@@ -589,6 +647,7 @@ def figure_ground(
     max_height: float | None = None,
     max_border_fraction: float = 0.15,
     holes: str = "auto",
+    join: bool = True,
     seed: int = 0,
 ) -> FigureGround:
     """Separate figures from ground.
@@ -602,7 +661,8 @@ def figure_ground(
     ``plane_threshold`` (default: 1% of the median depth, at least 3 depth quanta) of a
     plane, or below the ground plane, are background; with ``max_height`` so is everything farther than that above the ground
     (the paper's "cube of data"). The rest is torn into pieces at depth discontinuities
-    (:func:`torn_components`), and the pieces of at least ``min_pixels`` (default: 0.25%
+    (:func:`torn_components`), the pieces one object's own occlusions tore apart joined
+    again unless ``join`` is False (:func:`joined_pieces`), and the pieces of at least ``min_pixels`` (default: 0.25%
     of the returns, at least 16) are the figures, except, once a plane is removed, a piece
     with more than ``max_border_fraction`` of its returns on the outer frame of the
     measured area (a band 1/40 of the image's shorter side wide, at least 3 pixels): that
@@ -617,6 +677,8 @@ def figure_ground(
     check_holes(holes)
     if not (isinstance(planes, (int, np.integer)) and planes >= 0):
         raise ValueError(f"planes: got {planes!r}, expected an integer >= 0")
+    if not isinstance(join, bool):
+        raise ValueError(f"join: got {join!r}, expected True or False")
     if not (0 < min_plane_fraction <= 1):
         raise ValueError(f"min_plane_fraction: got {min_plane_fraction!r}, expected a number in (0, 1]")
     valid = np.isfinite(d)
@@ -670,6 +732,8 @@ def figure_ground(
         opened = np.asarray(ndimage.binary_opening(keep, structure=np.ones((2, 2), bool)), bool)
         keep &= opened | ~np.asarray(ndimage.binary_dilation(background, structure=np.ones((3, 3), bool)), bool)
     pieces = torn_components(d, camera, keep, tear=tear)
+    if join:
+        pieces = joined_pieces(pieces, d, camera)
     sizes = np.bincount(pieces[pieces >= 0], minlength=1)
     border = _outer_frame(valid, width=max(3, min(d.shape) // 40)) if found and max_border_fraction < 1 else None
     figures = []

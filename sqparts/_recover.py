@@ -353,7 +353,7 @@ class SceneSettings:
     commission) or ``"missing"`` (every enclosed one is missing data).
     Figure/ground (``figure_ground``): up to ``planes`` background planes removed
     (``plane_threshold``) and the rest split into figures (``min_figure_pixels``,
-    ``max_figures``, ``max_height``, ``max_border_fraction``: see
+    ``max_figures``, ``max_height``, ``max_border_fraction``, ``join``: see
     :func:`~sqparts.figure_ground`); off: the whole image is one figure. Prettifying
     (``prettify``): near-vertical and near-horizontal parts snapped to gravity ``up``
     (default: the ground plane's normal) within ``max_angle`` degrees when E rises by at
@@ -372,6 +372,7 @@ class SceneSettings:
     max_figures: int | None = None
     max_height: float | None = None
     max_border_fraction: float = 0.15
+    join: bool = True
     prettify: bool = False
     up: tuple[float, float, float] | None = None
     max_angle: float = 15.0
@@ -396,7 +397,7 @@ class SceneSettings:
         r = self.resolution
         if r is not None and (isinstance(r, bool) or not isinstance(r, (int, np.integer)) or r < 0):
             raise ValueError(f"resolution: got {r!r}, expected an integer >= 0 or None")
-        for name in ("clean", "figure_ground", "prettify"):
+        for name in ("clean", "figure_ground", "join", "prettify"):
             if not isinstance(getattr(self, name), bool):
                 raise ValueError(f"{name}: got {getattr(self, name)!r}, expected True or False")
         if self.depth_range is not None:
@@ -679,6 +680,7 @@ def recover_scene(
             max_height=st.max_height,
             max_border_fraction=st.max_border_fraction,
             holes=st.holes,
+            join=st.join,
         )
         masks = fg.figures
         if not masks:

@@ -181,6 +181,7 @@ def _recover_options(args) -> dict:
             min_figure_pixels=args.min_figure_pixels,
             max_figures=args.max_figures,
             max_border_fraction=args.max_border_fraction,
+            join=args.join,
             holes=args.holes,
             prettify=args.prettify,
             up=None if args.up is None else args.up.split(","),
@@ -668,6 +669,13 @@ def build_parser() -> argparse.ArgumentParser:
         type=_POSITIVE,
         default=None,
         help="depth jump, in pixel footprints, that separates figures (default 8)",
+    )
+    g.add_argument(
+        "--no-join",
+        dest="join",
+        action="store_false",
+        help="keep apart the pieces of one object that its own occlusions tore (an arm before the body): "
+        "by default touching pieces are one figure when the depth jump between them is less than the smaller one's size",
     )
     g.add_argument("--min-figure-pixels", type=_POSITIVE_INT, default=None, help="smallest figure kept")
     g.add_argument("--max-figures", type=_POSITIVE_INT, default=None, help="recover at most this many figures")

@@ -315,6 +315,34 @@ def test_rubber_sheet_tears_only_at_jumps():
     assert (lab[:, :25] == 0).all() and (lab[:, 25:] == 1).all()
 
 
+def test_pieces_one_object_tore_are_joined_and_objects_stay_apart():
+    # Against nothing (no planes), 1 cm pixels, tears at 8 cm. A body 30 cm square; a
+    # handle 10 cm before its right side (torn off by the jump, but the jump is less
+    # than the handle's own 12 cm); a small block 50 cm before its top edge (touching it
+    # in the image, farther off than its 11 cm); a block beside it, touching nothing.
+    cam = sqparts.OrthographicCamera(70, 50, 0.01, 34.5, 24.5)
+    depth = np.full((50, 70), np.nan)
+    depth[10:40, 10:40] = 2.0
+    depth[20:26, 40:52] = 1.9
+    depth[2:10, 15:23] = 1.5
+    depth[30:45, 55:65] = 2.0
+    torn = sqparts.torn_components(depth, cam)
+    assert torn.max() == 3  # four pieces
+    joined = sqparts.joined_pieces(torn, depth, cam)
+    assert joined.max() == 2
+    assert (joined[10:40, 10:40] == 0).all() and (joined[20:26, 40:52] == 0).all()  # the largest: body and handle
+    assert (joined[30:45, 55:65] == 1).all() and (joined[2:10, 15:23] == 2).all()
+    assert (joined[np.isnan(depth)] == -1).all()
+    # The handle farther out (15 cm before the body: more than its size) stays apart.
+    farther = np.where(np.isclose(depth, 1.9), 1.85, depth)
+    assert sqparts.joined_pieces(sqparts.torn_components(farther, cam), farther, cam).max() == 3
+    # figure_ground joins them by default, not with join=False.
+    assert len(sqparts.figure_ground(depth, cam).figures) == 3
+    assert len(sqparts.figure_ground(depth, cam, join=False).figures) == 4
+    with pytest.raises(ValueError, match=r"join: got 1, expected True or False"):
+        sqparts.figure_ground(depth, cam, join=1)
+
+
 def _box_on_wall(rng):
     cam = sqparts.OrthographicCamera(80, 60, 0.01, 39.5, 29.5)
     depth = np.full((60, 80), 2.0)
