@@ -17,7 +17,7 @@ E. The moves, in :meth:`RefineSettings.moves`'s order:
 
 - :class:`GrowParts`: region growing over all parts at once: every part takes the figure
   pixels where it is visible plus the unexplained pixels next to them that lie near its
-  surface, and is polished on them (optimistix Levenberg-Marquardt on radial surface
+  surface, and is polished on them (optimistix Levenberg-Marquardt on surface
   distances, batched over parts) while the background rays around it must miss it;
 - :class:`SplitParts`: a part that spans two (a torso with its pelvis) split in two along
   its axis;
@@ -664,18 +664,26 @@ class SettleParts(Move):
     (:func:`_coordinate_neighbours`, steps ``scale`` times a pixel, 0.1 rad, 10% of a
     semi-axis, a factor 1.4 in squareness, 0.1 in bend and taper);
     :func:`accept_edits` keeps the best, then each other part's that still lowers E.
-    Polishing fits the visible points' radial distances, which E only approximates: an
+    Polishing fits the visible points' distances, which E only approximates: an
     outline's corners (squareness), the extent of a part's hidden side, the pixels
     within ±σ/2 at its rim are where this descent still gains."""
 
     name: ClassVar[str] = "settle"
     passes: int = MAX_PASSES
     scale: float = 1.0
+    which: tuple[int, ...] | None = None
 
     def __post_init__(self):
         super().__post_init__()
         if not _step_scale(self.scale):
             raise ValueError(f"scale: got {self.scale!r}, expected a number in (0, {MAX_STEP_SCALE}]")
+        w = self.which
+        if w is not None and not (isinstance(w, tuple) and all(isinstance(i, int) and i >= 0 for i in w)):
+            raise ValueError(f"which: got {w!r}, expected a tuple of part indices or None (every part)")
+
+    def _moved(self, n: int) -> list[int]:
+        """The parts this settling moves (``which``, of ``n``; None: all)."""
+        return list(range(n)) if self.which is None else [i for i in self.which if i < n]
 
     def propose(self, vectors, cost, data, costs, step):
         if len(vectors) == 0:
@@ -683,7 +691,12 @@ class SettleParts(Move):
         pixels = np.asarray(data.camera.pixel_size_at(vectors[:, 2].astype(np.float64)), np.float64)
         trials = _coordinate_neighbours(vectors, pixels, self.scale)
         return [
-            [Edit((i,), t[None]) for i in range(len(vectors)) for t in trials[i] if not np.array_equal(t, vectors[i])]
+            [
+                Edit((i,), t[None])
+                for i in self._moved(len(vectors))
+                for t in trials[i]
+                if not np.array_equal(t, vectors[i])
+            ]
         ]
 
 
@@ -718,7 +731,54 @@ class SettleFaces(SettleParts):
         if len(vectors) == 0:
             return [[]]
         trials = _face_neighbours(vectors, self.scale)
-        return [[Edit((i,), t[None]) for i in range(len(vectors)) for t in trials[i]]]
+        return [[Edit((i,), t[None]) for i in self._moved(len(vectors)) for t in trials[i]]]
+
+
+def _turned_twin(vector: np.ndarray) -> np.ndarray:
+    """The (14,) part ``vector`` with its cross-section's pinch traded for squareness:
+    turned 45 degrees about its z axis, ε2 -> 2 - ε2 (at least the smallest squareness)
+    and both cross-section semi-axes a * 2^((1 - ε2) / 2) (a their mean), unbent. A
+    cross-section |x/a|^(2/ε2) + |y/a|^(2/ε2) <= 1 reaches a * 2^((1 - ε2) / 2) along its
+    diagonals and a along its axes; the twin reaches the same two distances the other
+    way round, so at ε2 = 2 (a rhombus, |x| + |y| <= a) it is exactly the square it is
+    (ε2 = 0), and near it nearly so."""
+    from scipy.spatial.transform import Rotation
+
+    v = np.asarray(vector, np.float64).copy()
+    e2 = v[10]
+    turn = Rotation.from_rotvec(v[3:6]) * Rotation.from_rotvec([0.0, 0.0, math.pi / 4])
+    v[3:6] = turn.as_rotvec()
+    v[6:8] = (v[6] + v[7]) / 2 * 2.0 ** ((1.0 - e2) / 2)
+    v[10] = max(2.0 - e2, SQUARENESS_RANGE[0])
+    v[11:13] = 0.0
+    return v.astype(np.float32)
+
+
+@dataclasses.dataclass(frozen=True, kw_only=True)
+class UnpinchParts(Move):
+    """Each part with a pinched cross-section (ε2 above ``least``) replaced by its twin
+    turned 45 degrees about its axis (:func:`_turned_twin`), settled on E alone
+    (:class:`SettleParts` at each step scale of ``settle``, the twin's parameters only).
+    A box's square cross-section is also a rhombus (ε2 = 2) turned 45 degrees, so a box
+    that the grid met turned by about that much is fitted by pinching its cross-section
+    instead of turning it; no step of :class:`SettleParts` crosses from one to the other
+    (a squareness or an angle moved alone costs more), and the pinched fit never quite
+    takes a box's rounded edges. The twin is settled, not grown: on a noisy surface
+    region growing's least squares moves a box's faces by more than the pixels allow."""
+
+    name: ClassVar[str] = "unpinch"
+    least: float = 1.5
+    settle: tuple[float, ...] = (1.0, 0.5, 0.25)
+
+    def propose(self, vectors, cost, data, costs, step):
+        edits = []
+        for i in np.flatnonzero(vectors[:, 10] > self.least):
+            twin = vectors.copy()
+            twin[i] = _turned_twin(vectors[i])
+            moves = tuple(SettleParts(scale=s, which=(int(i),)) for s in self.settle)
+            settled, _, _ = run_moves(moves, twin, encoding_cost(host_parts(twin), data, costs), data, costs)
+            edits.append(Edit((int(i),), settled[i][None]))
+        return [edits]
 
 
 _CROP = 32
@@ -1025,7 +1085,7 @@ class MergeParts(Move):
     unexplained pixels beside a thin plate seen edge-on, fitted bent, pull its starts
     bent again). All are fitted by batched LM calls of ``steps`` steps to the pixels
     their starts came from (the moment starts, farther from their answer, twice over);
-    every start, as it is and fitted, is an edit (the radial distances that the fits
+    every start, as it is and fitted, is an edit (the distances that the fits
     minimise thicken a thin plate, and lengthen a bar whose ends meet other parts)."""
 
     name: ClassVar[str] = "merge"
@@ -1189,6 +1249,7 @@ def refine_parts(
     absorb: bool = True,
     faces: bool = True,
     stretch: bool = True,
+    unpinch: bool = True,
     search=None,
 ):
     """Joint refinement with :class:`RefineSettings`' moves, in the order its docstring
@@ -1206,6 +1267,7 @@ def refine_parts(
         absorb=absorb,
         faces=faces,
         stretch=stretch,
+        unpinch=unpinch,
     )
     return refine_moves(parts, data, costs, settings.moves(search))
 
@@ -1227,6 +1289,8 @@ class RefineSettings:
     without their deformation), the paper's final optimisation of every parameter on E
     itself (:class:`SettleParts`,
     once per step scale in ``settle``, :data:`SETTLE_SCALES` by default; () = none),
+    ``unpinch`` (:class:`UnpinchParts`: a part with a pinched cross-section against its
+    twin turned 45 degrees, settled; the settling again if that lowered E),
     ``absorb`` (:class:`AbsorbParts`: a small part dropped while its neighbours grow
     over its pixels; the settling again if that lowered E), ``merge`` once more
     (settled parts may merge where they did not before, and single parts are summarised
@@ -1248,6 +1312,7 @@ class RefineSettings:
     absorb: bool = True
     faces: bool = True
     stretch: bool = True
+    unpinch: bool = True
 
     def __post_init__(self):
         r = self.rounds
@@ -1255,7 +1320,7 @@ class RefineSettings:
             raise ValueError(f"rounds: got {r!r}, expected an integer in [0, {MAX_REFINE_ROUNDS}]")
         if isinstance(self.steps, bool) or not isinstance(self.steps, (int, np.integer)) or not 1 <= self.steps <= 1000:
             raise ValueError(f"steps: got {self.steps!r}, expected an integer in [1, 1000]")
-        for name in ("split", "fill", "merge", "straighten", "absorb", "faces", "stretch"):
+        for name in ("split", "fill", "merge", "straighten", "absorb", "faces", "stretch", "unpinch"):
             if not isinstance(getattr(self, name), bool):
                 raise ValueError(f"{name}: got {getattr(self, name)!r}, expected True or False")
         scales = self.settle
@@ -1277,6 +1342,7 @@ class RefineSettings:
             absorb=False,
             faces=False,
             stretch=False,
+            unpinch=False,
         )
 
     @property
@@ -1308,6 +1374,8 @@ class RefineSettings:
             moves.append(StraightenParts(steps=self.steps))
         settle = tuple(SettleParts(scale=s) for s in self.settle)
         moves.extend(settle)
+        if self.unpinch and settle:  # the settled twin against the settled part
+            moves.append(OnGain(UnpinchParts(settle=self.settle), then=settle))
         if self.absorb:  # after settling: it only ever shortens the settled description
             moves.append(OnGain(AbsorbParts(steps=self.steps), then=settle))
         if self.merge:  # after settling, likewise: the parts as settled may merge where they did not before

@@ -11,7 +11,7 @@ from test_recover import CAM, SCENE, _render_one  # two parts side by side, 64 x
 
 import sqparts
 from sqparts._encoding import part_vectors
-from sqparts._refine import _face_neighbours, _grown_edits, _stretched_over
+from sqparts._refine import _face_neighbours, _grown_edits, _stretched_over, _turned_twin
 
 TRUTH = part_vectors(SCENE)
 SHIFT = np.r_[0.02, 0.01, 0.0, np.zeros(11)].astype(np.float32)
@@ -253,6 +253,70 @@ def test_straighten_parts_alone_takes_a_noisy_fits_bend_off():
     assert same.total == cost.total and np.array_equal(part_vectors(again), part_vectors(parts))
 
 
+@pytest.mark.parametrize("e2", [1.2, 1.6, 1.9])
+def test_turned_twin_reaches_the_pinched_cross_sections_distances(e2):
+    # Closed form: the cross-section (z = 0) of a part with squareness ε2 reaches a along
+    # its axes and a * 2^((1 - ε2) / 2) along its diagonals; its twin, turned 45 degrees
+    # with 2 - ε2, reaches the same points the other way round.
+    from sqparts._part import inside_outside
+
+    v = np.array([0.1, -0.05, 1.3, 0.4, -0.3, 0.7, 0.05, 0.05, 0.12, 0.6, e2, 0.0, 0.0, 0.0], np.float32)
+    twin = _turned_twin(v)
+    rot = Rotation.from_rotvec(v[3:6]).as_matrix()
+    d = 0.05 * 2.0 ** ((1.0 - e2) / 2)
+    local = [(0.05, 0, 0), (0, -0.05, 0), (d / np.sqrt(2), d / np.sqrt(2), 0), (-d / np.sqrt(2), d / np.sqrt(2), 0)]
+    part = sqparts.Part.from_vector(twin)
+    for q in local:
+        assert float(inside_outside(part, v[0:3] + rot @ np.asarray(q, np.float32))) == pytest.approx(1.0, abs=2e-4)
+    np.testing.assert_allclose(twin[[0, 1, 2, 8, 9]], v[[0, 1, 2, 8, 9]])  # the centre, length and profile stay
+    np.testing.assert_allclose(twin[10], 2.0 - e2, rtol=1e-6)
+    twin_rot = Rotation.from_rotvec(twin[3:6]).as_matrix()
+    np.testing.assert_allclose(twin_rot[:, 2], rot[:, 2], atol=1e-6)  # turned about the part's own axis
+    np.testing.assert_allclose(twin_rot[:, 0] @ rot[:, 0], np.cos(np.pi / 4), atol=1e-6)
+    # Twice: the part itself turned 90 degrees (the same solid for a1 = a2).
+    again = _turned_twin(twin)
+    np.testing.assert_allclose(again[6:11], v[6:11], rtol=1e-5)
+
+
+def test_unpinch_parts_takes_a_pinched_fit_of_a_box_to_the_box():
+    # A rounded box seen with sensor noise, fitted as its pinched twin (a rhombus
+    # cross-section turned 45 degrees, which a search grid's orientation about 45 degrees
+    # off leads polishing to): settling alone stays far above the truth's E; its twin,
+    # settled, is the box.
+    truth = sqparts.Part(
+        size=[0.05, 0.05, 0.07], squareness=[0.2, 0.2], position=[0.0, 0.0, 1.2], orientation=[0.6, 0.2, -0.3]
+    )
+    depth = np.asarray(sqparts.render_range_image(truth, CAM))
+    depth = depth + np.random.default_rng(6).normal(0.0, 0.002, depth.shape).astype(np.float32)
+    data = sqparts.prepare(depth, CAM)
+    costs = sqparts.Costs.from_encoding(data.encoding, int(data.figure_mask.sum()))
+    pinched = _turned_twin(part_vectors(truth)[0])[None]
+    assert pinched[0, 10] == pytest.approx(1.8)
+    target = _cost(part_vectors(truth), data, costs).total
+    settle = [sqparts.SettleParts(scale=s) for s in (1.0, 0.5, 0.25)]
+    settled, cost, _ = sqparts.refine_moves(sqparts.Part.from_vector(pinched), data, costs, settle)
+    assert cost.total > target + 20 * costs.omission
+    parts, final, history = sqparts.refine_moves(settled, data, costs, [sqparts.UnpinchParts()])
+    assert [s for s, _ in history] == ["initial", "unpinch"]
+    assert final.total <= target + 4 * costs.omission
+    out = part_vectors(parts)[0]
+    assert out[10] < 0.5 and np.allclose(out[6:9], [0.05, 0.05, 0.07], rtol=0.1)
+    # A part that is not pinched is not proposed.
+    again, same, _ = sqparts.refine_moves(parts, data, costs, [sqparts.UnpinchParts()])
+    assert same.total == final.total and np.array_equal(part_vectors(again), out[None])
+
+
+def test_settling_moves_only_the_parts_it_is_given(image):
+    data, costs = image
+    start = TRUTH + SHIFT
+    parts, cost, _ = sqparts.refine_moves(
+        sqparts.Part.from_vector(start), data, costs, [sqparts.SettleParts(which=(1,))]
+    )
+    out = part_vectors(parts)
+    np.testing.assert_array_equal(out[0], start[0])
+    assert not np.array_equal(out[1], start[1]) and cost.total < _cost(start, data, costs).total
+
+
 def test_polishing_moves_only_the_free_numbers():
     from sqparts._polish import RIGID, figure_points, polish_parts
 
@@ -399,17 +463,28 @@ def test_move_settings_are_checked():
     assert [type(m).__name__ for m in moves] == (
         ["GrowParts", "DropParts", "OnGain", "StraightenParts"]
         + ["SettleParts"] * 3
-        + ["OnGain"] * 2
+        + ["OnGain"] * 3
         + ["SettleFaces"] * 3
         + ["OnGain"]
     )
     # Last of all: stretching, then settling and settling by faces again on a gain.
-    assert type(moves[-1].move).__name__ == "StretchParts" and moves[-1].then == moves[4:7] + moves[9:12]
+    assert type(moves[-1].move).__name__ == "StretchParts" and moves[-1].then == moves[4:7] + moves[10:13]
     assert sqparts.RefineSettings(faces=False).moves()[-1].then == moves[4:7]
     moves = moves[:-1]
     assert [m.scale for m in moves[-3:]] == [1.0, 0.5, 0.25]  # faces settled at each step scale
     assert [m.scale for m in sqparts.RefineSettings(settle=(2.0,), stretch=False).moves()[-1:]] == [2.0]
     moves = moves[:-3]
+    # After settling: the pinched parts' twins, settled alone, then all settled again on a gain.
+    unpinch = moves[7]
+    assert type(unpinch.move).__name__ == "UnpinchParts" and unpinch.then == moves[4:7]
+    assert unpinch.move.settle == (1.0, 0.5, 0.25) and unpinch.move.least == 1.5
+    assert "UnpinchParts" not in [
+        type(getattr(m, "move", m)).__name__ for m in sqparts.RefineSettings(unpinch=False).moves()
+    ]
+    assert "UnpinchParts" not in [
+        type(getattr(m, "move", m)).__name__ for m in sqparts.RefineSettings(settle=()).moves()
+    ]
+    moves = moves[:7] + moves[8:]
     assert [m.scale for m in moves[-5:-2]] == [1.0, 0.5, 0.25]  # the steps halved, twice
     assert "StraightenParts" not in [type(m).__name__ for m in sqparts.RefineSettings(straighten=False).moves()]
     assert type(moves[-2].move).__name__ == "AbsorbParts" and moves[-2].then == moves[-5:-2]  # settled again
@@ -422,14 +497,20 @@ def test_move_settings_are_checked():
     no_merge = sqparts.RefineSettings(merge=False, faces=False, stretch=False).moves()
     assert type(no_merge[-1].move).__name__ == "AbsorbParts"
     assert not any(isinstance(m, sqparts.OnGain) and type(m.move).__name__ == "MergeParts" for m in no_merge)
-    last = sqparts.RefineSettings(absorb=False, merge=False, faces=False, stretch=False).moves(search=None)
+    last = sqparts.RefineSettings(absorb=False, merge=False, faces=False, stretch=False, unpinch=False).moves()
     assert [type(m).__name__ for m in last][-1] == "SettleParts"
-    scales = sqparts.RefineSettings(settle=[1, 0.5], absorb=False, merge=False, faces=False, stretch=False).moves()[-2:]
+    scales = sqparts.RefineSettings(
+        settle=[1, 0.5], absorb=False, merge=False, faces=False, stretch=False, unpinch=False
+    ).moves()[-2:]
     assert [type(m).__name__ for m in scales] == ["SettleParts"] * 2 and [m.scale for m in scales] == [1.0, 0.5]
     with pytest.raises(ValueError, match=r"faces: got 1, expected True or False"):
         sqparts.RefineSettings(faces=1)
     with pytest.raises(ValueError, match=r"stretch: got 'no', expected True or False"):
         sqparts.RefineSettings(stretch="no")
+    with pytest.raises(ValueError, match=r"unpinch: got None, expected True or False"):
+        sqparts.RefineSettings(unpinch=None)
+    with pytest.raises(ValueError, match=r"which: got \[0\], expected a tuple of part indices or None"):
+        sqparts.SettleParts(which=[0])
     assert dataclasses.replace(sqparts.RefineSettings.none(), stretch=True).active
     assert not sqparts.RefineSettings.none().active and sqparts.RefineSettings.none().settle == ()
     assert sqparts.RefineSettings(settle=[1, np.float32(0.5)]).settle == (1.0, 0.5)
