@@ -21,7 +21,7 @@ image's figures, whose windows and strides differ, share one pruning program.
 **Candidates** (:func:`fit_regions`): every region's best distinct hypotheses are posed,
 scored at full resolution, polished and scored again together, ``PART_BUCKET`` per
 compiled call whatever their region: polishing is region growing with optimistix
-Levenberg-Marquardt on the radial distances (footnote 6) of the measured 3-D points each
+Levenberg-Marquardt on the distances (footnote 6) of the measured 3-D points each
 one explains (:func:`~sqparts._polish.grow_parts`, the program the refinement polishes
 with), and a polished part is kept only if it stays at its region and its Γ improves.
 """

@@ -8,6 +8,7 @@ from hypothesis import strategies as st
 from scipy.spatial.transform import Rotation
 
 import sqparts
+from sqparts._encoding import part_vectors
 from sqparts._part import deform, rotation_vector, undeform
 
 
@@ -135,22 +136,32 @@ def test_inside_outside_gradients_finite_at_singular_places(x64, squareness):
         assert np.all(np.isfinite(g_v)) and np.all(np.isfinite(g_p)), (squareness, p)
 
 
+def _norm_f64(q, a, e1, e2):
+    """The superquadric norm F^(ε1/2) of an undeformed local point, float64, F in
+    logarithms (float64 itself overflows beyond |q/a|^(2/ε) ~ 1e308)."""
+    with np.errstate(divide="ignore"):
+        lx, ly, lz = (np.log(abs(q[i] / a[i])) * (2 / e) for i, e in ((0, e2), (1, e2), (2, e1)))
+    return np.exp(0.5 * e1 * np.logaddexp((e2 / e1) * np.logaddexp(lx, ly), lz))
+
+
 def _distance_f64(v, x):
     """numpy float64 reference of surface_distance (Eq. 1, the paper's deformations
-    undone as :func:`~sqparts._part.undeform` documents, the radial distance)."""
+    undone as :func:`~sqparts._part.undeform` documents): (n - 1) / |grad n| with the
+    norm's gradient by central differences at the surface point q / n (the norm is
+    degree-1 homogeneous, its gradient degree 0)."""
     v, x = np.asarray(v, np.float64), np.asarray(x, np.float64)
     local = Rotation.from_rotvec(v[3:6]).as_matrix().T @ (x - v[0:3])
-    a1, a2, a3, e1, e2 = v[6], v[7], v[8], v[9], v[10]
+    a, e1, e2 = v[6:9], v[9], v[10]
     px, py, pz = local
-    pz = pz - v[12] * px * px / a1
-    px = px - v[11] * pz * pz / a3
-    k = 1.0 + v[13] * pz / a3
+    pz = pz - v[12] * px * px / a[0]
+    px = px - v[11] * pz * pz / a[2]
+    k = 1.0 + v[13] * pz / a[2]
     q = np.array([px / k, py / k, pz])
-    # F in logarithms: float64 itself overflows beyond |q/a|^(2/ε) ~ 1e308.
-    lx, ly, lz = (np.log(abs(q[i] / a)) * (2 / e) for i, a, e in ((0, a1, e2), (1, a2, e2), (2, a3, e1)))
-    log_f = np.logaddexp((e2 / e1) * np.logaddexp(lx, ly), lz)
-    length = np.linalg.norm(q)
-    return length - length / np.exp(0.5 * e1 * log_f)
+    n = _norm_f64(q, a, e1, e2)
+    s = q / n
+    h = 1e-7 * a.min()
+    grad = [(_norm_f64(s + h * u, a, e1, e2) - _norm_f64(s - h * u, a, e1, e2)) / (2 * h) for u in np.eye(3)]
+    return (n - 1.0) / np.linalg.norm(grad)
 
 
 def test_surface_distance_gradients_finite_far_from_boxy_and_deformed_parts(rng):
@@ -187,25 +198,39 @@ def test_surface_distance_closed_forms():
     x = c + rng.normal(size=(50, 3)) * 0.4
     got = np.asarray(jax.vmap(lambda p: sqparts.surface_distance(sphere, p))(jnp.asarray(x)))
     np.testing.assert_allclose(got, np.linalg.norm(x - c, axis=1) - 0.3, atol=2e-6)
-    # Any superquadric: along the ray from the centre the distance is (s - 1) r(direction),
-    # with r found here by bisection of the inside-outside function.
+    # Along its axes: |x_i| - a_i, whatever the squareness up to 1 (beyond, the axes meet
+    # the surface at a corner: a pinched cross-section's rhombus).
     part = sqparts.Part(
-        size=[0.2, 0.1, 0.35], squareness=[0.4, 1.6], position=[0.0, 0.1, 1.5], orientation=[1.0, 0.2, -0.4]
+        size=[0.2, 0.1, 0.35], squareness=[0.4, 0.7], position=[0.0, 0.1, 1.5], orientation=[1.0, 0.2, -0.4]
     )
     rot = np.asarray(sqparts.rotation_matrix(part.orientation))
-    for u in rng.normal(size=(10, 3)):
-        u /= np.linalg.norm(u)
-        lo, hi = 0.0, 1.0
-        for _ in range(60):
-            mid = 0.5 * (lo + hi)
-            inside = float(sqparts.inside_outside(part, jnp.asarray(np.asarray(part.position) + rot @ (mid * u)))) < 1
-            lo, hi = (mid, hi) if inside else (lo, mid)
-        r = lo
-        for s in (0.5, 1.0, 1.7):
-            x = np.asarray(part.position) + rot @ (s * r * u)
+    for axis, a in enumerate([0.2, 0.1, 0.35]):
+        for t in (-0.5, 0.3, 0.9, 1.0, 1.2, 3.0):
+            x = np.asarray(part.position) + rot[:, axis] * t * a
             assert float(sqparts.surface_distance(part, jnp.asarray(x, jnp.float32))) == pytest.approx(
-                (s - 1) * r, abs=3e-5
+                (abs(t) - 1) * a, abs=3e-6
             )
+    # A point moved off the surface along its normal by d is d from it, to first order,
+    # wherever it lies on the surface (a box's face: also near its edges, where the ray
+    # from the centre meets the face obliquely and the radial distance is d / cos θ).
+    box = sqparts.Part(
+        size=[0.2, 0.1, 0.05], squareness=[0.2, 0.2], position=[0.0, 0.0, 1.5], orientation=[0.3, -0.2, 0.1]
+    )
+    rot = np.asarray(sqparts.rotation_matrix(box.orientation))
+    v = np.asarray(part_vectors(box))[0]
+    for eta, omega in rng.uniform([-1.4, -3.1], [1.4, 3.1], (20, 2)):
+        p = np.asarray(sqparts.surface_point(box, eta, omega), np.float64)
+        local = rot.T @ (p - v[0:3])
+        s = local / _norm_f64(local, v[6:9], 0.2, 0.2)
+        h = 1e-7
+        g = [
+            (_norm_f64(s + h * u, v[6:9], 0.2, 0.2) - _norm_f64(s - h * u, v[6:9], 0.2, 0.2)) / (2 * h)
+            for u in np.eye(3)
+        ]
+        normal = rot @ (np.asarray(g) / np.linalg.norm(g))
+        for d in (-0.002, 0.002):
+            got = float(sqparts.surface_distance(box, jnp.asarray(p + d * normal, jnp.float32)))
+            assert got == pytest.approx(d, abs=4e-4), (eta, omega, d)
     # Finite value and gradient at the centre itself.
     g = jax.grad(lambda p: sqparts.surface_distance(sphere, p))(jnp.asarray(c, jnp.float32))
     assert np.all(np.isfinite(np.asarray(g)))
