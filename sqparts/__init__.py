@@ -21,6 +21,7 @@ _EXPORTS = {
         "rotation_matrix",
         "stack_parts",
         "surface_distance",
+        "normal_distance",
         "surface_point",
     ),
     "_camera": (

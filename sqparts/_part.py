@@ -373,19 +373,12 @@ def gauge(part: Part, local_point: Float[Array, "3"]) -> Float[Array, ""]:
 
 @jax.custom_jvp
 def surface_distance(part: Part, point: Float[ArrayLike, "3"]) -> Float[Array, ""]:
-    """Signed distance of a camera-frame point from the part's surface (< 0 inside), to
-    first order in the distance along the surface's normal.
+    """Signed radial distance of a camera-frame point from the part's surface (< 0 inside).
 
-    ``(n(q) - 1) / |grad n(q)|`` with ``q`` the undeformed local point and
-    ``n = F^(ε1/2)`` the part's norm (degree-1 homogeneous, 1 on the surface): exact for
-    spheres and along the part's axes, and a point moved off the surface along its normal
-    is that far from it wherever it lies (section 2.1: measurement error is normal to the
-    surface). The radial distance ``|q| (1 - 1/n)`` (the ray from the centre through the
-    point; Gross & Boult) counts such an error 1/cos θ times, θ between the normal and
-    the ray, so on a noisy surface least squares bought residual by moving the centre
-    away from the faces it sees (a noisy box's hidden side swelled by several noise
-    widths); neither favours small parts or points near the ends of long axes, as the
-    algebraic inside-outside value does.
+    ``|q| (1 - F(q)^(-ε1/2))`` with ``q`` the undeformed local point: the distance along
+    the ray from the part's centre through the point (exact for spheres; Gross & Boult's
+    radial Euclidean distance). Unlike the algebraic inside-outside value it hardly
+    favours small parts or points near the ends of long axes.
 
     Its derivatives (a custom JVP, the same in every mode): the gradient of the distance
     in the part's frame with respect to the local point and the part's shape, taken once
@@ -403,6 +396,14 @@ _FAR = 8.0
 most 2^20 8^20 = 1e24, its derivatives finite in float32)."""
 
 
+def _undeformed(part: Part, local: Float[Array, "3"]) -> Float[Array, "3"]:
+    """The undeformed local point (:func:`undeform`), stepped off the centre by a
+    millionth of a1 when it lies there (where the direction is undefined)."""
+    q = undeform(part, local)
+    tiny = 1e-6 * part.size[0]
+    return jnp.where(jnp.sum(q * q) < tiny * tiny, q + jnp.stack([tiny, 0.0 * tiny, 0.0 * tiny]), q)
+
+
 def _local_distance(part: Part, local: Float[Array, "3"]) -> Float[Array, ""]:
     """:func:`surface_distance` of a point already in the part's (deformed) local frame.
 
@@ -412,19 +413,29 @@ def _local_distance(part: Part, local: Float[Array, "3"]) -> Float[Array, ""]:
     homogeneous in q, so beyond :data:`_FAR` semi-axes it is taken at q / λ and times λ, λ
     the power of two at or above the largest |q_i / a_i| (exact in floating point; λ = 1
     nearer, the computation as it always was)."""
-    q = undeform(part, local)
-    # At the centre the direction is undefined: step off it by a millionth of a1.
-    tiny = 1e-6 * part.size[0]
-    q = jnp.where(jnp.sum(q * q) < tiny * tiny, q + jnp.stack([tiny, 0.0 * tiny, 0.0 * tiny]), q)
+    q = _undeformed(part, local)
     ratio = jax.lax.stop_gradient(jnp.max(jnp.abs(q / part.size)))
-    lam = jnp.where(ratio > _FAR, jnp.exp2(jnp.ceil(jnp.log2(jnp.where(ratio > _FAR, ratio, 1.0)))), 1.0)
+    # Near the centre of a boxy part F underflows to 0 (|q/a|^(2/ε), ε 0.1, below 3% of every
+    # semi-axis) and the distance was -inf: there too q is taken at q / λ, λ < 1.
+    rescale = (ratio > _FAR) | (ratio < 1.0 / _FAR)
+    lam = jnp.where(rescale, jnp.exp2(jnp.ceil(jnp.log2(jnp.where(rescale, ratio, 1.0)))), 1.0)
+    norm = lam * abs_pow(superquadric_function(part, q / lam), part.squareness[0] / 2.0)
+    length = jnp.sqrt(jnp.sum(q * q))
+    return length - length / norm
+
+
+def _local_normal_distance(part: Part, local: Float[Array, "3"]) -> Float[Array, ""]:
+    """:func:`normal_distance` of a point already in the part's (deformed) local frame:
+    :func:`_local_distance` times the cosine between the ray from the centre and the
+    surface's normal there, n / (|q| |grad n|) (Euler: q . grad n = n for the
+    degree-1 homogeneous norm n); grad n in closed form at the surface point q / n,
+    where F = 1: (A^(ε2/ε1 - 1) sgn|x/a1|^(2/ε2 - 1) / a1, the same in y,
+    sgn|z/a3|^(2/ε1 - 1) / a3), A = |x/a1|^(2/ε2) + |y/a2|^(2/ε2)."""
     e1, e2 = part.squareness[0], part.squareness[1]
-    norm = lam * abs_pow(superquadric_function(part, q / lam), e1 / 2.0)
-    # The norm's gradient, homogeneous of degree 0, at the surface point q / norm (where
-    # F = 1): (A^(ε2/ε1 - 1) sgn|x/a1|^(2/ε2 - 1) / a1, the same in y, sgn|z/a3|^(2/ε1 - 1) / a3)
-    # with A = |x/a1|^(2/ε2) + |y/a2|^(2/ε2); every factor is at most 1 there but A's
-    # power, whose product with the rest is bounded (ε1 <= 2).
-    p = q / norm / part.size
+    radial = _local_distance(part, local)
+    q = _undeformed(part, local)
+    length = jnp.sqrt(jnp.sum(q * q))
+    p = q * ((length - radial) / length) / part.size  # the surface point q / n (|q| / n = |q| - radial), per semi-axis
     across = abs_pow(abs_pow(p[0], 2.0 / e2) + abs_pow(p[1], 2.0 / e2), e2 / e1 - 1.0)
     grad = (
         jnp.stack(
@@ -436,7 +447,7 @@ def _local_distance(part: Part, local: Float[Array, "3"]) -> Float[Array, ""]:
         )
         / part.size
     )
-    return (norm - 1.0) / jnp.sqrt(jnp.sum(grad * grad))
+    return radial / jnp.maximum((length - radial) * jnp.sqrt(jnp.sum(grad * grad)), 1.0)
 
 
 @surface_distance.defjvp
@@ -447,7 +458,31 @@ def _surface_distance_jvp(primals, tangents):
     return value, matmul(per_point, part_tangent(part, dpart)) + matmul(turned, jnp.asarray(dpoint))
 
 
-def distance_terms(part: Part, point: Float[ArrayLike, "3"]):
+@jax.custom_jvp
+def normal_distance(part: Part, point: Float[ArrayLike, "3"]) -> Float[Array, ""]:
+    """Signed distance of a camera-frame point from the part's surface (< 0 inside), to
+    first order along the surface's normal: :func:`surface_distance` times the cosine
+    between the ray from the part's centre through the point and the normal where it
+    meets the surface, ``(n - 1) / |grad n|`` for the norm ``n = F^(ε1/2)``. A point moved
+    off the surface along its normal is that far from it wherever it lies (section 2.1:
+    measurement error normal to the surface), where the radial distance counts it 1/cos θ
+    times: least squares on radial distances of a noisy surface buys residual by moving
+    the part's centre away from the faces it sees (a noisy box's hidden side swelled by
+    several noise widths). Polishing fits these; selecting a part's pixels and the rays
+    it must miss keeps the radial distance, which, unlike this, does not shrink beyond a
+    boxy part's edges. Derivatives as :func:`surface_distance`'s."""
+    return _local_normal_distance(part, to_local(part, point))
+
+
+@normal_distance.defjvp
+def _normal_distance_jvp(primals, tangents):
+    part, point = primals
+    dpart, dpoint = tangents
+    value, per_point, turned = distance_terms(part, point, normal=True)
+    return value, matmul(per_point, part_tangent(part, dpart)) + matmul(turned, jnp.asarray(dpoint))
+
+
+def distance_terms(part: Part, point: Float[ArrayLike, "3"], *, normal: bool = False):
     """:func:`surface_distance` at a camera-frame point with what its derivatives need:
     (value, a (20,) vector whose dot product with :func:`part_tangent` is the
     derivative along a change of the part, R g: the gradient in the camera frame
@@ -460,7 +495,8 @@ def distance_terms(part: Part, point: Float[ArrayLike, "3"]):
     XLA:CPU runs about 4x slower (polishing's Jacobian: 3.5x faster in all)."""
     rotation = rotation_matrix(part.orientation)
     offset = jnp.asarray(point) - part.position
-    value, (g_part, g) = jax.value_and_grad(_local_distance, argnums=(0, 1))(part, matmul(rotation.T, offset))
+    local = _local_normal_distance if normal else _local_distance
+    value, (g_part, g) = jax.value_and_grad(local, argnums=(0, 1))(part, matmul(rotation.T, offset))
     turned = matmul(rotation, g)
     per_point = jnp.concatenate(
         [g_part.size, g_part.squareness, g_part.bend, g_part.taper[None], jnp.outer(offset, g).reshape(9), turned]

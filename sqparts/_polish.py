@@ -1,5 +1,5 @@
 """Polishing: optimistix Levenberg-Marquardt on the distances of measured points from a
-part's surface (:func:`~sqparts.surface_distance`, footnote 6), while rays off the figure must miss the part.
+part's surface along its normal (:func:`~sqparts.normal_distance`, footnote 6), while rays off the figure must miss the part.
 
 :func:`polish_part` fits one part; :func:`polish_parts` fits a batch of parts, each on
 its own points, ``PART_BUCKET`` parts and :data:`POLISH_CALL_STEPS` steps per compiled
@@ -26,6 +26,7 @@ from ._part import (
     distance_terms,
     from_unconstrained,
     matmul,
+    normal_distance,
     part_tangent,
     rotation_matrix,
     surface_distance,
@@ -36,7 +37,7 @@ from ._typing import ArrayLike, Float
 
 
 def ray_penetration(part: Part, origin, direction, far: Float[ArrayLike, ""] = jnp.inf):
-    """Signed distance (:func:`~sqparts.surface_distance`) of the ray's point
+    """Signed radial distance (:func:`~sqparts.surface_distance`) of the ray's point
     deepest inside the part's ellipsoid of semi-axes ``size``, among the points
     ``origin + t direction`` with t <= ``far`` (the free segment in front of a return):
     negative when the ray enters the part there (exact for ellipsoids, a smooth proxy
@@ -108,8 +109,8 @@ def _levenberg_marquardt():
 
 
 def polish_part(part: Part, points, weights, *, rays=None, steps: int = 20, free=None) -> Part:
-    """Levenberg-Marquardt (optimistix) on the weighted distances
-    (:func:`~sqparts.surface_distance`) of ``points`` from the part's surface.
+    """Levenberg-Marquardt (optimistix) on the weighted distances along the surface's
+    normal (:func:`~sqparts.normal_distance`) of ``points`` from the part's surface.
 
     ``rays`` = (origins, directions, weights[, far]), optional: rays off the figure,
     which the part must miss (up to ``far``, default: the whole ray); each adds its
@@ -134,7 +135,7 @@ def polish_part(part: Part, points, weights, *, rays=None, steps: int = 20, free
 
     def residuals(u, _):
         p = from_unconstrained(jnp.where(free, u, u0))
-        r = w * jax.vmap(lambda x: surface_distance(p, x))(points)
+        r = w * jax.vmap(lambda x: normal_distance(p, x))(points)
         if rays is not None:
             o, d, wr, *far = rays
             far = far[0] if far else jnp.full(wr.shape, jnp.inf, wr.dtype)
@@ -332,7 +333,7 @@ point count (fewer points a call pay more calls' overhead; more, more padding)."
 
 
 def surface_distances(parts: Part, points) -> np.ndarray:
-    """(n, m) distance (:func:`~sqparts.surface_distance`) of every point to every
+    """(n, m) radial distance (:func:`~sqparts.surface_distance`) of every point to every
     part, ``PART_BUCKET`` parts and :data:`POINT_CHUNK` points per compiled call."""
     padded, n = pad_parts(parts)
     pts = np.asarray(points, np.float32)

@@ -193,21 +193,30 @@ def torn_components(depth, camera: Camera, mask=None, *, tear: float = DEFAULT_T
     return out
 
 
-def joined_pieces(pieces: np.ndarray, depth, camera: Camera) -> np.ndarray:
+JOIN_GAP = 2
+"""Widest run of pixels without a return across which :func:`joined_pieces` still finds
+two pieces touching (the flying pixels that clean-up removes along an occluding edge)."""
+
+
+def joined_pieces(pieces: np.ndarray, depth, camera: Camera, *, apart=()) -> np.ndarray:
     """Pieces of the rubber sheet (``pieces``: :func:`torn_components` labels) that one
     object's own occlusions tore apart, joined again: two pieces that touch in the image
-    (4-neighbours) are one when the least depth jump between them is less than the 3-D
+    (4-neighbours, or across at most :data:`JOIN_GAP` pixels without a return along a
+    row or column) are one when the least depth jump between them is less than the 3-D
     extent of the smaller of them (the diagonal of its points' bounding box): an arm in
     front of the torso, a mug's handle before its body, a plate seen so nearly edge-on
     that its surface tears. An object that stands farther behind another than its own
-    size stays apart. Returns the labels of the joined pieces (0, 1, ... by decreasing
-    size; -1 where ``pieces`` is)."""
-    pieces = np.asarray(pieces, np.int64)
+    size stays apart. Joins chain: a piece joined to two others joins them. The pieces
+    ``apart`` (labels) are never joined (background running off the image). Returns the
+    labels of the joined pieces (0, 1, ... by decreasing size; -1 where ``pieces`` is)."""
+    d = _check_depth(depth, camera).astype(np.float64)
+    pieces = np.array(pieces, np.int64)
+    if pieces.shape != d.shape:
+        raise ValueError(f"pieces: got shape {pieces.shape}, expected the depth's {d.shape}")
     n = int(pieces.max()) + 1 if pieces.size else 0
     if n < 2:
         return pieces
-    d = np.asarray(depth, np.float64)
-    pts = np.asarray(camera.points(np.asarray(depth, np.float32)), np.float64)
+    pts = np.asarray(camera.points(d.astype(np.float32)), np.float64)
     flat = pieces.reshape(-1)
     inside = flat >= 0
     lo = np.full((n, 3), np.inf)
@@ -215,16 +224,21 @@ def joined_pieces(pieces: np.ndarray, depth, camera: Camera) -> np.ndarray:
     np.minimum.at(lo, flat[inside], pts.reshape(-1, 3)[inside])
     np.maximum.at(hi, flat[inside], pts.reshape(-1, 3)[inside])
     extent = np.linalg.norm(hi - lo, axis=1)
+    extent[[int(i) for i in apart]] = -np.inf
+    empty = ~np.isfinite(d)
     a_all, b_all, j_all = [], [], []
-    for sa, sb in (
-        ((slice(None), slice(0, -1)), (slice(None), slice(1, None))),
-        ((slice(0, -1), slice(None)), (slice(1, None), slice(None))),
-    ):
-        a, b = pieces[sa], pieces[sb]
-        m = (a >= 0) & (b >= 0) & (a != b)
-        a_all.append(np.minimum(a[m], b[m]))
-        b_all.append(np.maximum(a[m], b[m]))
-        j_all.append(np.abs(d[sa] - d[sb])[m])
+    for axis in (0, 1):
+        lab, dep = (pieces, d) if axis == 1 else (pieces.T, d.T)
+        gap: np.ndarray = empty if axis == 1 else empty.T
+        between = np.ones(lab[:, :-1].shape, bool)  # every pixel between the pair has no return
+        for k in range(1, JOIN_GAP + 2):
+            a, b = lab[:, :-k], lab[:, k:]
+            if k > 1:
+                between = between[:, :-1] & gap[:, k - 1 : -1]
+            m = (a >= 0) & (b >= 0) & (a != b) & between
+            a_all.append(np.minimum(a[m], b[m]))
+            b_all.append(np.maximum(a[m], b[m]))
+            j_all.append(np.abs(dep[:, :-k] - dep[:, k:])[m])
     a, b, jump = np.concatenate(a_all), np.concatenate(b_all), np.concatenate(j_all)
     parent = np.arange(n)
 
@@ -732,18 +746,27 @@ def figure_ground(
         opened = np.asarray(ndimage.binary_opening(keep, structure=np.ones((2, 2), bool)), bool)
         keep &= opened | ~np.asarray(ndimage.binary_dilation(background, structure=np.ones((3, 3), bool)), bool)
     pieces = torn_components(d, camera, keep, tear=tear)
-    if join:
-        pieces = joined_pieces(pieces, d, camera)
-    sizes = np.bincount(pieces[pieces >= 0], minlength=1)
     border = _outer_frame(valid, width=max(3, min(d.shape) // 40)) if found and max_border_fraction < 1 else None
+
+    def running_off(pieces, sizes):  # the pieces that are background running off the image
+        if border is None:
+            return np.zeros(len(sizes), bool)
+        on = np.bincount(pieces[(pieces >= 0) & border], minlength=len(sizes))
+        return on > max_border_fraction * sizes
+
+    if join:  # background running off the image is judged alone, not joined to what it touches
+        sizes = np.bincount(pieces[pieces >= 0], minlength=1)
+        pieces = joined_pieces(pieces, d, camera, apart=np.flatnonzero(running_off(pieces, sizes)))
+    sizes = np.bincount(pieces[pieces >= 0], minlength=1)
+    off = running_off(pieces, sizes)
     figures = []
     labels = np.full(d.shape, -1, np.int64)
     for i in np.flatnonzero(sizes >= min_pixels):
         if max_figures is not None and len(figures) >= max_figures:
             break
-        piece = pieces == i
-        if border is not None and (piece & border).sum() > max_border_fraction * sizes[i]:
+        if off[i]:
             continue
+        piece = pieces == i
         mask = piece | missing_returns(d, camera, piece, holes=holes, tear=tear)
         labels[mask & (labels < 0)] = len(figures)
         figures.append(mask)

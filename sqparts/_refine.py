@@ -37,6 +37,9 @@ E. The moves, in :meth:`RefineSettings.moves`'s order:
   deformation that moves the part's rim; E may prefer the straight part);
 - :class:`SettleParts`: the paper's final optimisation (section 3.5): each part's
   parameters stepped one at a time, all parts rendered together, a step kept if E falls;
+- :class:`UnpinchParts`: a part whose cross-section settled pinched against its twin
+  turned 45 degrees, settled on its own (a noisy box fitted as a rhombus turned 45
+  degrees), then all settled again if it gains;
 - :class:`AbsorbParts`: a small part dropped while the parts beside it grow over its
   pixels (a bar the search cut in two at a joint taken back whole), then settled again:
   after settling, so that it can only shorten the description the other moves give;
@@ -656,6 +659,12 @@ def _step_scale(x) -> bool:
     return bool(ok and 0 < x <= MAX_STEP_SCALE)
 
 
+SETTLE_SCALES = (1.0, 0.5, 0.25)
+"""The final optimisation's step scales (:class:`SettleParts`, one after another): once
+the full steps no longer lower E, half and then a quarter of them do (the step halving
+of a pattern search; each stage only ever lowers E)."""
+
+
 @dataclasses.dataclass(frozen=True, kw_only=True)
 class SettleParts(Move):
     """The paper's final optimisation (section 3.5): all parts rendered together, one
@@ -666,7 +675,8 @@ class SettleParts(Move):
     :func:`accept_edits` keeps the best, then each other part's that still lowers E.
     Polishing fits the visible points' distances, which E only approximates: an
     outline's corners (squareness), the extent of a part's hidden side, the pixels
-    within ±σ/2 at its rim are where this descent still gains."""
+    within ±σ/2 at its rim are where this descent still gains. ``which``: the indices
+    of the parts stepped (None: every part; the rest stay as they are)."""
 
     name: ClassVar[str] = "settle"
     passes: int = MAX_PASSES
@@ -678,8 +688,13 @@ class SettleParts(Move):
         if not _step_scale(self.scale):
             raise ValueError(f"scale: got {self.scale!r}, expected a number in (0, {MAX_STEP_SCALE}]")
         w = self.which
-        if w is not None and not (isinstance(w, tuple) and all(isinstance(i, int) and i >= 0 for i in w)):
+        index = (int, np.integer)
+        if w is not None and not (
+            isinstance(w, tuple) and all(isinstance(i, index) and not isinstance(i, bool) and i >= 0 for i in w)
+        ):
             raise ValueError(f"which: got {w!r}, expected a tuple of part indices or None (every part)")
+        if w is not None:
+            object.__setattr__(self, "which", tuple(int(i) for i in w))
 
     def _moved(self, n: int) -> list[int]:
         """The parts this settling moves (``which``, of ``n``; None: all)."""
@@ -768,7 +783,17 @@ class UnpinchParts(Move):
 
     name: ClassVar[str] = "unpinch"
     least: float = 1.5
-    settle: tuple[float, ...] = (1.0, 0.5, 0.25)
+    settle: tuple[float, ...] = SETTLE_SCALES
+
+    def __post_init__(self):
+        super().__post_init__()
+        if isinstance(self.least, bool) or not (isinstance(self.least, (int, float)) and 1.0 <= self.least < 2.0):
+            raise ValueError(f"least: got {self.least!r}, expected a squareness in [1, 2)")
+        scales = self.settle
+        if not isinstance(scales, tuple) or not scales or not all(_step_scale(x) for x in scales):
+            raise ValueError(
+                f"settle: got {scales!r}, expected a non-empty tuple of step scales in (0, {MAX_STEP_SCALE}]"
+            )
 
     def propose(self, vectors, cost, data, costs, step):
         edits = []
@@ -1226,11 +1251,6 @@ def refine_moves(parts: Part, data: RangeData, costs: Costs, moves):
     return Part.from_vector(vectors), final, [("initial", cost.total), *history]
 
 
-SETTLE_SCALES = (1.0, 0.5, 0.25)
-"""The final optimisation's step scales (:class:`SettleParts`, one after another): once
-the full steps no longer lower E, half and then a quarter of them do (the step halving
-of a pattern search; each stage only ever lowers E)."""
-
 MERGE_POLISH_ROUNDS = 4
 """Most rounds of region growing after a merge (each kept only if E falls)."""
 
@@ -1290,7 +1310,8 @@ class RefineSettings:
     itself (:class:`SettleParts`,
     once per step scale in ``settle``, :data:`SETTLE_SCALES` by default; () = none),
     ``unpinch`` (:class:`UnpinchParts`: a part with a pinched cross-section against its
-    twin turned 45 degrees, settled; the settling again if that lowered E),
+    twin turned 45 degrees, settled; the settling again if that lowered E; none without
+    ``settle``),
     ``absorb`` (:class:`AbsorbParts`: a small part dropped while its neighbours grow
     over its pixels; the settling again if that lowered E), ``merge`` once more
     (settled parts may merge where they did not before, and single parts are summarised

@@ -511,6 +511,13 @@ def test_move_settings_are_checked():
         sqparts.RefineSettings(unpinch=None)
     with pytest.raises(ValueError, match=r"which: got \[0\], expected a tuple of part indices or None"):
         sqparts.SettleParts(which=[0])
+    with pytest.raises(ValueError, match=r"which: got \(True,\), expected a tuple of part indices or None"):
+        sqparts.SettleParts(which=(True,))
+    assert sqparts.SettleParts(which=(np.int64(2),)).which == (2,)
+    with pytest.raises(ValueError, match=r"least: got 2.5, expected a squareness in \[1, 2\)"):
+        sqparts.UnpinchParts(least=2.5)
+    with pytest.raises(ValueError, match=r"settle: got \(\), expected a non-empty tuple of step scales"):
+        sqparts.UnpinchParts(settle=())
     assert dataclasses.replace(sqparts.RefineSettings.none(), stretch=True).active
     assert not sqparts.RefineSettings.none().active and sqparts.RefineSettings.none().settle == ()
     assert sqparts.RefineSettings(settle=[1, np.float32(0.5)]).settle == (1.0, 0.5)

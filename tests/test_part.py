@@ -8,7 +8,6 @@ from hypothesis import strategies as st
 from scipy.spatial.transform import Rotation
 
 import sqparts
-from sqparts._encoding import part_vectors
 from sqparts._part import deform, rotation_vector, undeform
 
 
@@ -136,32 +135,22 @@ def test_inside_outside_gradients_finite_at_singular_places(x64, squareness):
         assert np.all(np.isfinite(g_v)) and np.all(np.isfinite(g_p)), (squareness, p)
 
 
-def _norm_f64(q, a, e1, e2):
-    """The superquadric norm F^(ε1/2) of an undeformed local point, float64, F in
-    logarithms (float64 itself overflows beyond |q/a|^(2/ε) ~ 1e308)."""
-    with np.errstate(divide="ignore"):
-        lx, ly, lz = (np.log(abs(q[i] / a[i])) * (2 / e) for i, e in ((0, e2), (1, e2), (2, e1)))
-    return np.exp(0.5 * e1 * np.logaddexp((e2 / e1) * np.logaddexp(lx, ly), lz))
-
-
 def _distance_f64(v, x):
     """numpy float64 reference of surface_distance (Eq. 1, the paper's deformations
-    undone as :func:`~sqparts._part.undeform` documents): (n - 1) / |grad n| with the
-    norm's gradient by central differences at the surface point q / n (the norm is
-    degree-1 homogeneous, its gradient degree 0)."""
+    undone as :func:`~sqparts._part.undeform` documents, the radial distance)."""
     v, x = np.asarray(v, np.float64), np.asarray(x, np.float64)
     local = Rotation.from_rotvec(v[3:6]).as_matrix().T @ (x - v[0:3])
-    a, e1, e2 = v[6:9], v[9], v[10]
+    a1, a2, a3, e1, e2 = v[6], v[7], v[8], v[9], v[10]
     px, py, pz = local
-    pz = pz - v[12] * px * px / a[0]
-    px = px - v[11] * pz * pz / a[2]
-    k = 1.0 + v[13] * pz / a[2]
+    pz = pz - v[12] * px * px / a1
+    px = px - v[11] * pz * pz / a3
+    k = 1.0 + v[13] * pz / a3
     q = np.array([px / k, py / k, pz])
-    n = _norm_f64(q, a, e1, e2)
-    s = q / n
-    h = 1e-7 * a.min()
-    grad = [(_norm_f64(s + h * u, a, e1, e2) - _norm_f64(s - h * u, a, e1, e2)) / (2 * h) for u in np.eye(3)]
-    return (n - 1.0) / np.linalg.norm(grad)
+    # F in logarithms: float64 itself overflows beyond |q/a|^(2/ε) ~ 1e308.
+    lx, ly, lz = (np.log(abs(q[i] / a)) * (2 / e) for i, a, e in ((0, a1, e2), (1, a2, e2), (2, a3, e1)))
+    log_f = np.logaddexp((e2 / e1) * np.logaddexp(lx, ly), lz)
+    length = np.linalg.norm(q)
+    return length - length / np.exp(0.5 * e1 * log_f)
 
 
 def test_surface_distance_gradients_finite_far_from_boxy_and_deformed_parts(rng):
@@ -198,42 +187,37 @@ def test_surface_distance_closed_forms():
     x = c + rng.normal(size=(50, 3)) * 0.4
     got = np.asarray(jax.vmap(lambda p: sqparts.surface_distance(sphere, p))(jnp.asarray(x)))
     np.testing.assert_allclose(got, np.linalg.norm(x - c, axis=1) - 0.3, atol=2e-6)
-    # Along its axes: |x_i| - a_i, whatever the squareness up to 1 (beyond, the axes meet
-    # the surface at a corner: a pinched cross-section's rhombus).
+    # Any superquadric: along the ray from the centre the distance is (s - 1) r(direction),
+    # with r found here by bisection of the inside-outside function.
     part = sqparts.Part(
-        size=[0.2, 0.1, 0.35], squareness=[0.4, 0.7], position=[0.0, 0.1, 1.5], orientation=[1.0, 0.2, -0.4]
+        size=[0.2, 0.1, 0.35], squareness=[0.4, 1.6], position=[0.0, 0.1, 1.5], orientation=[1.0, 0.2, -0.4]
     )
     rot = np.asarray(sqparts.rotation_matrix(part.orientation))
-    for axis, a in enumerate([0.2, 0.1, 0.35]):
-        for t in (-0.5, 0.3, 0.9, 1.0, 1.2, 3.0):
-            x = np.asarray(part.position) + rot[:, axis] * t * a
+    for u in rng.normal(size=(10, 3)):
+        u /= np.linalg.norm(u)
+        lo, hi = 0.0, 1.0
+        for _ in range(60):
+            mid = 0.5 * (lo + hi)
+            inside = float(sqparts.inside_outside(part, jnp.asarray(np.asarray(part.position) + rot @ (mid * u)))) < 1
+            lo, hi = (mid, hi) if inside else (lo, mid)
+        r = lo
+        for s in (0.5, 1.0, 1.7):
+            x = np.asarray(part.position) + rot @ (s * r * u)
             assert float(sqparts.surface_distance(part, jnp.asarray(x, jnp.float32))) == pytest.approx(
-                (abs(t) - 1) * a, abs=3e-6
+                (s - 1) * r, abs=3e-5
             )
-    # A point moved off the surface along its normal by d is d from it, to first order,
-    # wherever it lies on the surface (a box's face: also near its edges, where the ray
-    # from the centre meets the face obliquely and the radial distance is d / cos θ).
-    box = sqparts.Part(
-        size=[0.2, 0.1, 0.05], squareness=[0.2, 0.2], position=[0.0, 0.0, 1.5], orientation=[0.3, -0.2, 0.1]
-    )
-    rot = np.asarray(sqparts.rotation_matrix(box.orientation))
-    v = np.asarray(part_vectors(box))[0]
-    for eta, omega in rng.uniform([-1.4, -3.1], [1.4, 3.1], (20, 2)):
-        p = np.asarray(sqparts.surface_point(box, eta, omega), np.float64)
-        local = rot.T @ (p - v[0:3])
-        s = local / _norm_f64(local, v[6:9], 0.2, 0.2)
-        h = 1e-7
-        g = [
-            (_norm_f64(s + h * u, v[6:9], 0.2, 0.2) - _norm_f64(s - h * u, v[6:9], 0.2, 0.2)) / (2 * h)
-            for u in np.eye(3)
-        ]
-        normal = rot @ (np.asarray(g) / np.linalg.norm(g))
-        for d in (-0.002, 0.002):
-            got = float(sqparts.surface_distance(box, jnp.asarray(p + d * normal, jnp.float32)))
-            assert got == pytest.approx(d, abs=4e-4), (eta, omega, d)
-    # Finite value and gradient at the centre itself.
+    # Finite value and gradient at the centre itself, and near the centre of boxy parts
+    # (where F underflowed and the distance was -inf).
     g = jax.grad(lambda p: sqparts.surface_distance(sphere, p))(jnp.asarray(c, jnp.float32))
     assert np.all(np.isfinite(np.asarray(g)))
+    for squareness in ([0.1, 0.1], [0.1, 2.0], [2.0, 0.1]):
+        box = sqparts.Part(size=[0.2, 0.1, 0.3], squareness=squareness, position=c, orientation=[0.3, -1.0, 0.5])
+        for offset in ([0.0, 0.0, 0.0], [0.002, -0.001, 0.001]):
+            x = jnp.asarray(c + np.asarray(offset), jnp.float32)
+            for distance in (sqparts.surface_distance, sqparts.normal_distance):
+                value, grad = jax.value_and_grad(lambda p: distance(box, p))(x)
+                assert np.isfinite(float(value)) and np.all(np.isfinite(np.asarray(grad))), (squareness, offset)
+                assert -0.3 <= float(value) <= -0.05  # inside, by about the nearest semi-axis
 
 
 def test_surface_distance_derivatives_equal_autodiff_through_the_formula():
@@ -284,6 +268,83 @@ def test_surface_distance_derivatives_equal_autodiff_through_the_formula():
     local = np.asarray(sqparts.rotation_matrix(sphere[3:6])).T @ unit
     np.testing.assert_allclose(np.asarray(g_v[6:9]), -(local**2), atol=1e-5)
     np.testing.assert_allclose(np.asarray(g_v[3:6]), 0.0, atol=1e-5)  # turning a sphere moves nothing
+
+
+def _norm_f64(q, a, e1, e2):
+    """The superquadric norm F^(ε1/2) of an undeformed local point, float64, F in
+    logarithms."""
+    with np.errstate(divide="ignore"):
+        lx, ly, lz = (np.log(abs(q[i] / a[i])) * (2 / e) for i, e in ((0, e2), (1, e2), (2, e1)))
+    return np.exp(0.5 * e1 * np.logaddexp((e2 / e1) * np.logaddexp(lx, ly), lz))
+
+
+def test_normal_distance_counts_an_error_along_the_normal_as_it_is():
+    # A point moved off a box's surface along its normal by d is d from it (to first
+    # order) wherever it lies, near the face's edges too, where the ray from the centre
+    # meets the face obliquely and the radial distance counts d / cos θ; the normal from
+    # float64 central differences of the norm.
+    box = sqparts.Part(
+        size=[0.2, 0.1, 0.05], squareness=[0.2, 0.2], position=[0.0, 0.0, 1.5], orientation=[0.3, -0.2, 0.1]
+    )
+    rot = np.asarray(sqparts.rotation_matrix(box.orientation))
+    centre, a = np.asarray(box.position, np.float64), np.asarray(box.size, np.float64)
+    rng = np.random.default_rng(2)
+    ratios = []
+    for eta, omega in rng.uniform([-1.4, -3.1], [1.4, 3.1], (30, 2)):
+        p = np.asarray(sqparts.surface_point(box, eta, omega), np.float64)
+        s = rot.T @ (p - centre)
+        h = 1e-7
+        g = [(_norm_f64(s + h * u, a, 0.2, 0.2) - _norm_f64(s - h * u, a, 0.2, 0.2)) / (2 * h) for u in np.eye(3)]
+        normal = rot @ (np.asarray(g) / np.linalg.norm(g))
+        for d in (-0.002, 0.002):
+            x = jnp.asarray(p + d * normal, jnp.float32)
+            assert float(sqparts.normal_distance(box, x)) == pytest.approx(d, abs=3e-4), (eta, omega, d)
+            ratios.append(float(sqparts.surface_distance(box, x)) / d)
+    assert max(ratios) > 1.5  # the radial distance does not (cos θ < 2/3 somewhere)
+    # A sphere: both are |x - c| - r; along a part's axes (squareness up to 1): |x_i| - a_i.
+    sphere = sqparts.Part(size=[0.3, 0.3, 0.3], position=[0.1, -0.2, 2.0], orientation=[0.3, -1.0, 0.5])
+    x = np.asarray(sphere.position) + rng.normal(size=(20, 3)) * 0.4
+    got = np.asarray(jax.vmap(lambda p: sqparts.normal_distance(sphere, p))(jnp.asarray(x, jnp.float32)))
+    np.testing.assert_allclose(got, np.linalg.norm(x - np.asarray(sphere.position), axis=1) - 0.3, atol=3e-6)
+    part = sqparts.Part(
+        size=[0.2, 0.1, 0.35], squareness=[0.4, 0.7], position=[0.0, 0.1, 1.5], orientation=[1.0, 0.2, -0.4]
+    )
+    rot = np.asarray(sqparts.rotation_matrix(part.orientation))
+    for axis, length in enumerate([0.2, 0.1, 0.35]):
+        for t in (-0.5, 0.3, 1.2, 3.0):
+            x = jnp.asarray(np.asarray(part.position) + rot[:, axis] * t * length, jnp.float32)
+            assert float(sqparts.normal_distance(part, x)) == pytest.approx((abs(t) - 1) * length, abs=3e-6)
+
+
+def test_normal_distance_derivatives_equal_autodiff_through_the_formula():
+    """normal_distance's custom JVP against plain forward and reverse mode through its
+    formula: every part parameter and the point."""
+    from sqparts._part import _local_normal_distance, to_local
+
+    def custom(v, x):
+        return sqparts.normal_distance(sqparts.Part.from_vector(v), x)
+
+    def plain(v, x):
+        part = sqparts.Part.from_vector(v)
+        return _local_normal_distance(part, to_local(part, x))
+
+    rng = np.random.default_rng(4)
+    for i in range(8):
+        kw = random_part_kwargs(rng, deform=i % 2 == 1)
+        if i % 3 == 0:
+            kw["squareness"] = [0.3, 0.4]
+        v = sqparts.Part(**kw).to_vector()
+        x = jnp.asarray(np.asarray(v[:3]) + rng.normal(size=(16, 3)) * 0.2, jnp.float32)
+        want_v, want_x = jax.vmap(jax.jacfwd(plain, argnums=(0, 1)), (None, 0))(v, x)
+        for mode in (jax.jacfwd, jax.jacrev):
+            got_v, got_x = jax.vmap(mode(custom, argnums=(0, 1)), (None, 0))(v, x)
+            for got, want in ((got_v, want_v), (got_x, want_x)):
+                got, want = np.asarray(got), np.asarray(want)
+                assert np.all(np.isfinite(got))
+                ok = np.isfinite(want).all(-1)
+                assert ok.mean() > 0.8
+                scale = np.abs(want[ok]).max(axis=-1, keepdims=True) + 1e-3
+                np.testing.assert_allclose(got[ok] / scale, want[ok] / scale, atol=5e-5)
 
 
 def test_half_precision_fields_are_widened_and_complex_refused():

@@ -336,11 +336,30 @@ def test_pieces_one_object_tore_are_joined_and_objects_stay_apart():
     # The handle farther out (15 cm before the body: more than its size) stays apart.
     farther = np.where(np.isclose(depth, 1.9), 1.85, depth)
     assert sqparts.joined_pieces(sqparts.torn_components(farther, cam), farther, cam).max() == 3
+    # Across a seam of pixels without a return (the flying pixels clean-up removes
+    # along an occluding edge): two pixels wide, still touching; three, apart.
+    for width, joined_up in ((2, True), (3, False)):
+        seam = depth.copy()
+        seam[20:26, 40 : 40 + width] = np.nan
+        lab = sqparts.joined_pieces(sqparts.torn_components(seam, cam), seam, cam)
+        assert bool(lab[22, 39] == lab[22, 45]) is joined_up, width
+    # Pieces kept apart (background running off the image) are not joined.
+    kept = sqparts.joined_pieces(torn, depth, cam, apart=[int(torn[22, 45])])
+    assert kept[22, 45] != kept[22, 20]
     # figure_ground joins them by default, not with join=False.
     assert len(sqparts.figure_ground(depth, cam).figures) == 3
     assert len(sqparts.figure_ground(depth, cam, join=False).figures) == 4
     with pytest.raises(ValueError, match=r"join: got 1, expected True or False"):
         sqparts.figure_ground(depth, cam, join=1)
+    # Through recover_scene's settings and the command line's flag.
+    from sqparts.cli import _recover_options, build_parser
+
+    assert sqparts.SceneSettings().join and not sqparts.SceneSettings(join=False).join
+    with pytest.raises(ValueError, match=r"join: got 'no', expected True or False"):
+        sqparts.SceneSettings(join="no")
+    for flags, want in (([], True), (["--no-join"], False)):
+        args = build_parser().parse_args(["recover", "x.npy", "--out", "o", *flags])
+        assert _recover_options(args)["scene"].join is want
 
 
 def _box_on_wall(rng):
