@@ -372,7 +372,7 @@ class SceneSettings:
     max_figures: int | None = None
     max_height: float | None = None
     max_border_fraction: float = 0.15
-    join: bool = True
+    join: bool = False
     prettify: bool = False
     up: tuple[float, float, float] | None = None
     max_angle: float = 15.0

@@ -671,11 +671,11 @@ def build_parser() -> argparse.ArgumentParser:
         help="depth jump, in pixel footprints, that separates figures (default 8)",
     )
     g.add_argument(
-        "--no-join",
-        dest="join",
-        action="store_false",
-        help="keep apart the pieces of one object that its own occlusions tore (an arm before the body): "
-        "by default touching pieces are one figure when the depth jump between them is less than the smaller one's size",
+        "--join",
+        action="store_true",
+        help="one object in view: join the pieces its own occlusions tore apart (an arm before the body, a "
+        "mug's handle) when they touch and the depth jump between them is less than the smaller one's size "
+        "(objects side by side on a table also pass that test: off by default)",
     )
     g.add_argument("--min-figure-pixels", type=_POSITIVE_INT, default=None, help="smallest figure kept")
     g.add_argument("--max-figures", type=_POSITIVE_INT, default=None, help="recover at most this many figures")

@@ -346,18 +346,18 @@ def test_pieces_one_object_tore_are_joined_and_objects_stay_apart():
     # Pieces kept apart (background running off the image) are not joined.
     kept = sqparts.joined_pieces(torn, depth, cam, apart=[int(torn[22, 45])])
     assert kept[22, 45] != kept[22, 20]
-    # figure_ground joins them by default, not with join=False.
-    assert len(sqparts.figure_ground(depth, cam).figures) == 3
-    assert len(sqparts.figure_ground(depth, cam, join=False).figures) == 4
+    # figure_ground joins them when asked (one object in view), not by default.
+    assert len(sqparts.figure_ground(depth, cam, join=True).figures) == 3
+    assert len(sqparts.figure_ground(depth, cam).figures) == 4
     with pytest.raises(ValueError, match=r"join: got 1, expected True or False"):
         sqparts.figure_ground(depth, cam, join=1)
     # Through recover_scene's settings and the command line's flag.
     from sqparts.cli import _recover_options, build_parser
 
-    assert sqparts.SceneSettings().join and not sqparts.SceneSettings(join=False).join
+    assert sqparts.SceneSettings(join=True).join and not sqparts.SceneSettings().join
     with pytest.raises(ValueError, match=r"join: got 'no', expected True or False"):
         sqparts.SceneSettings(join="no")
-    for flags, want in (([], True), (["--no-join"], False)):
+    for flags, want in (([], False), (["--join"], True)):
         args = build_parser().parse_args(["recover", "x.npy", "--out", "o", *flags])
         assert _recover_options(args)["scene"].join is want
 
