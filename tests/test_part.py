@@ -220,25 +220,26 @@ def test_surface_distance_closed_forms():
                 assert -0.3 <= float(value) <= -0.05  # inside, by about the nearest semi-axis
 
 
-def test_surface_distance_derivatives_equal_autodiff_through_the_formula():
-    """surface_distance's custom JVP (local reverse-mode gradients applied to the local
-    point's tangents) against plain forward and reverse mode through the formula, and a
-    sphere's closed form: every part parameter and the point, forward and reverse."""
-    from sqparts._part import _local_distance, to_local
+def _custom_jvp_matches_the_formula(distance, local_distance, squareness, seed=3, count=12, atol=2e-5) -> int:
+    """``distance``'s custom JVP against plain forward and reverse mode through
+    ``local_distance``, every part parameter and the point, at 16 points about each of
+    ``count`` random parts (a third with ``squareness``), to ``atol`` of each row's
+    largest entry; the values themselves equal. Returns the rows compared."""
+    from sqparts._part import to_local
 
     def custom(v, x):
-        return sqparts.surface_distance(sqparts.Part.from_vector(v), x)
+        return distance(sqparts.Part.from_vector(v), x)
 
     def plain(v, x):
         part = sqparts.Part.from_vector(v)
-        return _local_distance(part, to_local(part, x))
+        return local_distance(part, to_local(part, x))
 
-    rng = np.random.default_rng(3)
+    rng = np.random.default_rng(seed)
     checked = 0
-    for i in range(12):
+    for i in range(count):
         kw = random_part_kwargs(rng, deform=i % 2 == 1)
         if i % 3 == 0:
-            kw["squareness"] = [0.15, 0.2]  # boxy
+            kw["squareness"] = squareness
         v = sqparts.Part(**kw).to_vector()
         c = np.asarray(v[:3])
         x = jnp.asarray(c + rng.normal(size=(16, 3)) * 0.2, jnp.float32)
@@ -253,9 +254,32 @@ def test_surface_distance_derivatives_equal_autodiff_through_the_formula():
                 ok = np.isfinite(want).all(-1)
                 checked += ok.sum()
                 scale = np.abs(want[ok]).max(axis=-1, keepdims=True) + 1e-3
-                np.testing.assert_allclose(got[ok] / scale, want[ok] / scale, atol=2e-5)
+                np.testing.assert_allclose(got[ok] / scale, want[ok] / scale, atol=atol)
         np.testing.assert_array_equal(jax.vmap(custom, (None, 0))(v, x), jax.vmap(plain, (None, 0))(v, x))
-    assert checked >= 0.8 * 12 * 16 * 2 * 2
+    return checked
+
+
+def test_normal_distance_derivatives_equal_autodiff_through_the_formula():
+    from sqparts._part import _local_normal_distance
+
+    assert (
+        _custom_jvp_matches_the_formula(sqparts.normal_distance, _local_normal_distance, [0.3, 0.4], 4, 8, 5e-5)
+        >= 0.8 * 8 * 16 * 2 * 2
+    )
+
+
+def test_surface_distance_derivatives_equal_autodiff_through_the_formula():
+    """surface_distance's custom JVP (local reverse-mode gradients applied to the local
+    point's tangents) against plain forward and reverse mode through the formula, and a
+    sphere's closed form: every part parameter and the point, forward and reverse."""
+    from sqparts._part import _local_distance
+
+    def custom(v, x):
+        return sqparts.surface_distance(sqparts.Part.from_vector(v), x)
+
+    assert (
+        _custom_jvp_matches_the_formula(sqparts.surface_distance, _local_distance, [0.15, 0.2]) >= 0.8 * 12 * 16 * 2 * 2
+    )
     # A sphere: the distance |x - c| - r; its gradient is u = (x - c)/|x - c| in the
     # point, -u in the position, and -u_i² in semi-axis a_i (u_i in the part's frame: the
     # radius along u of an ellipsoid is (Σ u_i²/a_i²)^(-1/2)).
@@ -314,37 +338,6 @@ def test_normal_distance_counts_an_error_along_the_normal_as_it_is():
         for t in (-0.5, 0.3, 1.2, 3.0):
             x = jnp.asarray(np.asarray(part.position) + rot[:, axis] * t * length, jnp.float32)
             assert float(sqparts.normal_distance(part, x)) == pytest.approx((abs(t) - 1) * length, abs=3e-6)
-
-
-def test_normal_distance_derivatives_equal_autodiff_through_the_formula():
-    """normal_distance's custom JVP against plain forward and reverse mode through its
-    formula: every part parameter and the point."""
-    from sqparts._part import _local_normal_distance, to_local
-
-    def custom(v, x):
-        return sqparts.normal_distance(sqparts.Part.from_vector(v), x)
-
-    def plain(v, x):
-        part = sqparts.Part.from_vector(v)
-        return _local_normal_distance(part, to_local(part, x))
-
-    rng = np.random.default_rng(4)
-    for i in range(8):
-        kw = random_part_kwargs(rng, deform=i % 2 == 1)
-        if i % 3 == 0:
-            kw["squareness"] = [0.3, 0.4]
-        v = sqparts.Part(**kw).to_vector()
-        x = jnp.asarray(np.asarray(v[:3]) + rng.normal(size=(16, 3)) * 0.2, jnp.float32)
-        want_v, want_x = jax.vmap(jax.jacfwd(plain, argnums=(0, 1)), (None, 0))(v, x)
-        for mode in (jax.jacfwd, jax.jacrev):
-            got_v, got_x = jax.vmap(mode(custom, argnums=(0, 1)), (None, 0))(v, x)
-            for got, want in ((got_v, want_v), (got_x, want_x)):
-                got, want = np.asarray(got), np.asarray(want)
-                assert np.all(np.isfinite(got))
-                ok = np.isfinite(want).all(-1)
-                assert ok.mean() > 0.8
-                scale = np.abs(want[ok]).max(axis=-1, keepdims=True) + 1e-3
-                np.testing.assert_allclose(got[ok] / scale, want[ok] / scale, atol=5e-5)
 
 
 def test_half_precision_fields_are_widened_and_complex_refused():
