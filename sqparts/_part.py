@@ -450,12 +450,20 @@ def _local_normal_distance(part: Part, local: Float[Array, "3"]) -> Float[Array,
     return radial / jnp.maximum((length - radial) * jnp.sqrt(jnp.sum(grad * grad)), 1.0)
 
 
-@surface_distance.defjvp
-def _surface_distance_jvp(primals, tangents):
-    part, point = primals
-    dpart, dpoint = tangents
-    value, per_point, turned = distance_terms(part, point)
-    return value, matmul(per_point, part_tangent(part, dpart)) + matmul(turned, jnp.asarray(dpoint))
+def _distance_jvp(normal: bool):
+    """The custom JVP of :func:`surface_distance` (or, ``normal``, :func:`normal_distance`):
+    :func:`distance_terms` applied to the part's and the point's tangents."""
+
+    def jvp(primals, tangents):
+        part, point = primals
+        dpart, dpoint = tangents
+        value, per_point, turned = distance_terms(part, point, normal=normal)
+        return value, matmul(per_point, part_tangent(part, dpart)) + matmul(turned, jnp.asarray(dpoint))
+
+    return jvp
+
+
+surface_distance.defjvp(_distance_jvp(False))
 
 
 @jax.custom_jvp
@@ -474,12 +482,7 @@ def normal_distance(part: Part, point: Float[ArrayLike, "3"]) -> Float[Array, ""
     return _local_normal_distance(part, to_local(part, point))
 
 
-@normal_distance.defjvp
-def _normal_distance_jvp(primals, tangents):
-    part, point = primals
-    dpart, dpoint = tangents
-    value, per_point, turned = distance_terms(part, point, normal=True)
-    return value, matmul(per_point, part_tangent(part, dpart)) + matmul(turned, jnp.asarray(dpoint))
+normal_distance.defjvp(_distance_jvp(True))
 
 
 def distance_terms(part: Part, point: Float[ArrayLike, "3"], *, normal: bool = False):
