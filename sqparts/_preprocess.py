@@ -633,6 +633,11 @@ class FigureGround:
         in the image, -y), or None.
     background : (H, W) bool, returns assigned to planes or behind them.
     labels : (H, W) int, figure index per pixel, -1 = none.
+    joinable : pieces that :func:`joined_pieces` would join, where ``join`` did not: per
+        group that holds two or more figures, (the indices of those figures, the union
+        of their masks). For
+        :func:`~sqparts.recover_scene` to decide by description length whether they are
+        one object.
     """
 
     figures: Sequence
@@ -640,6 +645,7 @@ class FigureGround:
     ground: Plane | None
     background: np.ndarray
     labels: np.ndarray
+    joinable: Sequence = ()
 
     def __post_init__(self):
         freeze_fields(self)
@@ -679,7 +685,9 @@ def figure_ground(
     (the paper's "cube of data"). The rest is torn into pieces at depth discontinuities
     (:func:`torn_components`), with ``join`` the pieces one object's own occlusions tore
     apart joined again (:func:`joined_pieces`; two objects side by side, a laptop and
-    a box on a table, pass the same test, so it is for a view of one object), and the pieces of at least ``min_pixels`` (default: 0.25%
+    a box on a table, pass the same test, so it is for a view of one object; without
+    it, the groups it would join are named in ``joinable``, for
+    :func:`~sqparts.recover_scene` to decide by description length), and the pieces of at least ``min_pixels`` (default: 0.25%
     of the returns, at least 16) are the figures, except, once a plane is removed, a piece
     with more than ``max_border_fraction`` of its returns on the outer frame of the
     measured area (a band 1/40 of the image's shorter side wide, at least 3 pixels): that
@@ -757,12 +765,14 @@ def figure_ground(
         on = np.bincount(pieces[(pieces >= 0) & border], minlength=len(sizes))
         return on > max_border_fraction * sizes
 
-    if join:  # background running off the image is judged alone, not joined to what it touches
-        sizes = np.bincount(pieces[pieces >= 0], minlength=1)
-        pieces = joined_pieces(pieces, d, camera, apart=np.flatnonzero(running_off(pieces, sizes)))
     sizes = np.bincount(pieces[pieces >= 0], minlength=1)
+    # background running off the image is judged alone, not joined to what it touches
+    joined = joined_pieces(pieces, d, camera, apart=np.flatnonzero(running_off(pieces, sizes)))
+    if join:
+        pieces = joined
+        sizes = np.bincount(pieces[pieces >= 0], minlength=1)
     off = running_off(pieces, sizes)
-    figures = []
+    figures, kept = [], []
     labels = np.full(d.shape, -1, np.int64)
     for i in np.flatnonzero(sizes >= min_pixels):
         if max_figures is not None and len(figures) >= max_figures:
@@ -773,4 +783,13 @@ def figure_ground(
         mask = piece | missing_returns(d, camera, piece, holes=holes, tear=tear)
         labels[mask & (labels < 0)] = len(figures)
         figures.append(mask)
-    return FigureGround(figures, found, ground, background, labels)
+        kept.append(i)
+    joinable = []
+    if not join:  # each group of joined pieces that holds two figures or more
+        group = np.full(len(sizes), -1, np.int64)
+        group[pieces[pieces >= 0]] = joined[pieces >= 0]
+        for g in np.unique(group[kept]) if kept else ():
+            members = tuple(k for k, i in enumerate(kept) if group[i] == g)
+            if len(members) > 1:  # the figures' own pixels: smaller pieces joined to them are not
+                joinable.append((members, np.any([figures[k] for k in members], 0)))
+    return FigureGround(figures, found, ground, background, labels, tuple(joinable))

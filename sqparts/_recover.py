@@ -353,8 +353,14 @@ class SceneSettings:
     commission) or ``"missing"`` (every enclosed one is missing data).
     Figure/ground (``figure_ground``): up to ``planes`` background planes removed
     (``plane_threshold``) and the rest split into figures (``min_figure_pixels``,
-    ``max_figures``, ``max_height``, ``max_border_fraction``, ``join``: see
-    :func:`~sqparts.figure_ground`); off: the whole image is one figure. Prettifying
+    ``max_figures``, ``max_height``, ``max_border_fraction``: see
+    :func:`~sqparts.figure_ground`); off: the whole image is one figure. Pieces that one
+    object's own occlusions may have torn apart (``join``; :func:`~sqparts.joined_pieces`:
+    they touch, and the depth jump between them is less than the smaller one's size):
+    ``"auto"`` recovers each such group of figures as one figure as well and joins them
+    where a part of that recovery spans the tear and it describes their pixels in fewer
+    bits than the figures' parts together (under the joined figure's encoding), True
+    always joins them, False never. Prettifying
     (``prettify``): near-vertical and near-horizontal parts snapped to gravity ``up``
     (default: the ground plane's normal) within ``max_angle`` degrees when E rises by at
     most ``max_bits`` (:func:`~sqparts.prettify`).
@@ -372,7 +378,7 @@ class SceneSettings:
     max_figures: int | None = None
     max_height: float | None = None
     max_border_fraction: float = 0.15
-    join: bool = False
+    join: bool | str = "auto"
     prettify: bool = False
     up: tuple[float, float, float] | None = None
     max_angle: float = 15.0
@@ -397,9 +403,11 @@ class SceneSettings:
         r = self.resolution
         if r is not None and (isinstance(r, bool) or not isinstance(r, (int, np.integer)) or r < 0):
             raise ValueError(f"resolution: got {r!r}, expected an integer >= 0 or None")
-        for name in ("clean", "figure_ground", "join", "prettify"):
+        for name in ("clean", "figure_ground", "prettify"):
             if not isinstance(getattr(self, name), bool):
                 raise ValueError(f"{name}: got {getattr(self, name)!r}, expected True or False")
+        if not (isinstance(self.join, bool) or self.join == "auto"):
+            raise ValueError(f"join: got {self.join!r}, expected True, False or 'auto'")
         if self.depth_range is not None:
             object.__setattr__(self, "depth_range", check_depth_range(self.depth_range))
         if self.up is not None:
@@ -457,6 +465,11 @@ class SceneRecovery(_Fractions, _Meshes):
     timings : seconds: ``preprocess``, ``recovery`` (all figures), ``total``.
     scene : the :class:`SceneSettings` it ran with (each figure's :class:`Recovery`
         records its search, select and refine settings).
+    joins : per group of figure/ground's figures that may be one object (``join``
+        "auto"): ``figures`` (indices into ``figures``: the joined one, or those kept
+        apart), ``separate_bits`` and ``joined_bits`` (the two descriptions of the
+        group's pixels), ``spans`` (a part of the joined one across the tear), ``joined``. ``figure_ground.figures`` are the figures before
+        joining.
     """
 
     figures: Sequence
@@ -468,6 +481,7 @@ class SceneRecovery(_Fractions, _Meshes):
     prettify: Sequence | None
     timings: Mapping
     scene: SceneSettings
+    joins: Sequence = ()
 
     def __post_init__(self):
         freeze_fields(self)
@@ -512,8 +526,10 @@ class SceneRecovery(_Fractions, _Meshes):
         fg = self.figure_ground
         ground = "" if fg is None else f"{len(fg.planes)} background plane(s) removed, "
         per = ", ".join(str(len(r.parts)) for r in self.figures)
+        joined = sum(j["joined"] for j in self.joins)
+        joins = f" ({joined} of {len(self.joins)} touching group(s) joined)" if self.joins else ""
         return (
-            f"{ground}{len(self.figures)} figure(s) at {self.camera.width}x{self.camera.height}; "
+            f"{ground}{len(self.figures)} figure(s){joins} at {self.camera.width}x{self.camera.height}; "
             f"{n} parts ({per}), E = {self.cost.total:.0f} bits, {self.fraction_explained:.1%} of "
             f"{int(self.figure.sum())} figure pixels explained, commission {self.commission_fraction:.1%}; "
             f"total {self.timings['total']:.1f} s"
@@ -548,6 +564,7 @@ class SceneRecovery(_Fractions, _Meshes):
                 }
                 for r in self.figures
             ],
+            figure_joins=list(self.joins),
             timings_s=self.timings,
             settings=self.settings,
         )
@@ -680,7 +697,7 @@ def recover_scene(
             max_height=st.max_height,
             max_border_fraction=st.max_border_fraction,
             holes=st.holes,
-            join=st.join,
+            join=st.join is True,
         )
         masks = fg.figures
         if not masks:
@@ -696,10 +713,11 @@ def recover_scene(
             "for prettifying (--up X,Y,Z)"
         )
     t1 = time.perf_counter()
-    recoveries, reports = [], []
+    reports = []
     noise = estimate_noise(d)
+    joinable = fg.joinable if fg is not None and st.join == "auto" else ()
     figures = []
-    for mask in masks:
+    for mask in [*masks, *(m for _, m in joinable)]:  # each group that may be one object, too
         enc = encoding
         if enc is None:  # σ covers the sensor's noise (±σ/2 is ±2 sd) and half a pixel footprint
             base = encoding_for(d[mask & np.isfinite(d)], footprint=figure_footprint(d, mask, camera))
@@ -718,6 +736,7 @@ def recover_scene(
         figures = [(mask, enc, _shared_frame(s, [f[2] for f in figures])) for mask, enc, s in figures]
         if search.lattices is None:  # and their pruning on one set of lattices: one program
             figures = [(mask, enc, _shared_lattices(s, [f[2] for f in figures])) for mask, enc, s in figures]
+    recovered = []
     for mask, enc, figure_search in figures:
         try:
             rec = recover(
@@ -731,10 +750,11 @@ def recover_scene(
                 progress=progress,
             )
         except ValueError as e:
-            if "found no part" in str(e):
-                continue
-            raise
-        recoveries.append(rec)
+            if "found no part" not in str(e):
+                raise
+            rec = None
+        recovered.append(rec)
+    recoveries, joins = _joined(recovered[: len(masks)], [k for k, _ in joinable], recovered[len(masks) :], masks)
     if not recoveries:
         raise ValueError(
             "depth: got figures on which the search found no part, expected at least one part" + _max_size_hint(search)
@@ -767,6 +787,78 @@ def recover_scene(
         reports if st.prettify else None,
         {"preprocess": t1 - t0, "recovery": t2 - t1, "total": t2 - t0},
         st,
+        joins,
+    )
+
+
+def _joined(separate, groups, joint, masks):
+    """The figures' recoveries (``separate``, of the figures ``masks``; None: no part
+    found), each group of them (``groups``: their indices) that ``joint`` recovered as
+    one figure replaced by that recovery where one of its parts spans the tear (it
+    explains, in two of the group's figures, at least the pixels that pay for a part:
+    :func:`~sqparts._encoding.least_pixels`) and it describes the group's pixels in
+    fewer bits than the figures' parts together (under the joined figure's encoding).
+    Without a part across the tear a shorter joined description only rearranges parts
+    within the pieces (or their interplay: two objects side by side), and the figures
+    stay apart; each of them then takes the joined recovery's parts that explain most
+    of their pixels within it where those describe it in fewer bits (another search's
+    answer for the piece: :func:`_shorter`). Returns (recoveries, largest figure first; per group, a dict:
+    ``figures`` (their indices: the joined one, or those kept apart), ``separate_bits``
+    (None: no part found apart), ``joined_bits``, ``spans`` (a part across the tear),
+    ``joined``)."""
+    from ._encoding import host_parts, least_pixels, part_vectors
+
+    keep = list(separate)
+    found = []
+    for members, rec in zip(groups, joint):
+        apart = [separate[k] for k in members if separate[k] is not None]
+        if rec is None:
+            continue
+        joined_bits = float(rec.cost.total)
+        separate_bits = None
+        if apart:
+            vectors = np.concatenate([part_vectors(r.parts) for r in apart])
+            separate_bits = float(encoding_cost(host_parts(vectors), rec.data, rec.costs).total)
+        labels, explained = np.asarray(rec.cost.labels), np.asarray(rec.cost.explained_mask)
+        shown = [[int((explained & (labels == i) & masks[k]).sum()) for k in members] for i in range(len(rec.parts))]
+        spans = any(sum(n >= least_pixels(rec.costs) for n in row) >= 2 for row in shown)
+        join = spans and (separate_bits is None or joined_bits < separate_bits)
+        if join:
+            for k in members:
+                keep[k] = None
+            keep.append(rec)
+        else:  # apart: each figure takes the joined recovery's parts within it where they are the shorter
+            owner = np.argmax(shown, 1) if shown else np.zeros(0, int)
+            seen = np.max(shown, 1) if shown else np.zeros(0, int)
+            for j, k in enumerate(members):
+                if keep[k] is not None and ((owner == j) & (seen > 0)).any():
+                    keep[k] = _shorter(keep[k], part_vectors(rec.parts)[(owner == j) & (seen > 0)])
+        recs = (rec,) if join else tuple(keep[k] for k in members if keep[k] is not None)
+        found.append((recs, separate_bits, joined_bits, spans, join))
+    out = sorted((r for r in keep if r is not None), key=lambda r: -int(np.asarray(r.figure).sum()))
+    index = {id(r): k for k, r in enumerate(out)}
+    joins = [
+        {"figures": [index[id(r)] for r in recs], "separate_bits": s, "joined_bits": j, "spans": spans, "joined": join}
+        for recs, s, j, spans, join in found
+    ]
+    return out, joins
+
+
+def _shorter(rec: Recovery, vectors: np.ndarray) -> Recovery:
+    """``rec`` with the parts of (k, 14) ``vectors`` instead where they describe its figure
+    in fewer bits (another recovery's parts within it: a joined figure's)."""
+    from ._encoding import host_parts
+
+    cost = encoding_cost(host_parts(vectors), rec.data, rec.costs)
+    if not cost.total < rec.cost.total:
+        return rec
+    parts = Part.from_vector(vectors)
+    return dataclasses.replace(
+        rec,
+        parts=parts,
+        cost=cost,
+        part_stats=part_statistics(parts, rec.data, cost),
+        history=(*rec.history, ("joined figure's parts", cost.total)),
     )
 
 

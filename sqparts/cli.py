@@ -181,7 +181,7 @@ def _recover_options(args) -> dict:
             min_figure_pixels=args.min_figure_pixels,
             max_figures=args.max_figures,
             max_border_fraction=args.max_border_fraction,
-            join=args.join,
+            join="auto" if args.join is None else args.join,
             holes=args.holes,
             prettify=args.prettify,
             up=None if args.up is None else args.up.split(","),
@@ -672,10 +672,12 @@ def build_parser() -> argparse.ArgumentParser:
     )
     g.add_argument(
         "--join",
-        action="store_true",
-        help="one object in view: join the pieces its own occlusions tore apart (an arm before the body, a "
-        "mug's handle) when they touch and the depth jump between them is less than the smaller one's size "
-        "(objects side by side on a table also pass that test: off by default)",
+        action=argparse.BooleanOptionalAction,
+        default=None,
+        help="pieces that touch with a depth jump less than the smaller one's size (an arm before the body, a "
+        "mug's handle, but also objects side by side): --join always joins them, --no-join never; by default "
+        "each such group is recovered joined as well and joined where a part spans the tear and that is the "
+        "shorter description",
     )
     g.add_argument("--min-figure-pixels", type=_POSITIVE_INT, default=None, help="smallest figure kept")
     g.add_argument("--max-figures", type=_POSITIVE_INT, default=None, help="recover at most this many figures")

@@ -346,20 +346,119 @@ def test_pieces_one_object_tore_are_joined_and_objects_stay_apart():
     # Pieces kept apart (background running off the image) are not joined.
     kept = sqparts.joined_pieces(torn, depth, cam, apart=[int(torn[22, 45])])
     assert kept[22, 45] != kept[22, 20]
-    # figure_ground joins them when asked (one object in view), not by default.
+    # figure_ground joins them when asked; by default it names them joinable: the body
+    # (figure 0) and the handle (figure 2; the block beside is figure 1), as one mask.
     assert len(sqparts.figure_ground(depth, cam, join=True).figures) == 3
-    assert len(sqparts.figure_ground(depth, cam).figures) == 4
+    assert sqparts.figure_ground(depth, cam, join=True).joinable == ()
+    fg = sqparts.figure_ground(depth, cam)
+    assert len(fg.figures) == 4
+    assert [k for k, _ in fg.joinable] == [(0, 2)]
+    np.testing.assert_array_equal(fg.joinable[0][1], fg.figures[0] | fg.figures[2])
     with pytest.raises(ValueError, match=r"join: got 1, expected True or False"):
         sqparts.figure_ground(depth, cam, join=1)
     # Through recover_scene's settings and the command line's flag.
     from sqparts.cli import _recover_options, build_parser
 
-    assert sqparts.SceneSettings(join=True).join and not sqparts.SceneSettings().join
-    with pytest.raises(ValueError, match=r"join: got 'no', expected True or False"):
+    assert sqparts.SceneSettings(join=True).join is True and sqparts.SceneSettings().join == "auto"
+    with pytest.raises(ValueError, match=r"join: got 'no', expected True, False or 'auto'"):
         sqparts.SceneSettings(join="no")
-    for flags, want in (([], False), (["--join"], True)):
+    for flags, want in (([], "auto"), (["--join"], True), (["--no-join"], False)):
         args = build_parser().parse_args(["recover", "x.npy", "--out", "o", *flags])
-        assert _recover_options(args)["scene"].join is want
+        assert _recover_options(args)["scene"].join == want
+
+
+def _plate_edge_on():
+    """A plate 40 x 2 x 50 cm seen nearly edge-on (its face 6.6 degrees off the line of
+    sight) at 1.5 m, 80 x 60 pixels: its depth jumps tear it into pieces."""
+    rotation = np.array(
+        [[0.96692, 0.0, -0.25508], [-0.02945, 0.99331, -0.11165], [0.25338, 0.11547, 0.96045]], np.float64
+    )
+    from scipy.spatial.transform import Rotation
+
+    plate = sqparts.Part(
+        size=(0.2, 0.01, 0.25),
+        squareness=(0.15, 0.15),
+        position=(0.0, 0.0, 1.5),
+        orientation=Rotation.from_matrix(rotation).as_rotvec(),
+    )
+    cam = sqparts.PinholeCamera(80, 60, 124.1, 124.1, 39.5, 29.5)
+    return plate, cam, np.asarray(sqparts.render_range_image(plate, cam))
+
+
+@pytest.mark.slow
+def test_recover_scene_joins_a_torn_object_where_that_is_the_shorter_description():
+    """Figure/ground tears the plate into figures that joined_pieces would join. Apart
+    two of them take a part each (the third, 40 pixels, none); recover_scene's default (join "auto") recovers them as
+    one figure too, one part across the tear, and keeps that: the shorter description
+    of their pixels. The separate description's bits are its parts' E on the joined
+    figure; a joined description as long or longer is not kept, nor a shorter one
+    whose parts all stay within the pieces (objects side by side)."""
+    from types import SimpleNamespace
+
+    from sqparts._recover import _joined
+
+    plate, cam, depth = _plate_edge_on()
+    apart = sqparts.recover_scene(depth, cam, scene=sqparts.SceneSettings(join=False))
+    assert [len(r.parts) for r in apart.figures] == [1, 1] and apart.joins == ()
+    auto = sqparts.recover_scene(depth, cam)
+    fg = auto.figure_ground  # on the cleaned image
+    assert len(fg.figures) >= 2 and [k for k, _ in fg.joinable] == [tuple(range(len(fg.figures)))]
+    assert len(auto.figures) == 1 and len(auto.parts) == 1
+    (join,) = auto.joins
+    one = auto.figures[0]
+    assert join["joined"] and join["spans"] and join["figures"] == (0,) and join["joined_bits"] == one.cost.total
+    assert not (np.any([r.figure for r in apart.figures], 0) & ~one.figure).any()
+    separate = sqparts.encoding_cost(apart.parts, one.data, one.costs).total
+    assert join["separate_bits"] == pytest.approx(separate, abs=1e-3)
+    assert join["joined_bits"] < join["separate_bits"] - 100  # a part's bits and more
+    shown = np.isfinite(depth)
+    drawn = np.isfinite(np.asarray(sqparts.render_range_image(auto.parts, cam)))
+    assert (shown & drawn).sum() / (shown | drawn).sum() > 0.9  # the one part is the plate
+    # The rule itself: a joined description longer than the separate one, or as long, is
+    # not kept; a shorter one is, unless its part explains pixels in one figure only.
+    masks = [r.figure for r in apart.figures]
+    cost = one.cost
+    for extra, within, joined in ((1.0, False, False), (0.0, False, False), (-0.5, False, True), (-0.5, True, False)):
+        explained = cost.explained_mask & (masks[0] if within else True)
+        stand_in = SimpleNamespace(
+            cost=SimpleNamespace(total=join["separate_bits"] + extra, labels=cost.labels, explained_mask=explained),
+            data=one.data,
+            costs=one.costs,
+            figure=one.figure,
+            parts=one.parts,
+        )
+        kept, (report,) = _joined(list(apart.figures), [(0, 1)], [stand_in], masks)
+        assert report["joined"] is joined and report["spans"] is not within
+        assert report["separate_bits"] == pytest.approx(join["separate_bits"], abs=1e-3)
+        assert len(kept) == (1 if joined else 2) and report["figures"] == ([0] if joined else [0, 1])
+        if joined:
+            assert kept == [stand_in]
+        else:  # apart, each figure as it was or shorter with the joined part
+            assert all(k.cost.total <= a.cost.total for k, a in zip(kept, apart.figures))
+    # A figure kept apart takes the joined recovery's parts within it only where they are
+    # the shorter description of it.
+    from sqparts._encoding import part_vectors
+    from sqparts._recover import _shorter
+
+    first = apart.figures[0]
+    mine = part_vectors(first.parts)
+    swollen = mine.copy()
+    swollen[:, 6:9] *= 1.3
+    assert _shorter(first, swollen) is first
+    worse = dataclasses.replace(
+        first, parts=sqparts.Part.from_vector(swollen), cost=sqparts.encoding_cost(swollen, first.data, first.costs)
+    )
+    better = _shorter(worse, mine)
+    assert better.cost.total == pytest.approx(first.cost.total, abs=1e-3)
+    assert better.cost.total < worse.cost.total
+    np.testing.assert_array_equal(part_vectors(better.parts), mine)
+    assert better.history[-1] == ("joined figure's parts", better.cost.total)
+    # parts.json says so, and the schema holds it.
+    import jsonschema
+
+    data = auto.scene_dict()
+    jsonschema.validate(data, sqparts.parts_schema())
+    assert data["figure_joins"][0]["joined"] is True
 
 
 def _box_on_wall(rng):
