@@ -357,10 +357,11 @@ class SceneSettings:
     :func:`~sqparts.figure_ground`); off: the whole image is one figure. Pieces that one
     object's own occlusions may have torn apart (``join``; :func:`~sqparts.joined_pieces`:
     they touch, and the depth jump between them is less than the smaller one's size):
-    ``"auto"`` recovers each such group of figures as one figure as well and joins them
-    where a part of that recovery spans the tear and it describes their pixels in fewer
-    bits than the figures' parts together (under the joined figure's encoding), True
-    always joins them, False never. Prettifying
+    ``"auto"`` recovers each such group of figures as one figure as well (refined
+    fully only where region growing and merging, :data:`JOIN_PROBE`, already give a
+    part across the tear) and joins them where a part of that recovery spans the tear
+    and it describes their pixels in fewer bits than the figures' parts together (under
+    the joined figure's encoding), True always joins them, False never. Prettifying
     (``prettify``): near-vertical and near-horizontal parts snapped to gravity ``up``
     (default: the ground plane's normal) within ``max_angle`` degrees when E rises by at
     most ``max_bits`` (:func:`~sqparts.prettify`).
@@ -736,10 +737,10 @@ def recover_scene(
         figures = [(mask, enc, _shared_frame(s, [f[2] for f in figures])) for mask, enc, s in figures]
         if search.lattices is None:  # and their pruning on one set of lattices: one program
             figures = [(mask, enc, _shared_lattices(s, [f[2] for f in figures])) for mask, enc, s in figures]
-    recovered = []
-    for mask, enc, figure_search in figures:
+
+    def figure_recovery(mask, enc, figure_search, refine):  # None: the search found no part
         try:
-            rec = recover(
+            return recover(
                 d,
                 camera,
                 search=figure_search,
@@ -752,9 +753,17 @@ def recover_scene(
         except ValueError as e:
             if "found no part" not in str(e):
                 raise
-            rec = None
-        recovered.append(rec)
-    recoveries, joins = _joined(recovered[: len(masks)], [k for k, _ in joinable], recovered[len(masks) :], masks)
+            return None
+
+    separate = [figure_recovery(*f, refine) for f in figures[: len(masks)]]
+    joint = []
+    for (members, _), f in zip(joinable, figures[len(masks) :]):
+        # Refined fully only where a light refinement's parts already span the tear: a join needs one.
+        rec = figure_recovery(*f, JOIN_PROBE)
+        if rec is not None and refine.active and _spanning(rec, [masks[k] for k in members]).any():
+            rec = figure_recovery(*f, refine)
+        joint.append(rec)
+    recoveries, joins = _joined(separate, [k for k, _ in joinable], joint, masks)
     if not recoveries:
         raise ValueError(
             "depth: got figures on which the search found no part, expected at least one part" + _max_size_hint(search)
@@ -791,6 +800,13 @@ def recover_scene(
     )
 
 
+JOIN_PROBE = RefineSettings(
+    split=False, fill=False, straighten=False, settle=(), absorb=False, faces=False, stretch=False, unpinch=False
+)
+"""The refinement of a group of figures recovered as one (:func:`recover_scene`, join
+"auto") before it is known whether a part spans the tear: region growing and merging."""
+
+
 def _joined(separate, groups, joint, masks):
     """The figures' recoveries (``separate``, of the figures ``masks``; None: no part
     found), each group of them (``groups``: their indices) that ``joint`` recovered as
@@ -798,15 +814,17 @@ def _joined(separate, groups, joint, masks):
     explains, in two of the group's figures, at least the pixels that pay for a part:
     :func:`~sqparts._encoding.least_pixels`) and it describes the group's pixels in
     fewer bits than the figures' parts together (under the joined figure's encoding).
-    Without a part across the tear a shorter joined description only rearranges parts
-    within the pieces (or their interplay: two objects side by side), and the figures
+    A joined recovery is refined only where its selected parts already span the tear
+    (:func:`recover_scene`). Without a part across the tear a shorter joined description
+    only rearranges parts within the pieces (or their interplay: two objects side by
+    side), and the figures
     stay apart; each of them then takes the joined recovery's parts that explain most
     of their pixels within it where those describe it in fewer bits (another search's
     answer for the piece: :func:`_shorter`). Returns (recoveries, largest figure first; per group, a dict:
     ``figures`` (their indices: the joined one, or those kept apart), ``separate_bits``
     (None: no part found apart), ``joined_bits``, ``spans`` (a part across the tear),
     ``joined``)."""
-    from ._encoding import host_parts, least_pixels, part_vectors
+    from ._encoding import host_parts, part_vectors
 
     keep = list(separate)
     found = []
@@ -819,17 +837,15 @@ def _joined(separate, groups, joint, masks):
         if apart:
             vectors = np.concatenate([part_vectors(r.parts) for r in apart])
             separate_bits = float(encoding_cost(host_parts(vectors), rec.data, rec.costs).total)
-        labels, explained = np.asarray(rec.cost.labels), np.asarray(rec.cost.explained_mask)
-        shown = [[int((explained & (labels == i) & masks[k]).sum()) for k in members] for i in range(len(rec.parts))]
-        spans = any(sum(n >= least_pixels(rec.costs) for n in row) >= 2 for row in shown)
+        shown = _shown(rec, [masks[k] for k in members])
+        spans = bool(_spanning(rec, [masks[k] for k in members]).any())
         join = spans and (separate_bits is None or joined_bits < separate_bits)
         if join:
             for k in members:
                 keep[k] = None
             keep.append(rec)
         else:  # apart: each figure takes the joined recovery's parts within it where they are the shorter
-            owner = np.argmax(shown, 1) if shown else np.zeros(0, int)
-            seen = np.max(shown, 1) if shown else np.zeros(0, int)
+            owner, seen = np.argmax(shown, 1), np.max(shown, 1)
             for j, k in enumerate(members):
                 if keep[k] is not None and ((owner == j) & (seen > 0)).any():
                     keep[k] = _shorter(keep[k], part_vectors(rec.parts)[(owner == j) & (seen > 0)])
@@ -842,6 +858,23 @@ def _joined(separate, groups, joint, masks):
         for recs, s, j, spans, join in found
     ]
     return out, joins
+
+
+def _shown(rec: Recovery, masks) -> np.ndarray:
+    """(parts, masks): the pixels of each mask that each of ``rec``'s parts explains."""
+    labels, explained = np.asarray(rec.cost.labels), np.asarray(rec.cost.explained_mask)
+    return np.array(
+        [[int((explained & (labels == i) & m).sum()) for m in masks] for i in range(len(rec.parts))], np.int64
+    ).reshape(len(rec.parts), len(masks))
+
+
+def _spanning(rec: Recovery, masks) -> np.ndarray:
+    """Per part of ``rec``: whether it spans a tear between the figures ``masks``: it
+    explains, in two of them, at least the pixels that pay for a part
+    (:func:`~sqparts._encoding.least_pixels`)."""
+    from ._encoding import least_pixels
+
+    return (_shown(rec, masks) >= least_pixels(rec.costs)).sum(1) >= 2
 
 
 def _shorter(rec: Recovery, vectors: np.ndarray) -> Recovery:

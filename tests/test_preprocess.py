@@ -461,6 +461,22 @@ def test_recover_scene_joins_a_torn_object_where_that_is_the_shorter_description
     assert data["figure_joins"][0]["joined"] is True
 
 
+@pytest.mark.slow
+def test_recover_scene_keeps_two_objects_side_by_side_apart():
+    """A box and a ball before it, torn apart by the depth jump (15 cm) but joinable (it
+    is less than the ball's size): recovered as one figure, their parts stay each within
+    its piece, no part spans the tear, and the figures stay apart, a part each."""
+    box = sqparts.Part(size=(0.1, 0.1, 0.1), squareness=(0.2, 0.2), position=(-0.1, 0.0, 1.5), orientation=(0, 0.5, 0))
+    ball = sqparts.Part(size=(0.09, 0.09, 0.09), position=(0.08, 0.0, 1.25))
+    cam = sqparts.PinholeCamera(80, 60, 124.1, 124.1, 39.5, 29.5)
+    depth = np.asarray(sqparts.render_range_image(sqparts.stack_parts([box, ball]), cam))
+    scene = sqparts.recover_scene(depth, cam)
+    assert [k for k, _ in scene.figure_ground.joinable] == [(0, 1)]
+    assert [len(r.parts) for r in scene.figures] == [1, 1]
+    (join,) = scene.joins
+    assert not join["spans"] and not join["joined"] and join["figures"] == (0, 1)
+
+
 def _box_on_wall(rng):
     cam = sqparts.OrthographicCamera(80, 60, 0.01, 39.5, 29.5)
     depth = np.full((60, 80), 2.0)
