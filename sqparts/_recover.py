@@ -361,7 +361,9 @@ class SceneSettings:
     fully only where region growing and merging, :data:`JOIN_PROBE`, already give a
     part across the tear) and joins them where a part of that recovery spans the tear
     and it describes their pixels in fewer bits than the figures' parts together (under
-    the joined figure's encoding), True always joins them, False never. Prettifying
+    the joined figure's encoding), True always joins them, False (the default) never:
+    ``"auto"`` costs a recovery of each group, on the built-in human and castings
+    half again to twice their time. Prettifying
     (``prettify``): near-vertical and near-horizontal parts snapped to gravity ``up``
     (default: the ground plane's normal) within ``max_angle`` degrees when E rises by at
     most ``max_bits`` (:func:`~sqparts.prettify`).
@@ -379,7 +381,7 @@ class SceneSettings:
     max_figures: int | None = None
     max_height: float | None = None
     max_border_fraction: float = 0.15
-    join: bool | str = "auto"
+    join: bool | str = False
     prettify: bool = False
     up: tuple[float, float, float] | None = None
     max_angle: float = 15.0

@@ -181,7 +181,7 @@ def _recover_options(args) -> dict:
             min_figure_pixels=args.min_figure_pixels,
             max_figures=args.max_figures,
             max_border_fraction=args.max_border_fraction,
-            join="auto" if args.join is None else args.join,
+            join={"never": False, "always": True}.get(args.join, args.join),
             holes=args.holes,
             prettify=args.prettify,
             up=None if args.up is None else args.up.split(","),
@@ -672,12 +672,14 @@ def build_parser() -> argparse.ArgumentParser:
     )
     g.add_argument(
         "--join",
-        action=argparse.BooleanOptionalAction,
-        default=None,
+        nargs="?",
+        const="always",
+        default="never",
+        choices=("never", "always", "auto"),
         help="pieces that touch with a depth jump less than the smaller one's size (an arm before the body, a "
-        "mug's handle, but also objects side by side): --join always joins them, --no-join never; by default "
-        "each such group is recovered joined as well and joined where a part spans the tear and that is the "
-        "shorter description",
+        "mug's handle, but also objects side by side): never joined (default), always (--join alone), or auto: "
+        "each such group recovered joined as well, and joined where a part spans the tear and that is the "
+        "shorter description (slower)",
     )
     g.add_argument("--min-figure-pixels", type=_POSITIVE_INT, default=None, help="smallest figure kept")
     g.add_argument("--max-figures", type=_POSITIVE_INT, default=None, help="recover at most this many figures")

@@ -359,10 +359,10 @@ def test_pieces_one_object_tore_are_joined_and_objects_stay_apart():
     # Through recover_scene's settings and the command line's flag.
     from sqparts.cli import _recover_options, build_parser
 
-    assert sqparts.SceneSettings(join=True).join is True and sqparts.SceneSettings().join == "auto"
+    assert sqparts.SceneSettings(join=True).join is True and sqparts.SceneSettings().join is False
     with pytest.raises(ValueError, match=r"join: got 'no', expected True, False or 'auto'"):
         sqparts.SceneSettings(join="no")
-    for flags, want in (([], "auto"), (["--join"], True), (["--no-join"], False)):
+    for flags, want in (([], False), (["--join"], True), (["--join", "auto"], "auto"), (["--join", "never"], False)):
         args = build_parser().parse_args(["recover", "x.npy", "--out", "o", *flags])
         assert _recover_options(args)["scene"].join == want
 
@@ -388,7 +388,7 @@ def _plate_edge_on():
 @pytest.mark.slow
 def test_recover_scene_joins_a_torn_object_where_that_is_the_shorter_description():
     """Figure/ground tears the plate into figures that joined_pieces would join. Apart
-    two of them take a part each (the third, 40 pixels, none); recover_scene's default (join "auto") recovers them as
+    two of them take a part each (the third, 40 pixels, none); recover_scene with join "auto" recovers them as
     one figure too, one part across the tear, and keeps that: the shorter description
     of their pixels. The separate description's bits are its parts' E on the joined
     figure; a joined description as long or longer is not kept, nor a shorter one
@@ -400,7 +400,7 @@ def test_recover_scene_joins_a_torn_object_where_that_is_the_shorter_description
     plate, cam, depth = _plate_edge_on()
     apart = sqparts.recover_scene(depth, cam, scene=sqparts.SceneSettings(join=False))
     assert [len(r.parts) for r in apart.figures] == [1, 1] and apart.joins == ()
-    auto = sqparts.recover_scene(depth, cam)
+    auto = sqparts.recover_scene(depth, cam, scene=sqparts.SceneSettings(join="auto"))
     fg = auto.figure_ground  # on the cleaned image
     assert len(fg.figures) >= 2 and [k for k, _ in fg.joinable] == [tuple(range(len(fg.figures)))]
     assert len(auto.figures) == 1 and len(auto.parts) == 1
@@ -464,13 +464,13 @@ def test_recover_scene_joins_a_torn_object_where_that_is_the_shorter_description
 @pytest.mark.slow
 def test_recover_scene_keeps_two_objects_side_by_side_apart():
     """A box and a ball before it, torn apart by the depth jump (15 cm) but joinable (it
-    is less than the ball's size): recovered as one figure, their parts stay each within
+    is less than the ball's size): with join "auto", recovered as one figure, their parts stay each within
     its piece, no part spans the tear, and the figures stay apart, a part each."""
     box = sqparts.Part(size=(0.1, 0.1, 0.1), squareness=(0.2, 0.2), position=(-0.1, 0.0, 1.5), orientation=(0, 0.5, 0))
     ball = sqparts.Part(size=(0.09, 0.09, 0.09), position=(0.08, 0.0, 1.25))
     cam = sqparts.PinholeCamera(80, 60, 124.1, 124.1, 39.5, 29.5)
     depth = np.asarray(sqparts.render_range_image(sqparts.stack_parts([box, ball]), cam))
-    scene = sqparts.recover_scene(depth, cam)
+    scene = sqparts.recover_scene(depth, cam, scene=sqparts.SceneSettings(join="auto"))
     assert [k for k, _ in scene.figure_ground.joinable] == [(0, 1)]
     assert [len(r.parts) for r in scene.figures] == [1, 1]
     (join,) = scene.joins
