@@ -718,7 +718,7 @@ def recover_scene(
     t1 = time.perf_counter()
     reports = []
     noise = estimate_noise(d)
-    joinable = fg.joinable if fg is not None and st.join == "auto" else ()
+    joinable: Sequence[tuple[tuple[int, ...], np.ndarray]] = fg.joinable if fg is not None and st.join == "auto" else ()
     figures = []
     for mask in [*masks, *(m for _, m in joinable)]:  # each group that may be one object, too
         enc = encoding

@@ -181,7 +181,7 @@ def _recover_options(args) -> dict:
             min_figure_pixels=args.min_figure_pixels,
             max_figures=args.max_figures,
             max_border_fraction=args.max_border_fraction,
-            join={"never": False, "always": True}.get(args.join, args.join),
+            join={"never": False, "always": True, "auto": "auto"}[args.join],
             holes=args.holes,
             prettify=args.prettify,
             up=None if args.up is None else args.up.split(","),
