@@ -471,8 +471,9 @@ class SceneRecovery(_Fractions, _Meshes):
     joins : per group of figure/ground's figures that may be one object (``join``
         "auto"): ``figures`` (indices into ``figures``: the joined one, or those kept
         apart), ``separate_bits`` and ``joined_bits`` (the two descriptions of the
-        group's pixels), ``spans`` (a part of the joined one across the tear), ``joined``. ``figure_ground.figures`` are the figures before
-        joining.
+        group's pixels; the joined one after :data:`JOIN_PROBE` alone where it gave no
+        part across the tear), ``spans`` (a part of the joined one across the tear),
+        ``joined``. ``figure_ground.figures`` are the figures before joining.
     """
 
     figures: Sequence
@@ -761,7 +762,7 @@ def recover_scene(
     joint = []
     for (members, _), f in zip(joinable, figures[len(masks) :]):
         # Refined fully only where a light refinement's parts already span the tear: a join needs one.
-        rec = figure_recovery(*f, JOIN_PROBE)
+        rec = figure_recovery(*f, JOIN_PROBE if refine.active else refine)
         if rec is not None and refine.active and _spanning(rec, [masks[k] for k in members]).any():
             rec = figure_recovery(*f, refine)
         joint.append(rec)
@@ -816,16 +817,15 @@ def _joined(separate, groups, joint, masks):
     explains, in two of the group's figures, at least the pixels that pay for a part:
     :func:`~sqparts._encoding.least_pixels`) and it describes the group's pixels in
     fewer bits than the figures' parts together (under the joined figure's encoding).
-    A joined recovery is refined only where its selected parts already span the tear
-    (:func:`recover_scene`). Without a part across the tear a shorter joined description
-    only rearranges parts within the pieces (or their interplay: two objects side by
-    side), and the figures
-    stay apart; each of them then takes the joined recovery's parts that explain most
-    of their pixels within it where those describe it in fewer bits (another search's
-    answer for the piece: :func:`_shorter`). Returns (recoveries, largest figure first; per group, a dict:
-    ``figures`` (their indices: the joined one, or those kept apart), ``separate_bits``
-    (None: no part found apart), ``joined_bits``, ``spans`` (a part across the tear),
-    ``joined``)."""
+    A joined recovery is refined fully only where :data:`JOIN_PROBE`'s parts already
+    span the tear (:func:`recover_scene`). Without a part across the tear a shorter
+    joined description only rearranges parts within the pieces (or their interplay: two
+    objects side by side), and the figures stay apart; each of them then takes the
+    joined recovery's parts that explain most of their pixels within it where those
+    describe it in fewer bits (another search's answer for the piece: :func:`_shorter`).
+    Returns (recoveries, largest figure first; per group, a dict: ``figures`` (their
+    indices: the joined one, or those kept apart), ``separate_bits`` (None: no part
+    found apart), ``joined_bits``, ``spans`` (a part across the tear), ``joined``)."""
     from ._encoding import host_parts, part_vectors
 
     keep = list(separate)
