@@ -208,8 +208,8 @@ def joined_pieces(pieces: np.ndarray, depth, camera: Camera, *, apart=()) -> np.
     that its surface tears. An object that stands farther behind another than its own
     size stays apart; one beside another, nearer than that, does not (the Kinect frame's
     laptop and box: a jump of a fifth of the box's size, as a mug's handle or a plate's
-    torn strips show), so it is for views of one object. Joins chain: a piece joined to two others joins them. The pieces
-    ``apart`` (labels) are never joined (background running off the image). Returns the
+    torn strips show), so it is for views of one object. Joins chain: a piece joined
+    to two others joins them. The pieces ``apart`` (labels) are never joined (background running off the image). Returns the
     labels of the joined pieces (0, 1, ... by decreasing size; -1 where ``pieces`` is)."""
     d = _check_depth(depth, camera).astype(np.float64)
     pieces = np.array(pieces, np.int64)
@@ -687,7 +687,8 @@ def figure_ground(
     apart joined again (:func:`joined_pieces`; two objects side by side, a laptop and
     a box on a table, pass the same test, so it is for a view of one object; without
     it, the groups it would join are named in ``joinable``, for
-    :func:`~sqparts.recover_scene` to decide by description length), and the pieces of at least ``min_pixels`` (default: 0.25%
+    :func:`~sqparts.recover_scene` to decide by description length), and the pieces of
+    at least ``min_pixels`` (default: 0.25%
     of the returns, at least 16) are the figures, except, once a plane is removed, a piece
     with more than ``max_border_fraction`` of its returns on the outer frame of the
     measured area (a band 1/40 of the image's shorter side wide, at least 3 pixels): that

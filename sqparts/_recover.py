@@ -763,7 +763,7 @@ def recover_scene(
     for (members, _), f in zip(joinable, figures[len(masks) :]):
         # Refined fully only where a light refinement's parts already span the tear: a join needs one.
         rec = figure_recovery(*f, JOIN_PROBE if refine.active else refine)
-        if rec is not None and refine.active and _spanning(rec, [masks[k] for k in members]).any():
+        if rec is not None and refine.active and _spanning(_shown(rec, [masks[k] for k in members]), rec.costs).any():
             rec = figure_recovery(*f, refine)
         joint.append(rec)
     recoveries, joins = _joined(separate, [k for k, _ in joinable], joint, masks)
@@ -840,7 +840,7 @@ def _joined(separate, groups, joint, masks):
             vectors = np.concatenate([part_vectors(r.parts) for r in apart])
             separate_bits = float(encoding_cost(host_parts(vectors), rec.data, rec.costs).total)
         shown = _shown(rec, [masks[k] for k in members])
-        spans = bool(_spanning(rec, [masks[k] for k in members]).any())
+        spans = bool(_spanning(shown, rec.costs).any())
         join = spans and (separate_bits is None or joined_bits < separate_bits)
         if join:
             for k in members:
@@ -870,13 +870,13 @@ def _shown(rec: Recovery, masks) -> np.ndarray:
     ).reshape(len(rec.parts), len(masks))
 
 
-def _spanning(rec: Recovery, masks) -> np.ndarray:
-    """Per part of ``rec``: whether it spans a tear between the figures ``masks``: it
-    explains, in two of them, at least the pixels that pay for a part
+def _spanning(shown: np.ndarray, costs: Costs) -> np.ndarray:
+    """Per part (a row of :func:`_shown`): whether it spans a tear between the figures:
+    it explains, in two of them, at least the pixels that pay for a part
     (:func:`~sqparts._encoding.least_pixels`)."""
     from ._encoding import least_pixels
 
-    return (_shown(rec, masks) >= least_pixels(rec.costs)).sum(1) >= 2
+    return (shown >= least_pixels(costs)).sum(1) >= 2
 
 
 def _shorter(rec: Recovery, vectors: np.ndarray) -> Recovery:
