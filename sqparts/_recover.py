@@ -26,19 +26,30 @@ import numpy as np
 
 from ._camera import Camera, fits_float32
 from ._compile import memo_scope
-from ._data import PAD, RangeData
+from ._data import PAD, RangeData, figure_footprint, prepare
 from ._encoding import (
     Costs,
     Encoding,
     EncodingCost,
     encoding_cost,
+    host_parts,
     layer_errors,
     part_statistics,
+    part_vectors,
     render_layers,
 )
 from ._grid import lookup_preset
 from ._part import Part, stack_parts
-from ._refine import RefineSettings
+from ._refine import (
+    MAX_PASSES,
+    MERGE_POLISH_ROUNDS,
+    DropParts,
+    GrowParts,
+    MergeParts,
+    OnGain,
+    RefineSettings,
+    run_moves,
+)
 from ._render import render_range_image
 from ._search import SearchSettings, fit_image, largest_frame, search_preset
 from ._select import SelectionProblem, SelectSettings, select_rendered
@@ -357,13 +368,12 @@ class SceneSettings:
     :func:`~sqparts.figure_ground`); off: the whole image is one figure. Pieces that one
     object's own occlusions may have torn apart (``join``; :func:`~sqparts.joined_pieces`:
     they touch, and the depth jump between them is less than the smaller one's size):
-    ``"auto"`` recovers each such group of figures as one figure as well (refined
-    fully only where region growing and merging, :data:`JOIN_PROBE`, already give a
-    part across the tear) and joins them where a part of that recovery spans the tear
-    and it describes their pixels in fewer bits than the figures' parts together (under
-    the joined figure's encoding), True always joins them, False (the default) never:
-    ``"auto"`` costs a recovery of each group, on the built-in human and castings
-    half again to twice their time. Prettifying
+    ``"auto"`` (the default) takes each such group's figures' parts together on the
+    group's pixels, merged across the tears (:func:`_merged_across`), searches and
+    refines the group as one figure as well only where a part of that spans a tear, and
+    joins the figures where a part of the joined description spans the tear and it
+    describes their pixels in fewer bits than the figures' parts together (under the
+    joined figure's encoding); True always joins them, False never. Prettifying
     (``prettify``): near-vertical and near-horizontal parts snapped to gravity ``up``
     (default: the ground plane's normal) within ``max_angle`` degrees when E rises by at
     most ``max_bits`` (:func:`~sqparts.prettify`).
@@ -381,7 +391,7 @@ class SceneSettings:
     max_figures: int | None = None
     max_height: float | None = None
     max_border_fraction: float = 0.15
-    join: bool | str = False
+    join: bool | str = "auto"
     prettify: bool = False
     up: tuple[float, float, float] | None = None
     max_angle: float = 15.0
@@ -471,8 +481,9 @@ class SceneRecovery(_Fractions, _Meshes):
     joins : per group of figure/ground's figures that may be one object (``join``
         "auto"): ``figures`` (indices into ``figures``: the joined one, or those kept
         apart), ``separate_bits`` and ``joined_bits`` (the two descriptions of the
-        group's pixels; the joined one after :data:`JOIN_PROBE` alone where it gave no
-        part across the tear), ``spans`` (a part of the joined one across the tear),
+        group's pixels; the joined one: the figures' parts merged across the tears, or,
+        where a part of those spans a tear, the shorter of that and the group's own
+        recovery), ``spans`` (a part of the joined one across the tear),
         ``joined``. ``figure_ground.figures`` are the figures before joining.
     """
 
@@ -637,7 +648,6 @@ def recover_scene(
     window's lattices where theirs fit in them (``SearchSettings.lattices``), so that they
     share those programs too.
     """
-    from ._data import figure_footprint, prepare
     from ._encoding import encoding_for
     from ._postprocess import prettify as _prettify
     from ._preprocess import (
@@ -761,10 +771,14 @@ def recover_scene(
     separate = [figure_recovery(*f, refine) for f in figures[: len(masks)]]
     joint = []
     for (members, _), f in zip(joinable, figures[len(masks) :]):
-        # Refined fully only where a light refinement's parts already span the tear: a join needs one.
-        rec = figure_recovery(*f, JOIN_PROBE if refine.active else refine)
-        if rec is not None and refine.active and _spanning(_shown(rec, [masks[k] for k in members]), rec.costs).any():
-            rec = figure_recovery(*f, refine)
+        # Searched and refined as one figure only where the pieces' parts, merged across the
+        # tears, already span one: a join needs a part that does.
+        pieces = [masks[k] for k in members]
+        apart = [separate[k] for k in members if separate[k] is not None]
+        rec = _merged_across(apart, d, camera, f[0], f[1], pieces, refine) if apart and refine.active else None
+        if rec is None or _spanning(_shown(rec, pieces), rec.costs).any():
+            whole = figure_recovery(*f, refine)
+            rec = min((r for r in (rec, whole) if r is not None), key=lambda r: r.cost.total, default=None)
         joint.append(rec)
     recoveries, joins = _joined(separate, [k for k, _ in joinable], joint, masks)
     if not recoveries:
@@ -803,11 +817,45 @@ def recover_scene(
     )
 
 
-JOIN_PROBE = RefineSettings(
-    split=False, fill=False, straighten=False, settle=(), absorb=False, faces=False, stretch=False, unpinch=False
-)
-"""The refinement of a group of figures recovered as one (:func:`recover_scene`, join
-"auto") before it is known whether a part spans the tear: region growing and merging."""
+@memo_scope()
+def _merged_across(apart, depth, camera: Camera, mask, encoding: Encoding, pieces, refine: RefineSettings) -> Recovery:
+    """The figures' recoveries ``apart`` (of the figures ``pieces``) as one recovery of
+    their union ``mask``, under its ``encoding``: their parts together, grown over its
+    pixels (a part may now take pixels of another piece that its own figure lacked)
+    and merged across the tears
+    (:class:`~sqparts._refine.MergeParts` with ``pieces``), each merge followed by
+    growing and dropping as in refinement, while merging lowers E. What
+    :func:`recover_scene` tries first for a group of figures that may be one object
+    (join "auto"): no search."""
+    t0 = time.perf_counter()
+    data = prepare(depth, camera, figure=mask, encoding=encoding)
+    costs = Costs.from_encoding(data.encoding, int(data.figure_mask.sum()))
+    label = np.full(np.shape(mask), -1)
+    for k, piece in enumerate(pieces):
+        label[np.asarray(piece, bool)] = k
+    grow = (GrowParts(passes=MERGE_POLISH_ROUNDS, steps=refine.steps), DropParts())
+    merge = OnGain(MergeParts(passes=1, steps=refine.steps, tries=0, pieces=label), then=grow, repeat=MAX_PASSES)
+    start = np.concatenate([part_vectors(r.parts) for r in apart])
+    initial_cost = encoding_cost(host_parts(start), data, costs)
+    vectors, cost, history = run_moves((*grow, merge), start, initial_cost, data, costs)
+    final = Part.from_vector(vectors)
+    t = time.perf_counter() - t0
+    return dataclasses.replace(
+        apart[0],
+        parts=final,
+        part_stats=part_statistics(final, data, cost),
+        cost=cost,
+        initial_parts=Part.from_vector(start),
+        initial_cost=initial_cost,
+        candidates=sum(r.candidates for r in apart),
+        regions=sum(r.regions for r in apart),
+        timings={"search": 0.0, "selection": 0.0, "refinement": t, "total": t},
+        depth=np.asarray(data.image),
+        figure=np.asarray(data.figure_mask),
+        history=(("figures' parts", initial_cost.total), *history),
+        data=data,
+        costs=costs,
+    )
 
 
 def _joined(separate, groups, joint, masks):
@@ -817,8 +865,9 @@ def _joined(separate, groups, joint, masks):
     explains, in two of the group's figures, at least the pixels that pay for a part:
     :func:`~sqparts._encoding.least_pixels`) and it describes the group's pixels in
     fewer bits than the figures' parts together (under the joined figure's encoding).
-    A joined recovery is refined fully only where :data:`JOIN_PROBE`'s parts already
-    span the tear (:func:`recover_scene`). Without a part across the tear a shorter
+    A group is searched and refined as one figure only where the figures' parts,
+    merged across the tears (:func:`_merged_across`), already span one
+    (:func:`recover_scene`). Without a part across the tear a shorter
     joined description only rearranges parts within the pieces (or their interplay: two
     objects side by side), and the figures stay apart; each of them then takes the
     joined recovery's parts that explain most of their pixels within it where those
@@ -826,8 +875,6 @@ def _joined(separate, groups, joint, masks):
     Returns (recoveries, largest figure first; per group, a dict: ``figures`` (their
     indices: the joined one, or those kept apart), ``separate_bits`` (None: no part
     found apart), ``joined_bits``, ``spans`` (a part across the tear), ``joined``)."""
-    from ._encoding import host_parts, part_vectors
-
     keep = list(separate)
     found = []
     for members, rec in zip(groups, joint):
@@ -882,8 +929,6 @@ def _spanning(shown: np.ndarray, costs: Costs) -> np.ndarray:
 def _shorter(rec: Recovery, vectors: np.ndarray) -> Recovery:
     """``rec`` with the parts of (k, 14) ``vectors`` instead where they describe its figure
     in fewer bits (another recovery's parts within it: a joined figure's)."""
-    from ._encoding import host_parts
-
     cost = encoding_cost(host_parts(vectors), rec.data, rec.costs)
     if not cost.total < rec.cost.total:
         return rec
@@ -968,7 +1013,6 @@ def recover_multiscale(
     still pay its κ0 bits from fewer pixels: a person as one blob; as head, torso and
     limbs; with hands and feet. Each part is linked to its parent one level up.
     """
-    from ._data import prepare
     from ._preprocess import downsample, downsample_mask
 
     if not (isinstance(levels, (int, np.integer)) and 1 <= levels <= 6):

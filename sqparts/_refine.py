@@ -1111,13 +1111,18 @@ class MergeParts(Move):
     bent again). All are fitted by batched LM calls of ``steps`` steps to the pixels
     their starts came from (the moment starts, farther from their answer, twice over);
     every start, as it is and fitted, is an edit (the distances that the fits
-    minimise thicken a thin plate, and lengthen a bar whose ends meet other parts)."""
+    minimise thicken a thin plate, and lengthen a bar whose ends meet other parts).
+    With ``pieces`` ((H, W) int: the piece of the figure each pixel lies in, -1 none;
+    figures that one object's own occlusions may have torn apart) only parts in
+    different pieces (where each explains most of its pixels) count as adjacent: merges
+    across the tears alone."""
 
     name: ClassVar[str] = "merge"
     passes: int = MAX_PASSES
     steps: int = 20
     tries: int = 3
     alone: bool = False
+    pieces: np.ndarray | None = dataclasses.field(default=None, compare=False, repr=False)
 
     def propose(self, vectors, cost, data, costs, step):
         n = len(vectors)
@@ -1126,6 +1131,11 @@ class MergeParts(Move):
         pts, idx = figure_points(data)
         rays, ray_index = background_rays(data)
         adjacent = _adjacent_parts(cost.labels, n)
+        if self.pieces is not None:  # across the tears alone
+            shown = cost.explained_mask & (self.pieces >= 0)
+            counts = [np.bincount(self.pieces[shown & (cost.labels == i)]) for i in range(n)]
+            piece = np.array([c.argmax() if len(c) else -1 for c in counts])
+            adjacent &= piece[:, None] != piece[None, :]
         inits, weights, ray_weights, members = [], [], [], []
         owner = _answered_for(cost, data)
 

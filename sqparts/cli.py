@@ -674,12 +674,11 @@ def build_parser() -> argparse.ArgumentParser:
         "--join",
         nargs="?",
         const="always",
-        default="never",
+        default="auto",
         choices=("never", "always", "auto"),
         help="pieces that touch with a depth jump less than the smaller one's size (an arm before the body, a "
-        "mug's handle, but also objects side by side): never joined (default), always (--join alone), or auto: "
-        "each such group recovered joined as well, and joined where a part spans the tear and that is the "
-        "shorter description (slower)",
+        "mug's handle, but also objects side by side): auto (default): joined where a part spans the tear and "
+        "that is the shorter description; never; or always (--join alone)",
     )
     g.add_argument("--min-figure-pixels", type=_POSITIVE_INT, default=None, help="smallest figure kept")
     g.add_argument("--max-figures", type=_POSITIVE_INT, default=None, help="recover at most this many figures")

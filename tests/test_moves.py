@@ -596,3 +596,33 @@ def test_settle_faces_alone_takes_a_thickened_part_back():
     one_at_a_time = sqparts.refine_moves(sqparts.Part.from_vector(start[None]), data, costs, [sqparts.SettleParts()])
     assert cost.total < one_at_a_time[1].total
     assert sqparts.SettleFaces().propose(np.zeros((0, 14), np.float32), cost, data, costs, 0) == [[]]
+
+
+def test_merge_parts_with_pieces_merges_across_the_pieces_alone():
+    # A bar fitted as two halves, one in each piece of the figure (a tear between them):
+    # merged into one part, shorter by about a part's bits. With both halves in one
+    # piece there is nothing across a tear to merge: no edit at all.
+    from sqparts._scenes import limb
+
+    bar = limb([-0.15, 0.0, 2.0], [0.15, 0.0, 2.0], 0.03)
+    depth = np.asarray(sqparts.render_range_image(bar, CAM))
+    data = sqparts.prepare(depth, CAM)
+    costs = sqparts.Costs.from_encoding(data.encoding, int(data.figure_mask.sum()))
+    halves = sqparts.stack_parts(
+        [limb([-0.16, 0.0, 2.0], [0.0, 0.0, 2.0], 0.03), limb([0.0, 0.0, 2.0], [0.16, 0.0, 2.0], 0.03)]
+    )
+    before = _cost(part_vectors(halves), data, costs)
+    columns = np.broadcast_to(np.arange(CAM.width) >= CAM.width // 2, depth.shape)
+    pieces = np.where(np.isfinite(depth), columns.astype(int), -1)
+    merged, cost, _ = sqparts.refine_moves(halves, data, costs, [sqparts.MergeParts(passes=1, tries=0, pieces=pieces)])
+    assert len(merged.size) == 1 and cost.total < before.total - 0.5 * costs.part
+    whole = _cost(part_vectors(bar), data, costs)
+    assert cost.total <= whole.total + 0.05 * before.explained * costs.omission
+    one_piece = np.where(np.isfinite(depth), 0, -1)
+    move = sqparts.MergeParts(passes=1, tries=0, pieces=one_piece)
+    assert not any(move.propose(part_vectors(halves), before, data, costs, 0)[0])
+    # Without pieces the same halves are adjacent, and merging proposes their merge.
+    assert any(
+        e.remove == (0, 1)
+        for e in sqparts.MergeParts(passes=1, tries=0).propose(part_vectors(halves), before, data, costs, 0)[0]
+    )

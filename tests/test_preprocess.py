@@ -359,10 +359,10 @@ def test_pieces_one_object_tore_are_joined_and_objects_stay_apart():
     # Through recover_scene's settings and the command line's flag.
     from sqparts.cli import _recover_options, build_parser
 
-    assert sqparts.SceneSettings(join=True).join is True and sqparts.SceneSettings().join is False
+    assert sqparts.SceneSettings(join=True).join is True and sqparts.SceneSettings().join == "auto"
     with pytest.raises(ValueError, match=r"join: got 'no', expected True, False or 'auto'"):
         sqparts.SceneSettings(join="no")
-    for flags, want in (([], False), (["--join"], True), (["--join", "auto"], "auto"), (["--join", "never"], False)):
+    for flags, want in (([], "auto"), (["--join"], True), (["--join", "auto"], "auto"), (["--join", "never"], False)):
         args = build_parser().parse_args(["recover", "x.npy", "--out", "o", *flags])
         assert _recover_options(args)["scene"].join == want
 
@@ -388,9 +388,9 @@ def _plate_edge_on():
 @pytest.mark.slow
 def test_recover_scene_joins_a_torn_object_where_that_is_the_shorter_description():
     """Figure/ground tears the plate into figures that joined_pieces would join. Apart
-    two of them take a part each (the third, 40 pixels, none); recover_scene with join "auto" recovers them as
-    one figure too, one part across the tear, and keeps that: the shorter description
-    of their pixels. The separate description's bits are its parts' E on the joined
+    two of them take a part each (the third, 40 pixels, none); recover_scene with join
+    "auto" (the default) merges those across the tear, recovers the figures as one too,
+    and keeps one part across the tear: the shorter description of their pixels. The separate description's bits are its parts' E on the joined
     figure; a joined description as long or longer is not kept, nor a shorter one
     whose parts all stay within the pieces (objects side by side)."""
     from types import SimpleNamespace

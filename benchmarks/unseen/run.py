@@ -17,11 +17,13 @@ A DIR is one scene folder (depth.npy, camera.json, truth.json) or a folder of th
   truth_unassigned: true parts no figure shows,
   error (message, or null).
 Set SQPARTS_PKG=/path/to/checkout to import sqparts from another checkout, and
-SQPARTS_SCENE=PRESET (e.g. synthetic) to pass scene=PRESET (default: recover_scene's own).
+SQPARTS_SCENE=PRESET (e.g. synthetic) to pass scene=PRESET (default: recover_scene's own),
+SQPARTS_JOIN=never|always|auto to recover with that preset's settings and that join.
 """
 
 from __future__ import annotations
 
+import dataclasses
 import json
 import os
 import sys
@@ -38,6 +40,11 @@ import sqparts
 from sqparts import scene_from_dict
 
 KW = {"scene": os.environ["SQPARTS_SCENE"]} if os.environ.get("SQPARTS_SCENE") else {}
+if os.environ.get("SQPARTS_JOIN"):  # never, always or auto: the scene preset with that join
+    KW["scene"] = dataclasses.replace(
+        sqparts.scene_preset(KW.get("scene", "real")),
+        join={"never": False, "always": True}.get(os.environ["SQPARTS_JOIN"], os.environ["SQPARTS_JOIN"]),
+    )
 
 
 def scene_dirs(args):
@@ -169,7 +176,7 @@ def main():
         "sqparts": getattr(sqparts, "__file__", None),
         "dirs": [str(d) for d in dirs],
         "wall_s": time.perf_counter() - t0,
-        "kwargs": KW,
+        "kwargs": {k: v if isinstance(v, str) else repr(v) for k, v in KW.items()},
     }
     tmp = out.with_name(out.name + ".tmp")
     tmp.write_text(json.dumps({"meta": meta, "rows": rows}, indent=1))
