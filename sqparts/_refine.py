@@ -1124,8 +1124,20 @@ class MergeParts(Move):
     alone: bool = False
     pieces: np.ndarray | None = dataclasses.field(default=None, compare=False, repr=False)
 
+    def __post_init__(self):
+        super().__post_init__()
+        if self.pieces is not None:
+            pieces = np.asarray(self.pieces)
+            if pieces.ndim != 2 or not np.issubdtype(pieces.dtype, np.integer):
+                raise ValueError(
+                    f"pieces: got an array of shape {pieces.shape} and dtype {pieces.dtype}, expected (H, W) integers"
+                )
+            object.__setattr__(self, "pieces", pieces)
+
     def propose(self, vectors, cost, data, costs, step):
         n = len(vectors)
+        if self.pieces is not None and self.pieces.shape != np.shape(cost.labels):
+            raise ValueError(f"pieces: got shape {self.pieces.shape}, expected the image's {np.shape(cost.labels)}")
         if n == 0:
             return [[]]
         pts, idx = figure_points(data)

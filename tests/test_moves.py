@@ -621,6 +621,10 @@ def test_merge_parts_with_pieces_merges_across_the_pieces_alone():
     one_piece = np.where(np.isfinite(depth), 0, -1)
     move = sqparts.MergeParts(passes=1, tries=0, pieces=one_piece)
     assert not any(move.propose(part_vectors(halves), before, data, costs, 0)[0])
+    with pytest.raises(ValueError, match=r"pieces: got shape \(8, 8\), expected the image's \(64, 64\)"):
+        sqparts.MergeParts(pieces=np.zeros((8, 8), int)).propose(part_vectors(halves), before, data, costs, 0)
+    with pytest.raises(ValueError, match=r"pieces: got an array of shape \(64, 64\) and dtype float64"):
+        sqparts.MergeParts(pieces=np.zeros((64, 64)))
     # Without pieces the same halves are adjacent, and merging proposes their merge.
     assert any(
         e.remove == (0, 1)
