@@ -390,9 +390,10 @@ def test_recover_scene_joins_a_torn_object_where_that_is_the_shorter_description
     """Figure/ground tears the plate into figures that joined_pieces would join. Apart
     two of them take a part each (the third, 40 pixels, none); recover_scene with join
     "auto" (the default) merges those across the tear, recovers the figures as one too,
-    and keeps one part across the tear: the shorter description of their pixels. The separate description's bits are its parts' E on the joined
-    figure; a joined description as long or longer is not kept, nor a shorter one
-    whose parts all stay within the pieces (objects side by side)."""
+    and keeps one part across the tear: the shorter description of their pixels. The
+    separate description's bits are its parts' E on the joined figure; a joined
+    description as long or longer is not kept, nor a shorter one whose parts all stay
+    within the pieces (objects side by side)."""
     from types import SimpleNamespace
 
     from sqparts._recover import _joined
