@@ -11,7 +11,7 @@ Writes ``docs/real_<name>.png`` (report), ``docs/real_<name>_residual.png`` and
 ``benchmarks/results/real_<input>.json`` (the three teapot views in one). Each input
 is recovered with the default (~2^16) grid at about 160 pixels across.
 
-    python benchmarks/bench_real.py [--grid default] [--only NAME]
+    python benchmarks/bench_real.py [--grid default] [--only NAME] [--join never|always|auto]
 
 With ``--seeds K`` it measures instead how far each result moves under imperceptible
 noise: every input recovered as it is and with K - 1 draws of Gaussian depth noise of
@@ -99,7 +99,9 @@ def main():
     ap.add_argument("--seeds", type=int, default=0, help="perturbation ensemble of this many draws (0: off)")
     ap.add_argument("--noise", type=float, default=1e-5, help="noise, relative to each pixel's depth")
     ap.add_argument("--name", default=None, help="one input by name (teapot-above, ...)")
+    ap.add_argument("--join", default="auto", choices=["never", "always", "auto"], help="SceneSettings.join")
     args = ap.parse_args()
+    args.join = {"never": False, "always": True}.get(args.join, args.join)
     if args.seeds:
         return perturbed(args)
     DOCS.mkdir(exist_ok=True)
@@ -109,7 +111,7 @@ def main():
         rec = sqparts.recover_scene(
             depth,
             cam,
-            scene=sqparts.SceneSettings(prettify=True, **extra),
+            scene=sqparts.SceneSettings(prettify=True, join=args.join, **extra),
             search=sqparts.SearchSettings(grid=args.grid),
         )
         wall = time.perf_counter() - t0
@@ -143,7 +145,7 @@ def main():
         print(f"{name}: {rec.summary()}; {resid.summary()}; wall {wall:.1f} s", flush=True)
     for family in dict.fromkeys(r["name"].split("-")[0] for r in rows):  # teapot-side -> teapot
         family_rows = [r for r in rows if r["name"].split("-")[0] == family]
-        save(f"real_{family}", {"machine": machine(), "grid": args.grid, "rows": family_rows})
+        save(f"real_{family}", {"machine": machine(), "grid": args.grid, "join": args.join, "rows": family_rows})
 
 
 def perturbed(args):
@@ -162,7 +164,7 @@ def perturbed(args):
             rec = sqparts.recover_scene(
                 d,
                 cam,
-                scene=sqparts.SceneSettings(prettify=True, **extra),
+                scene=sqparts.SceneSettings(prettify=True, join=args.join, **extra),
                 search=sqparts.SearchSettings(grid=args.grid),
             )
             draws.append(
