@@ -36,6 +36,7 @@ from _common import machine, save
 
 import sqparts
 from sqparts._plot import save_report, save_residual_report
+from sqparts.cli import JOIN_MODES
 
 ROOT = Path(__file__).resolve().parents[1]
 DATA = ROOT.parent / "shared" / "data"
@@ -101,7 +102,7 @@ def main():
     ap.add_argument("--name", default=None, help="one input by name (teapot-above, ...)")
     ap.add_argument("--join", default="auto", choices=["never", "always", "auto"], help="SceneSettings.join")
     args = ap.parse_args()
-    args.join = {"never": False, "always": True}.get(args.join, args.join)
+    args.join = JOIN_MODES[args.join]
     if args.seeds:
         return perturbed(args)
     DOCS.mkdir(exist_ok=True)

@@ -209,8 +209,9 @@ def joined_pieces(pieces: np.ndarray, depth, camera: Camera, *, apart=()) -> np.
     size stays apart; one beside another, nearer than that, does not (the Kinect frame's
     laptop and box: a jump of a fifth of the box's size, as a mug's handle or a plate's
     torn strips show), so it is for views of one object. Joins chain: a piece joined
-    to two others joins them. The pieces ``apart`` (labels) are never joined (background running off the image). Returns the
-    labels of the joined pieces (0, 1, ... by decreasing size; -1 where ``pieces`` is)."""
+    to two others joins them. The pieces ``apart`` (labels) are never joined
+    (background running off the image). Returns the labels of the joined pieces (0, 1,
+    ... by decreasing size; -1 where ``pieces`` is)."""
     d = _check_depth(depth, camera).astype(np.float64)
     pieces = np.array(pieces, np.int64)
     if pieces.shape != d.shape:
@@ -635,9 +636,8 @@ class FigureGround:
     labels : (H, W) int, figure index per pixel, -1 = none.
     joinable : pieces that :func:`joined_pieces` would join, where ``join`` did not: per
         group that holds two or more figures, (the indices of those figures, the union
-        of their masks). For
-        :func:`~sqparts.recover_scene` to decide by description length whether they are
-        one object.
+        of their masks), for :func:`~sqparts.recover_scene` to decide by description
+        length whether they are one object.
     """
 
     figures: Sequence
@@ -688,8 +688,8 @@ def figure_ground(
     a box on a table, pass the same test, so it is for a view of one object; without
     it, the groups it would join are named in ``joinable``, for
     :func:`~sqparts.recover_scene` to decide by description length), and the pieces of
-    at least ``min_pixels`` (default: 0.25%
-    of the returns, at least 16) are the figures, except, once a plane is removed, a piece
+    at least ``min_pixels`` (default: 0.25% of the returns, at least 16) are the
+    figures, except, once a plane is removed, a piece
     with more than ``max_border_fraction`` of its returns on the outer frame of the
     measured area (a band 1/40 of the image's shorter side wide, at least 3 pixels): that
     is background running off the image, like the planes (a wall's edge where two planes

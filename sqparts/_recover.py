@@ -34,6 +34,7 @@ from ._encoding import (
     encoding_cost,
     host_parts,
     layer_errors,
+    least_pixels,
     part_statistics,
     part_vectors,
     render_layers,
@@ -822,11 +823,10 @@ def _merged_across(apart, depth, camera: Camera, mask, encoding: Encoding, piece
     """The figures' recoveries ``apart`` (of the figures ``pieces``) as one recovery of
     their union ``mask``, under its ``encoding``: their parts together, grown over its
     pixels (a part may now take pixels of another piece that its own figure lacked)
-    and merged across the tears
-    (:class:`~sqparts._refine.MergeParts` with ``pieces``), each merge followed by
-    growing and dropping as in refinement, while merging lowers E. What
-    :func:`recover_scene` tries first for a group of figures that may be one object
-    (join "auto"): no search."""
+    and merged across the tears (:class:`~sqparts._refine.MergeParts` with
+    ``pieces``), each merge followed by growing and dropping as in refinement, while
+    merging lowers E. What :func:`recover_scene` tries first for a group of figures
+    that may be one object (join "auto"): no search."""
     t0 = time.perf_counter()
     data = prepare(depth, camera, figure=mask, encoding=encoding)
     costs = Costs.from_encoding(data.encoding, int(data.figure_mask.sum()))
@@ -867,8 +867,8 @@ def _joined(separate, groups, joint, masks):
     fewer bits than the figures' parts together (under the joined figure's encoding).
     A group is searched and refined as one figure only where the figures' parts,
     merged across the tears (:func:`_merged_across`), already span one
-    (:func:`recover_scene`). Without a part across the tear a shorter
-    joined description only rearranges parts within the pieces (or their interplay: two
+    (:func:`recover_scene`). Without a part across the tear a shorter joined
+    description only rearranges parts within the pieces (or their interplay: two
     objects side by side), and the figures stay apart; each of them then takes the
     joined recovery's parts that explain most of their pixels within it where those
     describe it in fewer bits (another search's answer for the piece: :func:`_shorter`).
@@ -921,8 +921,6 @@ def _spanning(shown: np.ndarray, costs: Costs) -> np.ndarray:
     """Per part (a row of :func:`_shown`): whether it spans a tear between the figures:
     it explains, in two of them, at least the pixels that pay for a part
     (:func:`~sqparts._encoding.least_pixels`)."""
-    from ._encoding import least_pixels
-
     return (shown >= least_pixels(costs)).sum(1) >= 2
 
 

@@ -31,6 +31,10 @@ import numpy as np
 # --- arguments ------------------------------------------------------------------------
 
 
+JOIN_MODES = {"never": False, "always": True, "auto": "auto"}
+"""``--join``'s words as :class:`~sqparts.SceneSettings`' ``join``."""
+
+
 class UsageError(ValueError):
     """A command line argparse rejected, in the one message style."""
 
@@ -181,7 +185,7 @@ def _recover_options(args) -> dict:
             min_figure_pixels=args.min_figure_pixels,
             max_figures=args.max_figures,
             max_border_fraction=args.max_border_fraction,
-            join={"never": False, "always": True, "auto": "auto"}[args.join],
+            join=JOIN_MODES[args.join],
             holes=args.holes,
             prettify=args.prettify,
             up=None if args.up is None else args.up.split(","),
@@ -675,7 +679,7 @@ def build_parser() -> argparse.ArgumentParser:
         nargs="?",
         const="always",
         default="auto",
-        choices=("never", "always", "auto"),
+        choices=tuple(JOIN_MODES),
         help="pieces that touch with a depth jump less than the smaller one's size (an arm before the body, a "
         "mug's handle, but also objects side by side): auto (default): joined where a part spans the tear and "
         "that is the shorter description; never; or always (--join alone)",

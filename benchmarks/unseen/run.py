@@ -40,7 +40,7 @@ import sqparts
 from sqparts import scene_from_dict
 
 KW = {"scene": os.environ["SQPARTS_SCENE"]} if os.environ.get("SQPARTS_SCENE") else {}
-if os.environ.get("SQPARTS_JOIN"):  # never, always or auto: the scene preset with that join
+if os.environ.get("SQPARTS_JOIN"):  # never, always or auto (sqparts.cli.JOIN_MODES; spelt out: SQPARTS_PKG may lack it)
     KW["scene"] = dataclasses.replace(
         sqparts.scene_preset(KW.get("scene", "real")),
         join={"never": False, "always": True}.get(os.environ["SQPARTS_JOIN"], os.environ["SQPARTS_JOIN"]),
