@@ -46,8 +46,8 @@ E. The moves, in :meth:`RefineSettings.moves`'s order:
 - :class:`MergeParts` once more, for the same reason: settled parts may merge where
   they did not before (a body split under a lid's overhang, whose lid settling moved;
   an L's arm cut in two; single parts summarised from their explained pixels alone
-  too: a seat seen edge-on, fitted bent), then grown, dropped and settled again if it
-  gains;
+  too: a seat seen edge-on, fitted bent; a disc among the starts: a lid seen as two
+  plates), then grown, dropped and settled again if it gains;
 - :class:`SettleFaces`, once per step scale of settling: settling with one face of a
   part moved at a time (a semi-axis and the centre together), which the one-parameter
   steps cannot do where each alone raises E;
@@ -930,19 +930,21 @@ def _merge_candidates(a: np.ndarray, b: np.ndarray) -> np.ndarray:
     return np.asarray(round_ + [straight], np.float32)
 
 
-def _moment_candidates(points: np.ndarray, sigma: float) -> np.ndarray:
-    """(13, 14) vectors of single parts summarising the 3-D surface ``points`` (n, 3) from
-    their moments: centred on them, axes along their principal directions (longest = z,
-    least = y, nearly the viewing direction of a visible surface), semi-axes from their
-    1-99% extents. The depth (y) semi-axis is either thin (a plate: a laptop lid, a
-    table top) or as deep as the part is wide (a solid seen from one side, the
-    symmetric interpretation of its hidden side), its centre then pushed back from the
-    camera; box-like, round or a cylinder. Three of the solids are bent and tapered as
-    the points' centre line and width say (:func:`_deformation_moments`: footnote 11's
-    bending of the longest axis and tapering along it), so one limb that the search
-    cut in two, or a bent part it fitted with a straight one, is summarised as one. The
-    last is a plate bent through itself (:func:`_plate_bend`: a chair's back, a curved
-    panel), which the bent solids, as deep as they are wide, do not reach."""
+def _moment_candidates(points: np.ndarray, sigma: float, *, disc: bool = False) -> np.ndarray:
+    """(13, 14) vectors (with ``disc``, (14, 14)) of single parts summarising the 3-D
+    surface ``points`` (n, 3) from their moments: centred on them, axes along their
+    principal directions (longest = z, least = y, nearly the viewing direction of a
+    visible surface), semi-axes from their 1-99% extents. The depth (y) semi-axis is
+    either thin (a plate: a laptop lid, a table top) or as deep as the part is wide (a
+    solid seen from one side, the symmetric interpretation of its hidden side), its
+    centre then pushed back from the camera; box-like, round or a cylinder. Three of the
+    solids are bent and tapered as the points' centre line and width say
+    (:func:`_deformation_moments`: footnote 11's bending of the longest axis and
+    tapering along it), so one limb that the search cut in two, or a bent part it fitted
+    with a straight one, is summarised as one. Next, with ``disc``, a disc: local z on
+    the least axis (a round plate: a lid, a cap). The last is a plate bent through
+    itself (:func:`_plate_bend`: a chair's back, a curved panel), which the bent solids,
+    as deep as they are wide, do not reach."""
     from scipy.spatial.transform import Rotation
 
     p = np.asarray(points, np.float64)
@@ -997,6 +999,13 @@ def _moment_candidates(points: np.ndarray, sigma: float) -> np.ndarray:
     out.append(
         [*(front + x * offset[0] + y * rim), *rv, half[1], rim, half[0], 1.0, 1.0, float(np.hypot(*bend)), 0.0, taper]
     )
+    # A disc: local z on the least axis, a round outline (ε2 = 1) over the longest and
+    # middle axes, as thick as the points reach along it (a lid, a wheel, a mushroom's
+    # cap seen from the side, whose visible rim spans its thickness) and its rim rounded
+    # halfway (ε1 = 0.5; fitting from a flat rim, at the bound, leaves it flat): a round
+    # plate, which the starts above (local z in the plate) do not reach by fitting.
+    if disc:
+        out.append([*mid, *rotvec(z, x, y), half[0], half[1], max(half[2], thin), 0.5, 1.0, 0.0, 0.0, 0.0])
     # A plate bent through itself (a chair's back, a curved panel): its surface's depth
     # fitted as a quadric over the plate (:func:`_plate_bend`) bends it along the
     # direction of larger principal curvature; local x then lies along the view, and the
@@ -1108,10 +1117,16 @@ class MergeParts(Move):
     shorter one (a polish that settled on the wrong squareness or depth, a straight fit
     of a bent part); with ``alone``, again from their explained pixels alone (the
     unexplained pixels beside a thin plate seen edge-on, fitted bent, pull its starts
-    bent again). All are fitted by batched LM calls of ``steps`` steps to the pixels
-    their starts came from (the moment starts, farther from their answer, twice over);
-    every start, as it is and fitted, is an edit (the distances that the fits
-    minimise thicken a thin plate, and lengthen a bar whose ends meet other parts).
+    bent again); with ``disc``, a disc on the least axis among the moment starts (a
+    lid, a mushroom's cap seen as two plates: a superquadric's round outline lies about
+    its local z, which the other starts put in the plate). Only in the merge after
+    settling, where a start can only shorten the settled description: earlier, a disc
+    that summarises a round body at once (a teapot seen from above) wins a merge that
+    leaves the descent in a longer end. All are fitted by batched LM calls of
+    ``steps`` steps to the pixels their starts came from (the moment starts, farther
+    from their answer, twice over); every start, as it is and fitted, is an edit (the
+    distances that the fits minimise thicken a thin plate, and lengthen a bar whose
+    ends meet other parts).
     With ``pieces`` ((H, W) int: the piece of the figure each pixel lies in, -1 none;
     figures that one object's own occlusions may have torn apart) only parts in
     different pieces (where each explains most of its pixels) count as adjacent: merges
@@ -1122,6 +1137,7 @@ class MergeParts(Move):
     steps: int = 20
     tries: int = 3
     alone: bool = False
+    disc: bool = False
     pieces: np.ndarray | None = dataclasses.field(default=None, compare=False, repr=False)
 
     def __post_init__(self):
@@ -1180,10 +1196,10 @@ class MergeParts(Move):
         )
         singles = [(int(i),) for i in np.argsort(-gain, kind="stable")[: self.tries] if step == 0 and gain[i] > 0]
         for group in _part_groups(adjacent) + singles:
-            add(group, lambda w: _moment_candidates(pts[w > 0], data.encoding.sigma), whole=True)
+            add(group, lambda w: _moment_candidates(pts[w > 0], data.encoding.sigma, disc=self.disc), whole=True)
         for group in singles if self.alone else []:  # and from its explained pixels alone
             if np.isin(owner, group).any():  # (where it answers for others)
-                add(group, lambda w: _moment_candidates(pts[w > 0], data.encoding.sigma))
+                add(group, lambda w: _moment_candidates(pts[w > 0], data.encoding.sigma, disc=self.disc))
         if not inits:
             return [[]]
         w_all, wr_all, start = np.stack(weights), np.stack(ray_weights), np.stack(inits)
@@ -1337,7 +1353,8 @@ class RefineSettings:
     ``absorb`` (:class:`AbsorbParts`: a small part dropped while its neighbours grow
     over its pixels; the settling again if that lowered E), ``merge`` once more
     (settled parts may merge where they did not before, and single parts are summarised
-    from their explained pixels alone too; then grown, dropped and settled again),
+    from their explained pixels alone too, with discs among the starts; then grown,
+    dropped and settled again),
     ``faces`` (:class:`SettleFaces`: settling with one face of a part moved at a time,
     once per step scale in ``settle``), and last ``stretch`` (:class:`StretchParts`:
     parts stretched over the unexplained pixels they answer for; then settled again, by
@@ -1422,7 +1439,8 @@ class RefineSettings:
         if self.absorb:  # after settling: it only ever shortens the settled description
             moves.append(OnGain(AbsorbParts(steps=self.steps), then=settle))
         if self.merge:  # after settling, likewise: the parts as settled may merge where they did not before
-            last = MergeParts(passes=1, steps=self.steps, alone=True)  # the single parts as settled, too
+            # The single parts as settled, too, and discs among the starts.
+            last = MergeParts(passes=1, steps=self.steps, alone=True, disc=True)
             moves.append(OnGain(last, then=again + settle))
         faces = tuple(SettleFaces(scale=s) for s in self.settle) if self.faces else ()
         moves.extend(faces)  # likewise

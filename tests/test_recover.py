@@ -725,6 +725,79 @@ def test_moments_give_a_plate_bent_through_itself(size, bend):
     assert start[6] < 0.01  # thin along the view
 
 
+@pytest.mark.parametrize("tilt", [35.0, 55.0, 70.0])
+@pytest.mark.parametrize("size", [(0.08, 0.08, 0.03), (0.1, 0.07, 0.02)])
+def test_moments_give_a_disc_on_its_least_axis(tilt, size):
+    # A disc (a cylinder, round or elliptical, its thin axis local z) whose normal is
+    # tilted ``tilt`` degrees from the view, turned at random about the view and
+    # rendered: its visible top face and front rim give a start (the second last) whose
+    # local z lies near the disc's normal (the rim band tilts the points' least axis
+    # toward it: 5-16 degrees here, within fitting's reach, which the refinement test
+    # below checks) and whose outline and thickness are the disc's.
+    from scipy.spatial.transform import Rotation
+
+    from sqparts._refine import _moment_candidates
+
+    cam = sqparts.PinholeCamera(96, 96, 300.0, 300.0, 47.5, 47.5)
+    rng = np.random.default_rng(int(tilt + 1000 * size[1]))
+    face_camera = Rotation.from_euler("x", 180.0, degrees=True)  # local z toward the camera
+    turn = Rotation.from_euler("z", rng.uniform(0.0, 360.0), degrees=True) * Rotation.from_euler(
+        "x", tilt, degrees=True
+    )
+    m = (turn * face_camera).as_matrix()
+    part = sqparts.Part(
+        size=size, squareness=[0.3, 1.0], position=[0, 0, 1.5], orientation=Rotation.from_matrix(m).as_rotvec()
+    )
+    depth = np.asarray(sqparts.render_range_image(part, cam))
+    points = cam.points(depth).reshape(-1, 3)[np.isfinite(depth).reshape(-1)]
+    start = _moment_candidates(points, 0.002, disc=True)[-2]
+    r = Rotation.from_rotvec(start[3:6]).as_matrix()
+    assert np.degrees(np.arccos(min(1.0, abs(r[:, 2] @ m[:, 2])))) < 20.0
+    np.testing.assert_allclose(start[6:8], size[:2], rtol=0.1)
+    assert abs(start[8] - size[2]) < 0.35 * size[2]
+    assert tuple(start[9:11]) == (0.5, 1.0)
+
+
+def test_refinement_merges_a_disc_fitted_as_two_plates():
+    # A disc (round, its rim rounded: ε = (0.5, 1)) tilted 60 degrees from the view,
+    # started as two halves each described with local y as the disc's normal (a plate
+    # whose round outline a superquadric cannot give about y): merging replaces them by
+    # one part on the disc's normal, at the true part's E; without merging two stay.
+    from scipy.spatial.transform import Rotation
+
+    cam = sqparts.PinholeCamera(80, 80, 260.0, 260.0, 39.5, 39.5)
+    turn = Rotation.from_euler("z", 25.0, degrees=True) * Rotation.from_euler("x", 60.0, degrees=True)
+    m = (turn * Rotation.from_euler("x", 180.0, degrees=True)).as_matrix()
+    truth = sqparts.Part(
+        size=[0.08, 0.08, 0.03],
+        squareness=[0.5, 1.0],
+        position=[0, 0, 1.5],
+        orientation=Rotation.from_matrix(m).as_rotvec(),
+    )
+    _, data, costs = _render_one(truth, cam)
+    sideways = m @ np.array([[1.0, 0.0, 0.0], [0.0, 0.0, -1.0], [0.0, 1.0, 0.0]])  # local y on the normal
+    halves = sqparts.stack_parts(
+        [
+            sqparts.Part(
+                size=[0.04, 0.03, 0.08],
+                squareness=[1.0, 0.5],
+                position=np.array([0.0, 0.0, 1.5]) + side * 0.04 * sideways[:, 0],
+                orientation=Rotation.from_matrix(sideways).as_rotvec(),
+            )
+            for side in (-1.0, 1.0)
+        ]
+    )
+    kw = dict(rounds=1, split=False, stretch=False)
+    kept, kept_cost, _ = sqparts.refine_parts(halves, data, costs, merge=False, **kw)
+    new, new_cost, _ = sqparts.refine_parts(halves, data, costs, merge=True, **kw)
+    assert len(kept) == 2 and len(new) == 1
+    true_cost = sqparts.encoding_cost(sqparts.stack_parts([truth]), data, costs).total
+    assert new_cost.total <= true_cost + 1.0 < kept_cost.total
+    r = Rotation.from_rotvec(np.asarray(new.orientation[0])).as_matrix()
+    assert np.degrees(np.arccos(min(1.0, abs(r[:, 2] @ m[:, 2])))) < 3.0
+    np.testing.assert_allclose(np.asarray(new.size[0]), [0.08, 0.08, 0.03], rtol=0.05)
+
+
 def test_refinement_redescribes_a_straight_fit_of_a_bent_tapered_part():
     # A bent, tapered limb (bend 0.4, taper 0.3) started as one straight, untapered,
     # box-like part over its pixels: the merge stage's re-description of a single part
