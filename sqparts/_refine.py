@@ -47,7 +47,8 @@ E. The moves, in :meth:`RefineSettings.moves`'s order:
   they did not before (a body split under a lid's overhang, whose lid settling moved;
   an L's arm cut in two; single parts summarised from their explained pixels alone
   too: a seat seen edge-on, fitted bent; a disc among the starts: a lid seen as two
-  plates), then grown, dropped and settled again if it gains;
+  plates), then grown, dropped, straightened and settled again if it gains (a
+  merged part's fit to noisy points bends it, as the first search's fits did);
 - :class:`SettleFaces`, once per step scale of settling: settling with one face of a
   part moved at a time (a semi-axis and the centre together), which the one-parameter
   steps cannot do where each alone raises E;
@@ -1354,7 +1355,7 @@ class RefineSettings:
     over its pixels; the settling again if that lowered E), ``merge`` once more
     (settled parts may merge where they did not before, and single parts are summarised
     from their explained pixels alone too, with discs among the starts; then grown,
-    dropped and settled again),
+    dropped, straightened and settled again),
     ``faces`` (:class:`SettleFaces`: settling with one face of a part moved at a time,
     once per step scale in ``settle``), and last ``stretch`` (:class:`StretchParts`:
     parts stretched over the unexplained pixels they answer for; then settled again, by
@@ -1430,8 +1431,8 @@ class RefineSettings:
         again = (GrowParts(passes=MERGE_POLISH_ROUNDS, steps=self.steps), DropParts())
         if self.merge:
             moves.append(OnGain(MergeParts(passes=1, steps=self.steps), then=again, repeat=MAX_PASSES))
-        if self.straighten:
-            moves.append(StraightenParts(steps=self.steps))
+        straighten = (StraightenParts(steps=self.steps),) if self.straighten else ()
+        moves.extend(straighten)
         settle = tuple(SettleParts(scale=s) for s in self.settle)
         moves.extend(settle)
         if self.unpinch and settle:  # the settled twin against the settled part
@@ -1441,7 +1442,7 @@ class RefineSettings:
         if self.merge:  # after settling, likewise: the parts as settled may merge where they did not before
             # The single parts as settled, too, and discs among the starts.
             last = MergeParts(passes=1, steps=self.steps, alone=True, disc=True)
-            moves.append(OnGain(last, then=again + settle))
+            moves.append(OnGain(last, then=again + straighten + settle))
         faces = tuple(SettleFaces(scale=s) for s in self.settle) if self.faces else ()
         moves.extend(faces)  # likewise
         if self.stretch:  # last of all, likewise

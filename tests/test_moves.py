@@ -488,12 +488,16 @@ def test_move_settings_are_checked():
     assert [m.scale for m in moves[-5:-2]] == [1.0, 0.5, 0.25]  # the steps halved, twice
     assert "StraightenParts" not in [type(m).__name__ for m in sqparts.RefineSettings(straighten=False).moves()]
     assert type(moves[-2].move).__name__ == "AbsorbParts" and moves[-2].then == moves[-5:-2]  # settled again
-    # Merging once more: the settled parts grown, dropped and settled again on a gain.
+    # Merging once more: the settled parts grown, dropped, straightened and settled again
+    # on a gain.
     merges = [m for m in moves if isinstance(m, sqparts.OnGain) and type(m.move).__name__ == "MergeParts"]
     assert merges == [moves[2], moves[-1]] and moves[2].then == moves[-1].then[:2]
-    assert moves[-1].repeat == 1 and moves[-1].then[2:] == moves[-5:-2]
+    assert moves[-1].repeat == 1 and moves[-1].then[2:] == (moves[3], *moves[-5:-2])
     assert moves[-1].move.alone and not moves[2].move.alone  # the single parts' own pixels: once settled
-    assert [type(m).__name__ for m in moves[-1].then[:2]] == ["GrowParts", "DropParts"]
+    assert moves[-1].move.disc and not moves[2].move.disc  # discs among the starts: once settled
+    assert [type(m).__name__ for m in moves[-1].then[:3]] == ["GrowParts", "DropParts", "StraightenParts"]
+    plain = [m for m in sqparts.RefineSettings(straighten=False).moves() if getattr(m, "move", None) == merges[1].move]
+    assert [type(m).__name__ for m in plain[0].then] == ["GrowParts", "DropParts"] + ["SettleParts"] * 3
     no_merge = sqparts.RefineSettings(merge=False, faces=False, stretch=False).moves()
     assert type(no_merge[-1].move).__name__ == "AbsorbParts"
     assert not any(isinstance(m, sqparts.OnGain) and type(m.move).__name__ == "MergeParts" for m in no_merge)
