@@ -100,7 +100,7 @@ def main():
     ap.add_argument("--seeds", type=int, default=0, help="perturbation ensemble of this many draws (0: off)")
     ap.add_argument("--noise", type=float, default=1e-5, help="noise, relative to each pixel's depth")
     ap.add_argument("--name", default=None, help="one input by name (teapot-above, ...)")
-    ap.add_argument("--join", default="auto", choices=["never", "always", "auto"], help="SceneSettings.join")
+    ap.add_argument("--join", default="auto", choices=tuple(JOIN_MODES), help="SceneSettings.join")
     args = ap.parse_args()
     args.join = JOIN_MODES[args.join]
     if args.seeds:

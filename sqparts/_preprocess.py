@@ -689,11 +689,11 @@ def figure_ground(
     it, the groups it would join are named in ``joinable``, for
     :func:`~sqparts.recover_scene` to decide by description length), and the pieces of
     at least ``min_pixels`` (default: 0.25% of the returns, at least 16) are the
-    figures, except, once a plane is removed, a piece
-    with more than ``max_border_fraction`` of its returns on the outer frame of the
-    measured area (a band 1/40 of the image's shorter side wide, at least 3 pixels): that
-    is background running off the image, like the planes (a wall's edge where two planes
-    meet, a cable, the end of a shelf), not an object; 1 keeps such pieces. ``max_figures``
+    figures, except, once a plane is removed, a piece with more than
+    ``max_border_fraction`` of its returns on the outer frame of the measured area (a
+    band 1/40 of the image's shorter side wide, at least 3 pixels): that is background
+    running off the image, like the planes (a wall's edge where two planes meet, a
+    cable, the end of a shelf), not an object; 1 keeps such pieces. ``max_figures``
     keeps the largest figures. Each figure's mask also holds the pixels without a return
     that ``holes`` (:func:`missing_returns`) calls missing data: neither explained nor
     errors of commission; a part drawn on any other pixel without a return pays

@@ -41,16 +41,7 @@ from ._encoding import (
 )
 from ._grid import lookup_preset
 from ._part import Part, stack_parts
-from ._refine import (
-    MAX_PASSES,
-    MERGE_POLISH_ROUNDS,
-    DropParts,
-    GrowParts,
-    MergeParts,
-    OnGain,
-    RefineSettings,
-    run_moves,
-)
+from ._refine import MAX_PASSES, MergeParts, OnGain, RefineSettings, run_moves
 from ._render import render_range_image
 from ._search import SearchSettings, fit_image, largest_frame, search_preset
 from ._select import SelectionProblem, SelectSettings, select_rendered
@@ -833,7 +824,7 @@ def _merged_across(apart, depth, camera: Camera, mask, encoding: Encoding, piece
     label = np.full(np.shape(mask), -1)
     for k, piece in enumerate(pieces):
         label[np.asarray(piece, bool)] = k
-    grow = (GrowParts(passes=MERGE_POLISH_ROUNDS, steps=refine.steps), DropParts())
+    grow = refine.regrow()
     merge = OnGain(MergeParts(passes=1, steps=refine.steps, tries=0, pieces=label), then=grow, repeat=MAX_PASSES)
     start = np.concatenate([part_vectors(r.parts) for r in apart])
     initial_cost = encoding_cost(host_parts(start), data, costs)

@@ -1419,6 +1419,12 @@ class RefineSettings:
             or bool(self.settle)
         )
 
+    def regrow(self) -> tuple:
+        """What follows a merge that lowered E: the parts grown again (at most
+        :data:`MERGE_POLISH_ROUNDS` rounds of :class:`GrowParts`), then those that no
+        longer pay dropped."""
+        return (GrowParts(passes=MERGE_POLISH_ROUNDS, steps=self.steps), DropParts())
+
     def moves(self, search=None) -> tuple:
         """The moves these settings ask for, in order; ``search`` (the first search's
         resolved :class:`~sqparts.SearchSettings`) is used for filling gaps."""
@@ -1428,7 +1434,7 @@ class RefineSettings:
         if self.fill and search is not None:
             moves.append(FillGaps(search=search, steps=self.steps))
         moves.append(DropParts())
-        again = (GrowParts(passes=MERGE_POLISH_ROUNDS, steps=self.steps), DropParts())
+        again = self.regrow()
         if self.merge:
             moves.append(OnGain(MergeParts(passes=1, steps=self.steps), then=again, repeat=MAX_PASSES))
         straighten = (StraightenParts(steps=self.steps),) if self.straighten else ()
