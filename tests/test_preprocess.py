@@ -559,12 +559,17 @@ def test_recover_scene_gives_its_figures_one_frame(monkeypatch):
     small, large = (sqparts.SearchSettings(window=w) for w in (16, 16 + 2 * PAD))
     assert _recover._shared_frame(small, [small, large]) == small
     assert _recover._shared_frame(large, [small, large]) == large
+    # A figure pruned on no lattice (thin members) scores the whole grid at full
+    # resolution: on its own window, not the widest one's frame.
+    narrow = next(s for s in seen if s.window != widest)
+    alone = dataclasses.replace(narrow, stride=1, frame=None)
+    assert _recover._shared_frame(alone, seen).frame is None
+    assert _recover._shared_frame(dataclasses.replace(alone, stride=2), seen).frame == widest
     # Their pruning passes run on the widest window's lattices, where theirs fit in them
     # (each scored as on its own lattice: tests/test_search.py); a figure whose lattice is
     # finer than any of the widest one's keeps its own.
     wide = next(s for s in seen if s.window == widest)
     assert [s.lattices for s in seen] == [wide.own_lattices()] * 2
-    narrow = next(s for s in seen if s.window != widest)
     fine = dataclasses.replace(narrow, stride=1, lattices=None)
     assert _recover._shared_lattices(fine, [fine, wide]) == fine
     with pytest.raises(ValueError, match=r"lattices: got \(1,\), expected one of at least"):
