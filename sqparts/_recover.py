@@ -734,9 +734,11 @@ def recover_scene(
             enc = encoding_for(d[mask & np.isfinite(d)], sigma=max(base.sigma, 4.0 * noise))
         figure_search = search
         if search.stride is None:  # thin members: a lattice that sees them
-            figure_search = dataclasses.replace(
-                figure_search, stride=pruning_stride(mask & np.isfinite(d), enc.part_bits / enc.saved_per_pixel)
-            )
+            stride = pruning_stride(mask & np.isfinite(d), enc.part_bits / enc.saved_per_pixel)
+            # No lattice of the window sees them wherever it lies: one through each
+            # region's centre does (the regions lie on the figure's skeleton, a region on
+            # each member), at a quarter of the full resolution's cost.
+            figure_search = dataclasses.replace(figure_search, stride=max(stride, 2), centred=stride == 1)
         if search.window is None:
             data = prepare(d, camera, figure=mask, encoding=enc)
             size = search.max_size or default_max_size(data)

@@ -91,8 +91,9 @@ class SearchSettings:
     ``top_k`` candidates are returned per region; hypotheses are first scored on every
     ``stride``-th pixel (None: 4 here; :func:`~sqparts.recover_scene` gives each figure the
     widest lattice, at most 4, that still sees every member able to pay for a part,
-    :func:`~sqparts._preprocess.pruning_stride`) and the best ``survivors`` rescored at full resolution (``prune=False``: every hypothesis
-    at full resolution), together with the orientation neighbours of the
+    :func:`~sqparts._preprocess.pruning_stride`; where none does, thin members, a
+    ``centred`` lattice of stride 2) and the best ``survivors`` rescored at full
+    resolution (``prune=False``: every hypothesis at full resolution), together with the orientation neighbours of the
     ``refine_orientations`` best distinct survivors (coarse to fine,
     :func:`_orientation_neighbours`: each turned by half the grid's orientation step about
     each of its own axes, both ways); the ``polish_candidates`` best
@@ -112,8 +113,12 @@ class SearchSettings:
     pass of the fewest points that holds it, the points beyond it masked (the same Γ as
     on its own), so that searches whose windows and strides differ share the pruning
     program (:func:`~sqparts.recover_scene` gives an image's figures the widest window's
-    lattices, :meth:`own_lattices`, where theirs fit in them). The resolved
-    settings are part of the compiled computation's key.
+    lattices, :meth:`own_lattices`, where theirs fit in them). ``centred``: each
+    region's lattice passes through its centre (:func:`_region_inputs`), so that a
+    member narrower than the stride is sampled along the rows and columns of the region
+    on it wherever the figure lies; otherwise (the default) the lattice is the window's
+    own, every stride-th pixel from stride // 2. The resolved settings are part of the
+    compiled computation's key.
     """
 
     grid: Grid | str = "coarse"
@@ -134,6 +139,7 @@ class SearchSettings:
     prune: bool = True
     frame: int | None = None
     lattices: tuple[int, ...] | None = None
+    centred: bool = False
 
     def __post_init__(self):
         object.__setattr__(self, "grid", grid_preset(self.grid))
@@ -163,8 +169,9 @@ class SearchSettings:
             ):
                 raise ValueError(f"lattices: got {v!r:.60}, expected a tuple of positive integers or None")
             object.__setattr__(self, "lattices", tuple(int(x) for x in v))
-        if not isinstance(self.prune, (bool, np.bool_)):
-            raise ValueError(f"prune: got {self.prune!r}, expected True or False")
+        for name in ("prune", "centred"):
+            if not isinstance(getattr(self, name), (bool, np.bool_)):
+                raise ValueError(f"{name}: got {getattr(self, name)!r}, expected True or False")
         if self.region_method not in ("skeleton", "grid", "both"):
             raise ValueError(f"region_method: got {self.region_method!r}, expected 'skeleton', 'grid' or 'both'")
         if self.spacing is not None and not (
@@ -376,28 +383,33 @@ def pose_hypothesis(orientation_rel, shape, max_size, ray_origin, ray_direction,
     )
 
 
-def _region_inputs(depth, figure, camera, pad, corner, centre, frame: int, side, stride=1):
+def _region_inputs(depth, figure, camera, pad, corner, centre, frame: int, side, stride=1, centred=False):
     """A region's window: its ``side`` × ``side`` pixels from ``corner`` in a ``frame`` ×
     ``frame`` array (``frame`` >= ``side``; ``side`` may be traced). The frame's pixels
     beyond the window are ``valid`` False and off the figure: windows of several sides
     share one compiled program, each scoring as if cut to its own side. With ``stride``
     (may be traced; a pruning lattice), the array holds the window's pixels at every
     stride-th row and column from stride // 2, ``frame`` of them a side: lattices of
-    several strides and sides share one program too, each scoring as its own."""
+    several strides and sides share one program too, each scoring as its own. With
+    ``centred`` (may be traced), the lattice's rows and columns pass through the region's
+    ``centre`` instead, a point of the figure's skeleton: the member the region lies on
+    is sampled there and along them, however thin it is."""
     p = pad
     if isinstance(stride, int) and stride == 1:
-        at = jnp.arange(frame)
+        at_r = at_c = jnp.arange(frame)
         measured = jax.lax.dynamic_slice(depth, (corner[0] + p, corner[1] + p), (frame, frame))
         fig = jax.lax.dynamic_slice(figure, (corner[0] + p, corner[1] + p), (frame, frame))
+        start = corner
     else:  # lattice points past the padded image are masked as the frame's are
-        at = stride // 2 + stride * jnp.arange(frame)
-        rows, cols = (corner[0] + p + at)[:, None], (corner[1] + p + at)[None, :]
+        phase = jnp.where(centred, (centre - corner) % stride, stride // 2)  # (2,) rows, columns
+        at_r, at_c = (phase[k] + stride * jnp.arange(frame) for k in (0, 1))
+        rows, cols = (corner[0] + p + at_r)[:, None], (corner[1] + p + at_c)[None, :]
         measured = depth.at[rows, cols].get(mode="fill", fill_value=jnp.nan)
         fig = figure.at[rows, cols].get(mode="fill", fill_value=False)
-    inside = at < side
-    valid = inside[:, None] & inside[None, :]
+        start = corner + phase - stride // 2  # camera.rays' lattice starts at stride // 2
+    valid = (at_r < side)[:, None] & (at_c < side)[None, :]
     fig = fig & valid
-    window = (corner[0].astype(jnp.float32), corner[1].astype(jnp.float32), frame, frame)
+    window = (start[0].astype(jnp.float32), start[1].astype(jnp.float32), frame, frame)
     origins, directions = camera.rays(window, stride=stride)
     c_o, c_d = camera.rays((centre[0].astype(jnp.float32), centre[1].astype(jnp.float32), 1, 1))
     # Depth at the centre: the nearest figure pixel in a 5x5 neighbourhood.
@@ -471,6 +483,7 @@ def _score_hypotheses(
     centre,
     max_size,
     stride,
+    centred,
     *,
     camera,
     pad,
@@ -483,8 +496,9 @@ def _score_hypotheses(
     (``first``, ``side``, ``live``), each (R, c): chunk j of region ``region[k]``
     (``centre``: (R, 2); ``max_size``: (R,)) scores ``batches[q]`` rows of ``table`` =
     (``orientation_rel`` (m, 3), ``shape`` (m, 8)) from ``first[k, j]`` on the
-    ``side[k, j]`` window centred at the region, at every ``stride``-th pixel, a
-    ``lattices[q]`` × ``lattices[q]`` array of them (:func:`_region_inputs`); chunks
+    ``side[k, j]`` window centred at the region, at every ``stride``-th pixel (through
+    the region's centre when ``centred``), a ``lattices[q]`` × ``lattices[q]`` array of
+    them (:func:`_region_inputs`); chunks
     not ``live`` are not scored (zeros). Regions of ``region`` -1 are padding, after the
     live ones, not scored (Γ -inf). The stride, the sides and the chunks are traced:
     searches whose lattices, batches and numbers of chunks agree share the program,
@@ -493,7 +507,7 @@ def _score_hypotheses(
     depth, fig, sigma, lam = arrays
     weight = (stride * stride).astype(jnp.float32)  # each lattice point stands for stride² pixels
 
-    def at_region(r, chunks, table, centre, sigma, lam, max_size, stride):
+    def at_region(r, chunks, table, centre, sigma, lam, max_size, stride, centred):
         orientation_rel, shape = table
         out = []
         for (first, side, live), lattice, batch in zip(chunks, lattices, batches):
@@ -502,7 +516,7 @@ def _score_hypotheses(
             # every hypothesis (the human's grid search took 2.0 s instead of 1.2-1.6 s).
             inputs = jax.vmap(
                 lambda s, lattice=lattice: _region_inputs(
-                    depth, fig, camera, pad, centre[r] - s // 2, centre[r], lattice, s, stride
+                    depth, fig, camera, pad, centre[r] - s // 2, centre[r], lattice, s, stride, centred
                 )
             )(side)
 
@@ -541,7 +555,7 @@ def _score_hypotheses(
     def out_shape(chunks):  # per pass: Γ and p of each chunk's hypotheses
         return tuple((jax.ShapeDtypeStruct((len(f), b), depth.dtype),) * 2 for (f, _, _), b in zip(chunks, batches))
 
-    out = _map_regions(at_region, region, chunks, (table, centre, sigma, lam, max_size, stride), out_shape)
+    out = _map_regions(at_region, region, chunks, (table, centre, sigma, lam, max_size, stride, centred), out_shape)
     live = (region >= 0)[:, None, None]
     return tuple((jnp.where(live & jnp.isfinite(gam), gam, -jnp.inf), off) for gam, off in out)
 
@@ -648,6 +662,7 @@ def _score_passes(
             bucket(centres),
             bucket(sizes, 1.0),
             np.int32(stride),
+            np.bool_(settings.centred),
             camera=data.compiled_camera,
             pad=data.pad,
             lattices=program.lattices,

@@ -166,6 +166,9 @@ def test_one_pixel_wide_bar():
     depth = np.asarray(sqparts.render_range_image(truth, cam))
     assert set(np.nonzero(np.isfinite(depth))[0]) == {16} and np.isfinite(depth).sum() >= 38
     rec = sqparts.recover_scene(depth, cam)
+    # No lattice of a window sees the bar wherever it lies: it is pruned on a 2-lattice
+    # through each region's centre.
+    assert [(f.search.stride, f.search.centred) for f in rec.figures] == [(2, True)]
     assert rec.fraction_explained > 0.8
     sizes, rot = np.asarray(rec.parts.size), np.asarray(rec.parts.rotation())
     best = int(np.argmax([s["pixels"] for s in rec.part_stats]))

@@ -185,6 +185,39 @@ def test_windows_on_a_shared_pruning_program_score_as_on_their_own(data):
         _score_passes(data, st, centres, [(16, hyp)], stride=1, program=program)
 
 
+def test_a_centred_lattice_samples_the_thin_member_its_region_lies_on():
+    # A bar one pixel across with a region centred on it. The window's own 2-lattice
+    # (rows from 1; the centre is row 12 of a 24-pixel window, as of any window a
+    # multiple of 8 wide) misses it; the centred one samples it at every other pixel
+    # along it. Either lattice's rays are the full-resolution window's at the pixels it
+    # samples, bit for bit, and its depths the image's there (numpy indexing).
+    from sqparts._search import _region_inputs
+
+    row, col = 21, 29
+    depth = np.full((48, 48), np.nan, np.float32)
+    depth[row, 6:42] = 2.0
+    data = sqparts.prepare(depth, CAM)
+    side, frame = 24, 24
+    centre = np.array([row, col], np.int32)
+    corner = centre - side // 2
+    full = _region_inputs(*data.arrays[:2], data.compiled_camera, data.pad, corner, centre, frame, side)
+    seen = {}
+    for centred in (False, True):
+        measured, fig, valid, origins, directions, *_ = _region_inputs(
+            *data.arrays[:2], data.compiled_camera, data.pad, corner, centre, 12, side, 2, centred
+        )
+        first = (centre - corner) % 2 if centred else np.array([1, 1])
+        rows, cols = first[0] + 2 * np.arange(12), first[1] + 2 * np.arange(12)
+        np.testing.assert_array_equal(np.asarray(origins), np.asarray(full[3])[np.ix_(rows, cols)])
+        np.testing.assert_array_equal(np.asarray(directions), np.asarray(full[4])[np.ix_(rows, cols)])
+        image = np.asarray(data.depth)[data.pad + corner[0] + rows][:, data.pad + corner[1] + cols]
+        np.testing.assert_array_equal(np.asarray(measured), image)
+        seen[centred] = np.asarray(fig)
+    bar = np.flatnonzero(seen[True][side // 2 // 2])  # the lattice row through the centre
+    assert (seen[True].sum(), len(bar)) == (12, 12) and np.diff(bar).max() == 1  # every other pixel, all along
+    assert seen[False].sum() == 0
+
+
 def test_a_window_scored_in_a_larger_frame_equals_the_window_alone(data):
     # recover_scene gives an image's figures one frame, so that their full-resolution
     # passes and candidates share compiled programs: a window computed in a larger frame
