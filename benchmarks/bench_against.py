@@ -6,7 +6,8 @@ Per scene and checkout: one process that recovers the scene once cold (compiling
 counting the XLA programs it builds) and ``--runs`` times warm with
 :func:`sqparts.recover`'s defaults; the warm runs' median is the figure. ``single`` is
 ``bench_cli.py``'s 96x96 one-part image, ``kinect`` the Kinect frame of
-``../shared/data``; the others are built-in scenes. ``scene:NAME`` recovers NAME through
+``../shared/data``, a path (holding a ``/``) a folder of ``depth.npy`` and
+``camera.json`` (``benchmarks/unseen/make.py``'s); the others are built-in scenes. ``scene:NAME`` recovers NAME through
 :func:`sqparts.recover_scene` instead (clean-up, figure/ground, a recovery per
 figure; e.g. ``scene:kinect``, ``scene:human``). Several
 ``--rounds`` repeat the whole interleaving (the machines are shared and noisy: compare
@@ -41,11 +42,14 @@ if name == "single":
     parts, cam = sqparts.scene_from_dict(scene)[0], sqparts.camera_from_json(camera)
 elif name == "kinect":
     parts, cam = None, None
+elif "/" in name:  # a folder of depth.npy and camera.json (benchmarks/unseen/make.py's)
+    from pathlib import Path
+    parts, cam = None, sqparts.camera_from_json(json.loads((Path(name) / "camera.json").read_text()))
 else:
     s = sqparts.builtin_scene(name)
     parts, cam = s.parts, s.camera
 if parts is None:
-    depth, cam = sqparts.read_range_image(sys.argv[5])
+    depth, cam = sqparts.read_range_image(sys.argv[5]) if cam is None else (np.load(Path(name) / "depth.npy"), cam)
 else:
     depth = np.asarray(sqparts.render_range_image(parts, cam))
 recover = sqparts.recover_scene if whole else sqparts.recover
@@ -70,6 +74,9 @@ KINECT = ROOT.parent / "shared" / "data" / "grabber_frame0.pcd"
 
 
 def run(checkout: Path, scene: str, runs: int) -> dict:
+    name = scene.removeprefix("scene:")
+    if "/" in name:  # a folder: absolute, for the children run elsewhere
+        scene = scene.removesuffix(name) + str(Path(name).resolve())
     return run_in_checkout(checkout, CHILD, scene, str(runs), json.dumps(SCENE), json.dumps(CAMERA), str(KINECT))
 
 
