@@ -592,8 +592,8 @@ def _shared_frame(search: SearchSettings, searches) -> SearchSettings:
     """``search`` with the frame of the widest window among ``searches`` (one image's
     figures), where that frame fits its window's padding (:meth:`SearchSettings.resolve`):
     the figures' full-resolution passes and candidates then share their compiled
-    programs, each scored as on its own window. Not a figure pruned on no lattice
-    (``stride`` 1: thin members): its full-resolution pass scores the whole grid, and a
+    programs, each scored as on its own window. Not a search pruned on no lattice
+    (``stride`` 1, brute force): its full-resolution pass scores the whole grid, and a
     frame pixel beyond its window costs as much there as one inside it (a 52-pixel
     sliver's 32-pixel window in a 64-pixel frame: 8.5 s of search warm, 2.2 s on its own
     window), more than the compiling of its own programs."""

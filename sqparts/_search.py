@@ -93,11 +93,11 @@ class SearchSettings:
     widest lattice, at most 4, that still sees every member able to pay for a part,
     :func:`~sqparts._preprocess.pruning_stride`; where none does, thin members, a
     ``centred`` lattice of stride 2) and the best ``survivors`` rescored at full
-    resolution (``prune=False``: every hypothesis at full resolution), together with the orientation neighbours of the
-    ``refine_orientations`` best distinct survivors (coarse to fine,
-    :func:`_orientation_neighbours`: each turned by half the grid's orientation step about
-    each of its own axes, both ways); the ``polish_candidates`` best
-    distinct survivors are polished (``polish_rounds`` of region growing ×
+    resolution (``prune=False``: every hypothesis at full resolution), together with
+    the orientation neighbours of the ``refine_orientations`` best distinct survivors
+    (coarse to fine, :func:`_orientation_neighbours`: each turned by half the grid's
+    orientation step about each of its own axes, both ways); the ``polish_candidates``
+    best distinct survivors are polished (``polish_rounds`` of region growing ×
     ``polish_steps`` Levenberg-Marquardt steps, rounded up to a multiple of
     :data:`~sqparts._polish.POLISH_CALL_STEPS`: all regions' candidates together,
     :func:`fit_regions`); the best polished part is restarted from

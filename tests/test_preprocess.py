@@ -559,8 +559,8 @@ def test_recover_scene_gives_its_figures_one_frame(monkeypatch):
     small, large = (sqparts.SearchSettings(window=w) for w in (16, 16 + 2 * PAD))
     assert _recover._shared_frame(small, [small, large]) == small
     assert _recover._shared_frame(large, [small, large]) == large
-    # A figure pruned on no lattice (thin members) scores the whole grid at full
-    # resolution: on its own window, not the widest one's frame.
+    # A search pruned on no lattice (stride 1, brute force) scores the whole grid at
+    # full resolution: on its own window, not the widest one's frame.
     narrow = next(s for s in seen if s.window != widest)
     alone = dataclasses.replace(narrow, stride=1, frame=None)
     assert _recover._shared_frame(alone, seen).frame is None
