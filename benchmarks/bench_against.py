@@ -38,19 +38,19 @@ CHILD = (
 name, runs, scene, camera = sys.argv[1], int(sys.argv[2]), json.loads(sys.argv[3]), json.loads(sys.argv[4])
 whole = name.startswith("scene:")  # through recover_scene (clean-up, figure/ground, a recovery per figure)
 name = name.removeprefix("scene:")
-if name == "single":
-    parts, cam = sqparts.scene_from_dict(scene)[0], sqparts.camera_from_json(camera)
-elif name == "kinect":
-    parts, cam = None, None
+if name == "kinect":
+    depth, cam = sqparts.read_range_image(sys.argv[5])
 elif "/" in name:  # a folder of depth.npy and camera.json (benchmarks/unseen/make.py's)
-    from pathlib import Path
-    parts, cam = None, sqparts.camera_from_json(json.loads((Path(name) / "camera.json").read_text()))
+    import pathlib
+    folder = pathlib.Path(name)
+    depth = np.load(folder / "depth.npy")
+    cam = sqparts.camera_from_json(json.loads((folder / "camera.json").read_text()))
 else:
-    s = sqparts.builtin_scene(name)
-    parts, cam = s.parts, s.camera
-if parts is None:
-    depth, cam = sqparts.read_range_image(sys.argv[5]) if cam is None else (np.load(Path(name) / "depth.npy"), cam)
-else:
+    if name == "single":
+        parts, cam = sqparts.scene_from_dict(scene)[0], sqparts.camera_from_json(camera)
+    else:
+        s = sqparts.builtin_scene(name)
+        parts, cam = s.parts, s.camera
     depth = np.asarray(sqparts.render_range_image(parts, cam))
 recover = sqparts.recover_scene if whole else sqparts.recover
 built[0] = 0

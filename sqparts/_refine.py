@@ -1196,11 +1196,15 @@ class MergeParts(Move):
             ]
         )
         singles = [(int(i),) for i in np.argsort(-gain, kind="stable")[: self.tries] if step == 0 and gain[i] > 0]
+
+        def moments(w):
+            return _moment_candidates(pts[w > 0], data.encoding.sigma, disc=self.disc)
+
         for group in _part_groups(adjacent) + singles:
-            add(group, lambda w: _moment_candidates(pts[w > 0], data.encoding.sigma, disc=self.disc), whole=True)
+            add(group, moments, whole=True)
         for group in singles if self.alone else []:  # and from its explained pixels alone
             if np.isin(owner, group).any():  # (where it answers for others)
-                add(group, lambda w: _moment_candidates(pts[w > 0], data.encoding.sigma, disc=self.disc))
+                add(group, moments)
         if not inits:
             return [[]]
         w_all, wr_all, start = np.stack(weights), np.stack(ray_weights), np.stack(inits)
